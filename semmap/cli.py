@@ -1,0 +1,93 @@
+"""The `semmap` command: run the pipeline, fetch models, detect, evaluate, view and query maps."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from semmap.config import ConfigError, load_config
+from semmap.service import configure_logging
+
+# services a run starts, in data-flow order; each is `python -m services.<name>`
+PIPELINE = ("odometry",)
+
+
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run the whole pipeline on a dataset (or 'synthetic')",
+                       description="Start every service as its own process over Zenoh and play DATA through them.")
+    p.add_argument("data", help="dataset path (7-Scenes, TUM RGB-D, KITTI odometry) or 'synthetic[:frames=N,seed=S]'")
+    p.add_argument("--out", default="out", help="output directory (default: out)")
+    p.add_argument("--odometry", default=None, help="gt | gt+drift | rgbd | file:PATH (default from config)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", dest="mode", action="store_const", const="lockstep",
+                      help="wait for the pipeline after every frame: deterministic (default)")
+    mode.add_argument("--realtime", dest="mode", action="store_const", const="realtime",
+                      help="play at the dataset rate; services drop what they cannot keep up with")
+    p.add_argument("--config", default=None, help="YAML config (same layout as semmap/config/default.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.add_argument("--robot", default=None, help="robot name used in the key expressions")
+    p.add_argument("--max-frames", type=int, default=None, help="play at most N frames")
+    p.add_argument("--detectors", type=int, default=1, help="detector replicas")
+    p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
+                   "hosting the bus; env SEMMAP_ZENOH_CONNECT")
+    p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from semmap.orchestrator import Orchestrator, RunPlan, ServiceSpec
+
+    overrides = list(args.overrides)
+    if args.odometry:
+        overrides.append(f"odometry.mode={args.odometry}")
+    if args.seed is not None:
+        overrides.append(f"odometry.seed={args.seed}")
+    if args.max_frames is not None:
+        overrides.append(f"run.max_frames={args.max_frames}")
+    try:
+        config = load_config(args.config, overrides)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.data != "synthetic" and not args.data.startswith("synthetic:") and not Path(args.data).exists():
+        print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
+        return 2
+    specs = [ServiceSpec(name, replicas=args.detectors if name == "detector" else 1) for name in PIPELINE]
+    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or config["run"]["robot"],
+                   mode=args.mode or config["run"]["mode"], services=specs, config_path=args.config,
+                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,
+                   quiet=args.quiet)
+    return Orchestrator(plan).run()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="semmap", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_run(sub)
+    try:
+        from services.detector.commands import register as register_detector
+    except ImportError:  # pragma: no cover - the detector commands are part of the package
+        register_detector = None
+    if register_detector:
+        register_detector(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(getattr(args, "verbose", False), "semmap")
+    logging.getLogger("semmap.run").setLevel(logging.INFO)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

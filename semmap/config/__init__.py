@@ -1,0 +1,67 @@
+"""Run configuration: the packaged defaults, a user YAML on top, then `--set a.b=value` overrides.
+
+Unknown sections or keys are errors (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration file or override that does not fit the known settings."""
+
+
+def default_config() -> dict[str, Any]:
+    text = resources.files("semmap.config").joinpath("default.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+def _merge(base: dict, extra: dict, path: str, open_sections: set[str]) -> None:
+    for key, value in extra.items():
+        where = f"{path}{key}"
+        if key not in base and path.rstrip(".") not in open_sections:
+            raise ConfigError(f"unknown setting '{where}' (known: {', '.join(sorted(base))})")
+        if isinstance(base.get(key), dict) and isinstance(value, dict):
+            _merge(base[key], value, where + ".", open_sections)
+        else:
+            base[key] = value
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Defaults <- YAML file <- `section.key=value` overrides (values parsed as YAML scalars/lists)."""
+    config = default_config()
+    open_sections = {name for name, section in config.items() if section == {}}
+    if path:
+        try:
+            user = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from None
+        if not isinstance(user, dict):
+            raise ConfigError(f"config {path} must be a mapping of sections")
+        _merge(config, user, "", open_sections)
+    for item in overrides or []:
+        key, sep, value = item.partition("=")
+        if not sep or "." not in key:
+            raise ConfigError(f"override {item!r} must look like section.key=value")
+        nested: Any = _parse_value(value)
+        for part in reversed(key.split(".")):
+            nested = {part: nested}
+        _merge(config, nested, "", open_sections)
+    return config
+
+
+def section(config: dict[str, Any], name: str) -> dict[str, Any]:
+    return copy.deepcopy(config.get(name, {}))

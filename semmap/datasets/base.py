@@ -1,0 +1,102 @@
+"""The one interface every data source implements, so the player never cares where frames come from."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be opened or read: a wrong layout, a missing or corrupt file, a bad option.
+
+    A ValueError so callers that already catch bad input keep working; raised instead of cv2/numpy
+    assertions so the user sees which file is at fault.
+    """
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of the (depth-registered) colour camera, in pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class InstanceBox:
+    """A ground-truth object instance visible in a frame (synthetic data only): what an oracle detector sees."""
+
+    instance_id: int
+    class_name: str
+    box: tuple[float, float, float, float]  # x1, y1, x2, y2 in pixels
+    visible_pixels: int
+    moving: bool = False
+
+
+@dataclass
+class FrameData:
+    """One RGB-D frame as the rest of the system sees it.
+
+    depth is uint16 with `depth_scale` metres per unit (7-Scenes and TUM: millimetres / 5000ths; 0 = invalid).
+    gt_pose is the 4x4 camera-to-world ground truth, or None where the dataset has none.
+    """
+
+    index: int
+    stamp: float
+    rgb: np.ndarray  # HxWx3 uint8, RGB order
+    depth: np.ndarray  # HxW uint16
+    depth_scale: float
+    intrinsics: CameraIntrinsics
+    gt_pose: np.ndarray | None = None
+    instances: list[InstanceBox] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ObjectTruth:
+    """Ground truth of one object in a synthetic scene (world frame, metres)."""
+
+    instance_id: int
+    class_name: str
+    centroid: tuple[float, float, float]
+    extent: tuple[float, float, float]
+    moving: bool
+
+
+class Dataset(ABC):
+    """A finite, indexable sequence of RGB-D frames with a nominal rate."""
+
+    name: str = "dataset"
+    rate_hz: float = 30.0
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def __getitem__(self, index: int) -> FrameData: ...
+
+    @property
+    def has_groundtruth(self) -> bool:
+        return False
+
+    def groundtruth(self) -> list[tuple[float, np.ndarray]]:
+        """(stamp, 4x4 camera-to-world) for every frame that has ground truth; empty where there is none."""
+        return []
+
+    def objects(self) -> list[ObjectTruth]:
+        """Ground-truth objects (synthetic scenes only)."""
+        return []
+
+    def __iter__(self) -> Iterator[FrameData]:
+        for i in range(len(self)):
+            yield self[i]

@@ -1,0 +1,806 @@
+"""Every message semmap sends, in one place: msgpack maps with a `schema` version and strict validation.
+
+Why one module: an external SLAM (or a service in another language) needs a single page to read, and every
+service must reject a malformed or wrong-version message the same way (`MessageError`), never crash on it.
+
+Conventions
+- A message is a msgpack map; key `schema` is `semmap.<kind>/<version>`.
+- Poses are 4x4 camera-to-world matrices, flattened row-major to 16 floats (metres).
+- Boxes are `[x1, y1, x2, y2]` pixels. Times are seconds (`stamp`: dataset time; `sent_at`: wall clock).
+- Arrays travel as `{"dtype", "shape", "data"}` with raw little-endian bytes; RGB images as JPEG, depth as
+  raw uint16 (or 16-bit PNG) with `depth_scale` metres per unit, 0 = invalid.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, TypeVar
+
+import cv2
+import msgpack
+import numpy as np
+
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+ROBOT_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_ALLOWED_DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64"}
+
+M = TypeVar("M", bound="Message")
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid semmap message of the expected kind and version."""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# small validation helpers
+
+
+def _get(d: dict, key: str, kind: type | tuple[type, ...], optional: bool = False) -> Any:
+    if key not in d or d[key] is None:
+        if optional:
+            return None
+        raise MessageError(f"missing field '{key}'")
+    value = d[key]
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if isinstance(value, bool) and kind is not bool and bool not in (kind if isinstance(kind, tuple) else ()):
+        raise MessageError(f"field '{key}' must be {kind}, got bool")
+    if not isinstance(value, kind):
+        raise MessageError(f"field '{key}' must be {kind}, got {type(value).__name__}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise MessageError(f"field '{key}' must be finite, got {value}")
+    return value
+
+
+def _finite_floats(values: Any, n: int | None, name: str) -> list[float]:
+    if not isinstance(values, list | tuple):
+        raise MessageError(f"field '{name}' must be a list of numbers")
+    if n is not None and len(values) != n:
+        raise MessageError(f"field '{name}' must have {n} numbers, got {len(values)}")
+    out = []
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise MessageError(f"field '{name}' must hold numbers")
+        f = float(v)
+        if not math.isfinite(f):
+            raise MessageError(f"field '{name}' holds a non-finite number")
+        out.append(f)
+    return out
+
+
+def _robot(d: dict) -> str:
+    robot = _get(d, "robot", str)
+    if not ROBOT_NAME.match(robot):
+        raise MessageError(f"invalid robot name {robot!r}: use letters, digits, '_' or '-'")
+    return robot
+
+
+def _non_negative_int(d: dict, key: str) -> int:
+    value = _get(d, key, int)
+    if value < 0:
+        raise MessageError(f"field '{key}' must be >= 0")
+    return value
+
+
+def validate_pose(values: Any, name: str = "pose") -> np.ndarray:
+    """A 4x4 rigid transform from 16 floats: finite, orthonormal rotation, det +1, last row 0 0 0 1."""
+    pose = np.asarray(_finite_floats(values, 16, name), dtype=np.float64).reshape(4, 4)
+    rot = pose[:3, :3]
+    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise MessageError(f"'{name}' last row must be 0 0 0 1")
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-3) or np.linalg.det(rot) < 0.0:
+        raise MessageError(f"'{name}' rotation is not orthonormal with det +1")
+    return pose
+
+
+def pose_to_wire(pose: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(pose, dtype=np.float64).reshape(16)]
+
+
+def encode_array(array: np.ndarray) -> dict:
+    array = np.ascontiguousarray(array)
+    if array.dtype.name not in _ALLOWED_DTYPES:
+        raise MessageError(f"dtype {array.dtype} cannot travel")
+    return {"dtype": array.dtype.name, "shape": list(array.shape), "data": array.astype(array.dtype.newbyteorder("<")).tobytes()}
+
+
+def decode_array(d: Any, name: str, ndim: int | None = None, dtype: str | None = None) -> np.ndarray:
+    if not isinstance(d, dict):
+        raise MessageError(f"field '{name}' must be an array map")
+    kind = _get(d, "dtype", str)
+    shape = _get(d, "shape", list)
+    data = _get(d, "data", bytes)
+    if kind not in _ALLOWED_DTYPES or (dtype is not None and kind != dtype):
+        raise MessageError(f"field '{name}' has dtype {kind!r}, expected {dtype or sorted(_ALLOWED_DTYPES)}")
+    if ndim is not None and len(shape) != ndim:
+        raise MessageError(f"field '{name}' must have {ndim} dimensions, got {len(shape)}")
+    if not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 1 << 20 for s in shape):
+        raise MessageError(f"field '{name}' has an invalid shape {shape}")
+    dt = np.dtype(kind).newbyteorder("<")
+    if math.prod(shape) * dt.itemsize != len(data):
+        raise MessageError(f"field '{name}': {len(data)} bytes do not fit shape {shape} of {kind}")
+    array = np.frombuffer(data, dtype=dt).reshape(shape)
+    if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+        raise MessageError(f"field '{name}' holds non-finite numbers")
+    return array.astype(np.dtype(kind), copy=False)
+
+
+def _box(values: Any, name: str = "box") -> tuple[float, float, float, float]:
+    x1, y1, x2, y2 = _finite_floats(values, 4, name)
+    if x2 <= x1 or y2 <= y1:
+        raise MessageError(f"'{name}' must have x2 > x1 and y2 > y1")
+    return (x1, y1, x2, y2)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the message base class
+
+
+class Message:
+    """Base of all messages: `encode()` to bytes, `decode(bytes)` with validation."""
+
+    SCHEMA: ClassVar[str] = ""
+
+    def to_dict(self) -> dict:
+        raise NotImplementedError
+
+    @classmethod
+    def from_dict(cls: type[M], d: dict) -> M:
+        raise NotImplementedError
+
+    def encode(self) -> bytes:
+        body = self.to_dict()
+        body["schema"] = self.SCHEMA
+        return msgpack.packb(body, use_bin_type=True)
+
+    @classmethod
+    def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
+        if len(payload) > MAX_MESSAGE_BYTES:
+            raise MessageError(f"message of {len(payload)} bytes exceeds the limit of {MAX_MESSAGE_BYTES}")
+        try:
+            d = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES)
+        except Exception as exc:  # msgpack raises several unrelated types on garbage
+            raise MessageError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+        if not isinstance(d, dict):
+            raise MessageError("a message must be a msgpack map")
+        schema = d.get("schema")
+        if schema != cls.SCHEMA:
+            kind, _, _ = cls.SCHEMA.partition("/")
+            if isinstance(schema, str) and schema.partition("/")[0] == kind:
+                raise MessageError(f"unsupported version {schema!r}: this build reads {cls.SCHEMA!r}")
+            raise MessageError(f"expected schema {cls.SCHEMA!r}, got {schema!r}")
+        try:
+            return cls.from_dict(d)
+        except MessageError:
+            raise
+        except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError, cv2.error) as exc:
+            raise MessageError(f"invalid {cls.SCHEMA} message: {type(exc).__name__}: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# sensor data
+
+
+@dataclass
+class Intrinsics:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def to_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Intrinsics:
+        if not isinstance(d, dict):
+            raise MessageError("field 'intrinsics' must be a map")
+        k = cls(_get(d, "fx", float), _get(d, "fy", float), _get(d, "cx", float), _get(d, "cy", float),
+                _get(d, "width", int), _get(d, "height", int))
+        if k.fx <= 0 or k.fy <= 0 or not (0 < k.width <= 16384 and 0 < k.height <= 16384):
+            raise MessageError("intrinsics must have positive focal lengths and image size")
+        return k
+
+    @property
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class GroundTruthInstance:
+    """A ground-truth object box (synthetic data): lets the oracle detector run anywhere in the pipeline."""
+
+    instance_id: int
+    class_name: str
+    box: tuple[float, float, float, float]
+    visible_pixels: int
+    moving: bool
+
+    def to_dict(self) -> dict:
+        return {"instance_id": self.instance_id, "class": self.class_name, "box": list(self.box),
+                "visible_pixels": self.visible_pixels, "moving": self.moving}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> GroundTruthInstance:
+        if not isinstance(d, dict):
+            raise MessageError("an instance must be a map")
+        return cls(_get(d, "instance_id", int), _get(d, "class", str), _box(d.get("box")),
+                   _get(d, "visible_pixels", int), _get(d, "moving", bool))
+
+
+@dataclass
+class Frame(Message):
+    """One RGB-D frame. Images stay encoded until a consumer asks (`rgb()`, `depth()`), then are cached."""
+
+    SCHEMA: ClassVar[str] = "semmap.frame/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    rgb_jpeg: bytes
+    depth_raw: np.ndarray | bytes  # uint16 HxW array, or 16-bit PNG bytes
+    depth_scale: float
+    intrinsics: Intrinsics
+    gt_pose: np.ndarray | None = None
+    instances: list[GroundTruthInstance] = field(default_factory=list)
+    sent_at: float = 0.0
+    _rgb: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @classmethod
+    def from_arrays(cls, robot: str, frame_id: int, stamp: float, rgb: np.ndarray, depth: np.ndarray,
+                    depth_scale: float, intrinsics: Intrinsics, gt_pose: np.ndarray | None = None,
+                    instances: list[GroundTruthInstance] | None = None, jpeg_quality: int = 90) -> Frame:
+        """Build a frame from an RGB uint8 image and a uint16 depth image (what a SLAM front end has)."""
+        if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise MessageError("rgb must be an HxWx3 uint8 array")
+        if depth.dtype != np.uint16 or depth.shape != rgb.shape[:2]:
+            raise MessageError("depth must be a uint16 array of the RGB image's size")
+        frame = cls(robot, frame_id, stamp, cls.encode_rgb(rgb, jpeg_quality), np.ascontiguousarray(depth),
+                    depth_scale, intrinsics, gt_pose, list(instances or []))
+        frame._rgb = rgb
+        return frame
+
+    @staticmethod
+    def encode_rgb(rgb: np.ndarray, quality: int = 90) -> bytes:
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise MessageError("JPEG encoding failed")
+        return buf.tobytes()
+
+    def rgb(self) -> np.ndarray:
+        """The HxWx3 uint8 RGB image (decoded once)."""
+        if self._rgb is None:
+            bgr = cv2.imdecode(np.frombuffer(self.rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
+            if bgr is None or bgr.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
+                raise MessageError(f"frame {self.frame_id}: RGB is not a decodable JPEG of the stated size")
+            self._rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return self._rgb
+
+    def depth(self) -> np.ndarray:
+        """The HxW uint16 depth image (0 = invalid)."""
+        if isinstance(self.depth_raw, bytes):
+            img = cv2.imdecode(np.frombuffer(self.depth_raw, np.uint8), cv2.IMREAD_UNCHANGED)
+            if img is None or img.dtype != np.uint16 or img.shape != (self.intrinsics.height, self.intrinsics.width):
+                raise MessageError(f"frame {self.frame_id}: depth is not a 16-bit PNG of the stated size")
+            self.depth_raw = img
+        return self.depth_raw
+
+    def to_dict(self) -> dict:
+        depth = self.depth_raw
+        return {
+            "robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp, "sent_at": self.sent_at,
+            "rgb_jpeg": self.rgb_jpeg,
+            "depth": {"png": depth} if isinstance(depth, bytes) else encode_array(depth),
+            "depth_scale": self.depth_scale, "intrinsics": self.intrinsics.to_dict(),
+            "gt_pose": None if self.gt_pose is None else pose_to_wire(self.gt_pose),
+            "instances": [i.to_dict() for i in self.instances],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Frame:
+        intr = Intrinsics.from_dict(d.get("intrinsics"))
+        depth_field = _get(d, "depth", dict)
+        if "png" in depth_field:
+            depth: np.ndarray | bytes = _get(depth_field, "png", bytes)
+        else:
+            depth = decode_array(depth_field, "depth", ndim=2, dtype="uint16")
+            if depth.shape != (intr.height, intr.width):
+                raise MessageError(f"depth shape {depth.shape} does not match intrinsics {intr.height}x{intr.width}")
+        scale = _get(d, "depth_scale", float)
+        if not 0.0 < scale < 1.0:
+            raise MessageError("depth_scale must be in (0, 1) metres per unit")
+        gt = d.get("gt_pose")
+        return cls(
+            robot=_robot(d), frame_id=_non_negative_int(d, "frame_id"), stamp=_get(d, "stamp", float),
+            rgb_jpeg=_get(d, "rgb_jpeg", bytes), depth_raw=depth, depth_scale=scale, intrinsics=intr,
+            gt_pose=None if gt is None else validate_pose(gt, "gt_pose"),
+            instances=[GroundTruthInstance.from_dict(i) for i in _get(d, "instances", list)],
+            sent_at=_get(d, "sent_at", float),
+        )
+
+
+@dataclass
+class OdometryPose(Message):
+    """A camera pose from the SLAM front end (ours or an external one) for one frame.
+
+    sigma_translation / sigma_rotation: the front end's 1-sigma uncertainty of the motion since the previous
+    keyframe (metres, radians); the backend turns them into its odometry noise.
+    """
+
+    SCHEMA: ClassVar[str] = "semmap.odometry/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    pose: np.ndarray
+    keyframe: bool = True
+    sigma_translation: float = 0.01
+    sigma_rotation: float = 0.005
+    source: str = "external"
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp, "pose": pose_to_wire(self.pose),
+                "keyframe": self.keyframe, "sigma_translation": self.sigma_translation,
+                "sigma_rotation": self.sigma_rotation, "source": self.source, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> OdometryPose:
+        st, sr = _get(d, "sigma_translation", float), _get(d, "sigma_rotation", float)
+        if st <= 0 or sr <= 0:
+            raise MessageError("odometry sigmas must be positive")
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float), validate_pose(d.get("pose")),
+                   _get(d, "keyframe", bool), st, sr, _get(d, "source", str), _get(d, "sent_at", float))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# detections and tracklets
+
+
+@dataclass
+class DepthPatch:
+    """The depth pixels under a box, subsampled by `stride`, so the associator can back-project them."""
+
+    x0: int
+    y0: int
+    stride: int
+    depth: np.ndarray  # uint16
+
+    def to_dict(self) -> dict:
+        return {"x0": self.x0, "y0": self.y0, "stride": self.stride, "depth": encode_array(self.depth)}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> DepthPatch:
+        if not isinstance(d, dict):
+            raise MessageError("field 'depth_patch' must be a map")
+        stride = _get(d, "stride", int)
+        if not 1 <= stride <= 64:
+            raise MessageError("depth patch stride must be in 1..64")
+        return cls(_get(d, "x0", int), _get(d, "y0", int), stride,
+                   decode_array(d.get("depth"), "depth_patch", ndim=2, dtype="uint16"))
+
+
+@dataclass
+class Detection:
+    box: tuple[float, float, float, float]
+    class_name: str
+    score: float
+    depth_m: float  # median depth inside the box
+    depth_patch: DepthPatch | None = None
+
+    def to_dict(self) -> dict:
+        return {"box": list(self.box), "class": self.class_name, "score": self.score, "depth_m": self.depth_m,
+                "depth_patch": None if self.depth_patch is None else self.depth_patch.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Detection:
+        if not isinstance(d, dict):
+            raise MessageError("a detection must be a map")
+        score = _get(d, "score", float)
+        if not 0.0 <= score <= 1.0:
+            raise MessageError("detection score must be in [0, 1]")
+        patch = d.get("depth_patch")
+        return cls(_box(d.get("box")), _get(d, "class", str), score, _get(d, "depth_m", float),
+                   None if patch is None else DepthPatch.from_dict(patch))
+
+
+@dataclass
+class Detections(Message):
+    """The detector's answer for one frame. Every frame gets one, `skipped` ones too, so consumers never wait."""
+
+    SCHEMA: ClassVar[str] = "semmap.detections/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    intrinsics: Intrinsics
+    depth_scale: float
+    detections: list[Detection] = field(default_factory=list)
+    skipped: str = ""  # why this frame was not detected ("" = it was): "dropped", "stride", "bad_frame"
+    detector: str = ""
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    frame_sent_at: float = 0.0
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
+                "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale,
+                "detections": [x.to_dict() for x in self.detections], "skipped": self.skipped,
+                "detector": self.detector, "timing_ms": dict(self.timing_ms), "frame_sent_at": self.frame_sent_at,
+                "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Detections:
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   Intrinsics.from_dict(d.get("intrinsics")), _get(d, "depth_scale", float),
+                   [Detection.from_dict(x) for x in _get(d, "detections", list)], _get(d, "skipped", str),
+                   _get(d, "detector", str), _timings(d), _get(d, "frame_sent_at", float), _get(d, "sent_at", float))
+
+
+def _timings(d: dict, key: str = "timing_ms") -> dict[str, float]:
+    t = _get(d, key, dict)
+    return {str(k): float(v) for k, v in zip(t.keys(), _finite_floats(list(t.values()), None, key), strict=True)}
+
+
+@dataclass
+class Measurement:
+    """One detection of a tracklet: what the associator back-projects."""
+
+    frame_id: int
+    stamp: float
+    detection: Detection
+    intrinsics: Intrinsics
+    depth_scale: float
+
+    def to_dict(self) -> dict:
+        return {"frame_id": self.frame_id, "stamp": self.stamp, "detection": self.detection.to_dict(),
+                "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Measurement:
+        if not isinstance(d, dict):
+            raise MessageError("a measurement must be a map")
+        return cls(_non_negative_int(d, "frame_id"), _get(d, "stamp", float), Detection.from_dict(d.get("detection")),
+                   Intrinsics.from_dict(d.get("intrinsics")), _get(d, "depth_scale", float))
+
+
+@dataclass
+class CandidateUpdate:
+    """A tracklet that reached the minimum size: its first proposal carries all measurements, later ones new."""
+
+    track_id: int
+    class_name: str
+    measurements: list[Measurement]
+    first: bool  # True on the proposal, False when feeding an already proposed tracklet
+
+    def to_dict(self) -> dict:
+        return {"track_id": self.track_id, "class": self.class_name, "first": self.first,
+                "measurements": [m.to_dict() for m in self.measurements]}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> CandidateUpdate:
+        if not isinstance(d, dict):
+            raise MessageError("a candidate must be a map")
+        return cls(_non_negative_int(d, "track_id"), _get(d, "class", str),
+                   [Measurement.from_dict(m) for m in _get(d, "measurements", list)], _get(d, "first", bool))
+
+
+@dataclass
+class TrackedBox:
+    """A tracklet's box in this frame, for display (state: tentative / candidate)."""
+
+    track_id: int
+    class_name: str
+    box: tuple[float, float, float, float]
+    length: int
+    candidate: bool
+
+    def to_dict(self) -> dict:
+        return {"track_id": self.track_id, "class": self.class_name, "box": list(self.box), "length": self.length,
+                "candidate": self.candidate}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> TrackedBox:
+        if not isinstance(d, dict):
+            raise MessageError("a tracked box must be a map")
+        return cls(_non_negative_int(d, "track_id"), _get(d, "class", str), _box(d.get("box")),
+                   _get(d, "length", int), _get(d, "candidate", bool))
+
+
+@dataclass
+class Tracks(Message):
+    """The tracker's output for one frame (one per frame, always): candidates to associate and ended tracklets."""
+
+    SCHEMA: ClassVar[str] = "semmap.tracks/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    candidates: list[CandidateUpdate] = field(default_factory=list)
+    ended: list[int] = field(default_factory=list)
+    boxes: list[TrackedBox] = field(default_factory=list)
+    skipped: str = ""
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    frame_sent_at: float = 0.0
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
+                "candidates": [c.to_dict() for c in self.candidates], "ended": list(self.ended),
+                "boxes": [b.to_dict() for b in self.boxes], "skipped": self.skipped,
+                "timing_ms": dict(self.timing_ms), "frame_sent_at": self.frame_sent_at, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Tracks:
+        ended = _get(d, "ended", list)
+        if not all(isinstance(i, int) and not isinstance(i, bool) for i in ended):
+            raise MessageError("field 'ended' must hold track ids")
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   [CandidateUpdate.from_dict(c) for c in _get(d, "candidates", list)], ended,
+                   [TrackedBox.from_dict(b) for b in _get(d, "boxes", list)], _get(d, "skipped", str),
+                   _timings(d), _get(d, "frame_sent_at", float), _get(d, "sent_at", float))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the map and the pose graph
+
+
+@dataclass
+class Landmark:
+    """A mapped object. `centroid` and `extent` in the world frame (metres); `radius` is its sphere's."""
+
+    id: int
+    class_name: str
+    centroid: tuple[float, float, float]
+    radius: float
+    extent: tuple[float, float, float]
+    observations: int
+    first_seen: float
+    last_seen: float
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "class": self.class_name, "centroid": list(self.centroid), "radius": self.radius,
+                "extent": list(self.extent), "observations": self.observations, "first_seen": self.first_seen,
+                "last_seen": self.last_seen}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Landmark:
+        if not isinstance(d, dict):
+            raise MessageError("a landmark must be a map")
+        c = _finite_floats(d.get("centroid"), 3, "centroid")
+        e = _finite_floats(d.get("extent"), 3, "extent")
+        return cls(_non_negative_int(d, "id"), _get(d, "class", str), (c[0], c[1], c[2]), _get(d, "radius", float),
+                   (e[0], e[1], e[2]), _non_negative_int(d, "observations"), _get(d, "first_seen", float),
+                   _get(d, "last_seen", float))
+
+
+@dataclass
+class Observation:
+    """A landmark seen from one frame: its centroid in that camera's frame, for the backend."""
+
+    landmark_id: int
+    class_name: str
+    point_camera: tuple[float, float, float]
+    sigma: float  # 1-sigma isotropic, metres
+    size: float
+
+    def to_dict(self) -> dict:
+        return {"landmark_id": self.landmark_id, "class": self.class_name, "point_camera": list(self.point_camera),
+                "sigma": self.sigma, "size": self.size}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Observation:
+        if not isinstance(d, dict):
+            raise MessageError("an observation must be a map")
+        p = _finite_floats(d.get("point_camera"), 3, "point_camera")
+        sigma = _get(d, "sigma", float)
+        if sigma <= 0:
+            raise MessageError("observation sigma must be positive")
+        return cls(_non_negative_int(d, "landmark_id"), _get(d, "class", str), (p[0], p[1], p[2]), sigma,
+                   _get(d, "size", float))
+
+
+@dataclass
+class Observations(Message):
+    """The associator's landmark observations for one frame (at most one per landmark every 2 s), and merges.
+
+    `merges` are (absorbed id, surviving id): the backend joins the two landmark variables.
+    """
+
+    SCHEMA: ClassVar[str] = "semmap.observations/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    observations: list[Observation] = field(default_factory=list)
+    merges: list[tuple[int, int]] = field(default_factory=list)
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
+                "observations": [o.to_dict() for o in self.observations],
+                "merges": [list(m) for m in self.merges], "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Observations:
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   [Observation.from_dict(o) for o in _get(d, "observations", list)],
+                   _merges(_get(d, "merges", list)), _get(d, "sent_at", float))
+
+
+def _merges(raw: list) -> list[tuple[int, int]]:
+    out = []
+    for m in raw:
+        if not (isinstance(m, list) and len(m) == 2 and all(isinstance(i, int) and i >= 0 for i in m)):
+            raise MessageError("a merge must be [absorbed_id, surviving_id]")
+        out.append((m[0], m[1]))
+    return out
+
+
+@dataclass
+class MapUpdate(Message):
+    """Landmarks that changed (or all, when `full`), removed ids and merges, after processing `frame_id`."""
+
+    SCHEMA: ClassVar[str] = "semmap.map_update/1"
+    robot: str
+    seq: int
+    frame_id: int
+    stamp: float
+    landmarks: list[Landmark] = field(default_factory=list)
+    removed: list[int] = field(default_factory=list)
+    merges: list[tuple[int, int]] = field(default_factory=list)
+    full: bool = False
+    rejected_candidates: list[int] = field(default_factory=list)
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    frame_sent_at: float = 0.0
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "seq": self.seq, "frame_id": self.frame_id, "stamp": self.stamp,
+                "landmarks": [lm.to_dict() for lm in self.landmarks], "removed": list(self.removed),
+                "merges": [list(m) for m in self.merges], "full": self.full,
+                "rejected_candidates": list(self.rejected_candidates), "timing_ms": dict(self.timing_ms),
+                "frame_sent_at": self.frame_sent_at, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MapUpdate:
+        removed = _get(d, "removed", list)
+        rejected = _get(d, "rejected_candidates", list)
+        if not all(isinstance(i, int) and not isinstance(i, bool) for i in removed + rejected):
+            raise MessageError("removed / rejected_candidates must hold integer ids")
+        return cls(_robot(d), _non_negative_int(d, "seq"), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   [Landmark.from_dict(x) for x in _get(d, "landmarks", list)], removed,
+                   _merges(_get(d, "merges", list)), _get(d, "full", bool), rejected, _timings(d),
+                   _get(d, "frame_sent_at", float), _get(d, "sent_at", float))
+
+
+@dataclass
+class CorrectedPoses(Message):
+    """The backend's current estimate after processing `frame_id`: every pose node and landmark position."""
+
+    SCHEMA: ClassVar[str] = "semmap.corrected_poses/1"
+    robot: str
+    seq: int
+    frame_id: int
+    frame_ids: np.ndarray  # int64 (N,)
+    stamps: np.ndarray  # float64 (N,)
+    poses: np.ndarray  # float64 (N, 4, 4)
+    landmark_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    landmark_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "seq": self.seq, "frame_id": self.frame_id,
+                "frame_ids": encode_array(np.asarray(self.frame_ids, np.int64)),
+                "stamps": encode_array(np.asarray(self.stamps, np.float64)),
+                "poses": encode_array(np.asarray(self.poses, np.float64)),
+                "landmark_ids": encode_array(np.asarray(self.landmark_ids, np.int64)),
+                "landmark_positions": encode_array(np.asarray(self.landmark_positions, np.float64).reshape(-1, 3)),
+                "timing_ms": dict(self.timing_ms), "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CorrectedPoses:
+        ids = decode_array(d.get("frame_ids"), "frame_ids", ndim=1, dtype="int64")
+        stamps = decode_array(d.get("stamps"), "stamps", ndim=1, dtype="float64")
+        poses = decode_array(d.get("poses"), "poses", ndim=3, dtype="float64")
+        lids = decode_array(d.get("landmark_ids"), "landmark_ids", ndim=1, dtype="int64")
+        lpos = decode_array(d.get("landmark_positions"), "landmark_positions", ndim=2, dtype="float64")
+        if not (len(ids) == len(stamps) == len(poses)) or poses.shape[1:] != (4, 4):
+            raise MessageError("frame_ids, stamps and poses must have the same length and poses be Nx4x4")
+        if len(lids) != len(lpos) or lpos.shape[1] != 3:
+            raise MessageError("landmark_ids and landmark_positions must match (Nx3)")
+        for i, pose in enumerate(poses):
+            validate_pose(pose.reshape(16).tolist(), f"poses[{i}]")
+        return cls(_robot(d), _non_negative_int(d, "seq"), _non_negative_int(d, "frame_id"), ids, stamps, poses,
+                   lids, lpos, _timings(d), _get(d, "sent_at", float))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# control, progress and health
+
+
+@dataclass
+class Control(Message):
+    """Run control from the player / CLI: `end_of_stream` after the last frame, `stop` to shut down."""
+
+    SCHEMA: ClassVar[str] = "semmap.control/1"
+    COMMANDS: ClassVar[tuple[str, ...]] = ("end_of_stream", "stop")
+    robot: str
+    command: str
+    last_frame_id: int = 0
+    frames: int = 0
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "command": self.command, "last_frame_id": self.last_frame_id,
+                "frames": self.frames, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Control:
+        command = _get(d, "command", str)
+        if command not in cls.COMMANDS:
+            raise MessageError(f"unknown control command {command!r}; known: {', '.join(cls.COMMANDS)}")
+        return cls(_robot(d), command, _get(d, "last_frame_id", int), _get(d, "frames", int), _get(d, "sent_at", float))
+
+
+@dataclass
+class Progress(Message):
+    """A service finished everything that `frame_id` caused: lockstep playback waits on these."""
+
+    SCHEMA: ClassVar[str] = "semmap.progress/1"
+    robot: str
+    service: str
+    frame_id: int
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "service": self.service, "frame_id": self.frame_id, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Progress:
+        return cls(_robot(d), _get(d, "service", str), _get(d, "frame_id", int), _get(d, "sent_at", float))
+
+
+@dataclass
+class ServiceStatus(Message):
+    """A service's health and counters, sent periodically and once more when it finishes."""
+
+    SCHEMA: ClassVar[str] = "semmap.status/1"
+    STATES: ClassVar[tuple[str, ...]] = ("starting", "running", "finished", "failed", "stopped")
+    robot: str
+    service: str
+    instance: str
+    state: str
+    last_frame_id: int = -1
+    counters: dict[str, int] = field(default_factory=dict)
+    timings: dict[str, dict[str, float]] = field(default_factory=dict)
+    rss_mb: float = 0.0
+    cpu_s: float = 0.0
+    message: str = ""
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ServiceStatus:
+        state = _get(d, "state", str)
+        if state not in cls.STATES:
+            raise MessageError(f"unknown service state {state!r}")
+        counters = _get(d, "counters", dict)
+        if not all(isinstance(k, str) and isinstance(v, int) for k, v in counters.items()):
+            raise MessageError("counters must map names to integers")
+        timings = _get(d, "timings", dict)
+        clean_timings = {}
+        for k, v in timings.items():
+            if not isinstance(v, dict):
+                raise MessageError("timings must map names to maps")
+            clean_timings[str(k)] = _timings({"t": v}, "t")
+        return cls(_robot(d), _get(d, "service", str), _get(d, "instance", str), state, _get(d, "last_frame_id", int),
+                   counters, clean_timings, _get(d, "rss_mb", float), _get(d, "cpu_s", float), _get(d, "message", str),
+                   _get(d, "sent_at", float))
+
+
+ALL_MESSAGES: tuple[type[Message], ...] = (
+    Frame, OdometryPose, Detections, Tracks, Observations, MapUpdate, CorrectedPoses, Control, Progress, ServiceStatus,
+)

@@ -1,0 +1,273 @@
+"""`semmap run`: start every service as its own process on one Zenoh bus, watch them, stop them cleanly.
+
+The orchestrator is itself a Zenoh peer listening on a loopback port (or a client of a router given with
+`--connect`); services connect to it. It shows progress from the services' status messages, fails the run with
+the failing service's log tail when one dies, and writes `stats.json` from their final statuses.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from semmap.bus import Bus, BusConfig
+from semmap.messages import Control, Progress, ServiceStatus
+
+log = logging.getLogger("semmap.run")
+
+STOP_GRACE_S = 15.0
+
+
+@dataclass
+class ServiceSpec:
+    """One service to start: `python -m services.<module>` with extra flags, `replicas` times."""
+
+    name: str
+    extra_args: list[str] = field(default_factory=list)
+    replicas: int = 1
+    lockstep: bool = True  # whether lockstep playback waits for its progress
+
+
+@dataclass
+class RunPlan:
+    data: str
+    out_dir: Path
+    robot: str
+    mode: str  # lockstep | realtime
+    services: list[ServiceSpec]
+    config_path: str | None = None
+    overrides: list[str] = field(default_factory=list)
+    connect: str | None = None  # a router to join instead of hosting the bus
+    zenoh_mode: str | None = None
+    verbose: bool = False
+    quiet: bool = False
+
+
+def free_loopback_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class _Child:
+    def __init__(self, name: str, instance: str, argv: list[str], log_path: Path) -> None:
+        self.name, self.instance, self.argv, self.log_path = name, instance, argv, log_path
+        self.log_file = open(log_path, "ab")  # noqa: SIM115 - lives as long as the process
+        self.proc = subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     start_new_session=True)
+
+    def tail(self, lines: int = 25) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(text[-lines:])
+
+
+class RunFailed(RuntimeError):
+    pass
+
+
+class Orchestrator:
+    def __init__(self, plan: RunPlan) -> None:
+        self.plan = plan
+        self.children: list[_Child] = []
+        self.statuses: dict[str, ServiceStatus] = {}
+        self.progress: dict[str, int] = {}
+        self.lock = threading.Lock()
+        self.interrupted = threading.Event()
+
+    # -- bus --------------------------------------------------------------------------------------------------
+    def _bus_config(self) -> tuple[BusConfig, list[str]]:
+        """The orchestrator's own bus config and the flags its children get."""
+        if self.plan.connect:
+            cfg = BusConfig.from_env(self.plan.connect, self.plan.zenoh_mode or "client")
+            child = ["--connect", self.plan.connect]
+            if self.plan.zenoh_mode:
+                child += ["--zenoh-mode", self.plan.zenoh_mode]
+            return cfg, child
+        port = free_loopback_port()
+        hub = f"tcp/127.0.0.1:{port}"
+        return BusConfig(mode="peer", listen=[hub]), ["--zenoh-mode", "peer", "--connect", hub,
+                                                      "--listen", "tcp/127.0.0.1:0"]
+
+    def _on_status(self, s: ServiceStatus) -> None:
+        with self.lock:
+            self.statuses[s.instance] = s
+
+    def _on_progress(self, p: Progress) -> None:
+        with self.lock:
+            self.progress[p.service] = max(self.progress.get(p.service, -1), p.frame_id)
+
+    # -- processes --------------------------------------------------------------------------------------------
+    def _start(self, child_bus_args: list[str]) -> None:
+        plan = self.plan
+        logs = plan.out_dir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        common = ["--robot", plan.robot, "--mode", plan.mode, "--out", str(plan.out_dir), *child_bus_args]
+        if plan.config_path:
+            common += ["--config", plan.config_path]
+        for item in plan.overrides:
+            common += ["--set", item]
+        if plan.verbose:
+            common.append("--verbose")
+        wait_for = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if s.lockstep)
+        specs = [*plan.services, ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for], 1, False)]
+        for spec in specs:
+            for r in range(spec.replicas):
+                instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"
+                argv = [sys.executable, "-m", f"services.{spec.name}", *common, "--instance", instance,
+                        *spec.extra_args]
+                self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log"))
+                log.info("started %s (pid %d)", instance, self.children[-1].proc.pid)
+
+    def _check_children(self) -> None:
+        for child in self.children:
+            code = child.proc.poll()
+            status = self.statuses.get(child.instance)
+            if status is not None and status.state == "failed":
+                raise RunFailed(f"{child.instance} failed: {status.message}\n--- {child.log_path} ---\n{child.tail()}")
+            if code is not None and code != 0:
+                raise RunFailed(f"{child.instance} exited with code {code}\n--- {child.log_path} ---\n{child.tail()}")
+            if code == 0 and not (status and status.state in ("finished", "stopped")):
+                raise RunFailed(f"{child.instance} exited early\n--- {child.log_path} ---\n{child.tail()}")
+
+    def _all_finished(self) -> bool:
+        with self.lock:
+            return all(
+                (s := self.statuses.get(c.instance)) is not None and s.state == "finished" for c in self.children
+            )
+
+    def _stop_children(self, control_pub: object | None) -> None:
+        if control_pub is not None:
+            try:
+                control_pub.put(Control(self.plan.robot, "stop"))  # type: ignore[attr-defined]
+            except Exception:
+                pass
+        deadline = time.monotonic() + STOP_GRACE_S
+        for child in self.children:
+            if child.proc.poll() is None and control_pub is None:
+                child.proc.send_signal(signal.SIGTERM)
+        for child in self.children:
+            try:
+                child.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                child.proc.send_signal(signal.SIGTERM)
+                try:
+                    child.proc.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    child.proc.kill()
+                    child.proc.wait()
+            child.log_file.close()
+            log.info("stopped %s (exit %s)", child.instance, child.proc.returncode)
+
+    # -- progress -------------------------------------------------------------------------------------------
+    def _counter_sum(self, prefix: str) -> int:
+        with self.lock:
+            return sum(v for s in self.statuses.values() for k, v in s.counters.items() if k.startswith(prefix))
+
+    def _progress_line(self, started: float) -> str:
+        published = self._counter_sum("frames_published")
+        total = self._total_frames
+        done_services = [s.name for s in self.plan.services if s.lockstep]
+        with self.lock:
+            processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        dropped = self._counter_sum("dropped[") + self._counter_sum("frames_dropped")
+        elapsed = max(time.monotonic() - started, 1e-6)
+        fps = processed / elapsed
+        width = 30
+        frac = processed / total if total else 0.0
+        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
+        return (f"[{bar}] {processed}/{total or '?'} frames processed, {published} published, "
+                f"{fps:5.1f} fps, {dropped} dropped, {elapsed:5.1f} s")
+
+    @property
+    def _total_frames(self) -> int:
+        with self.lock:
+            for s in self.statuses.values():
+                if s.service == "player" and s.counters.get("frames_total"):
+                    return s.counters["frames_total"]
+        return 0
+
+    # -- stats ----------------------------------------------------------------------------------------------
+    def write_stats(self, wall_s: float, outcome: str) -> Path:
+        with self.lock:
+            statuses = dict(self.statuses)
+        services: dict[str, dict] = {}
+        for instance, s in sorted(statuses.items()):
+            services[instance] = {"service": s.service, "state": s.state, "last_frame_id": s.last_frame_id,
+                                  "counters": s.counters, "timings_ms": s.timings, "rss_mb": round(s.rss_mb, 1),
+                                  "cpu_s": round(s.cpu_s, 2)}
+        published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
+        detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
+        dropped = sum(v for s in statuses.values() for k, v in s.counters.items()
+                      if k.startswith("dropped[") or k == "frames_dropped")
+        with self.lock:
+            done_services = [sp.name for sp in self.plan.services if sp.lockstep]
+            processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
+                 "robot": self.plan.robot, "wall_s": round(wall_s, 2),
+                 "frames": {"published": published, "processed": processed, "detected": detected,
+                            "dropped": dropped},
+                 "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "services": services}
+        path = self.plan.out_dir / "stats.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(stats, indent=2))
+        os.replace(tmp, path)
+        return path
+
+    # -- the run --------------------------------------------------------------------------------------------
+    def run(self) -> int:
+        plan = self.plan
+        plan.out_dir.mkdir(parents=True, exist_ok=True)
+        bus_cfg, child_args = self._bus_config()
+        bus = Bus(bus_cfg, plan.robot)
+        bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
+        bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
+        control_pub = bus.publisher(bus.keys.control)
+        previous = signal.signal(signal.SIGINT, lambda *_: self.interrupted.set())
+        signal.signal(signal.SIGTERM, lambda *_: self.interrupted.set())
+        started = time.monotonic()
+        outcome, code = "completed", 0
+        tty = sys.stderr.isatty() and not plan.quiet
+        last_line = 0.0
+        try:
+            self._start(child_args)
+            while True:
+                if self.interrupted.is_set():
+                    outcome, code = "interrupted", 130
+                    print("\ninterrupted: stopping services (they write what they have)", file=sys.stderr)
+                    break
+                self._check_children()
+                if self._all_finished():
+                    break
+                now = time.monotonic()
+                if not plan.quiet and (tty and now - last_line > 0.2 or not tty and now - last_line > 5.0):
+                    line = self._progress_line(started)
+                    print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+                    last_line = now
+                time.sleep(0.05)
+            if not plan.quiet:
+                print(("\r" if tty else "") + self._progress_line(started), file=sys.stderr, flush=True)
+        except RunFailed as exc:
+            outcome, code = "failed", 1
+            print(f"\nerror: {exc}", file=sys.stderr)
+        finally:
+            self._stop_children(control_pub)
+            time.sleep(0.2)  # last statuses
+            wall = time.monotonic() - started
+            stats = self.write_stats(wall, outcome)
+            bus.close()
+            signal.signal(signal.SIGINT, previous)
+        if code == 0 and not plan.quiet:
+            print(f"done in {wall:.1f} s: outputs in {plan.out_dir} ({stats.name}, logs/)", file=sys.stderr)
+        return code

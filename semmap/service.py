@@ -1,0 +1,297 @@
+"""What every semmap service process shares: flags, the bus, a single-threaded message loop, health and stats.
+
+A service subclass declares what it listens to in `setup()` and handles one message at a time in the main
+thread; algorithms live in plain modules beside it and know nothing of this. A bad message or a failing
+handler is logged and counted, never fatal: a long-running service must not lose what it has mapped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import resource
+import signal
+import sys
+import threading
+import time
+import traceback
+import uuid
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from semmap.bus import Bus, BusConfig, Inbox, Publisher
+from semmap.config import ConfigError, load_config
+from semmap.keys import InvalidNameError
+from semmap.messages import Control, Message, MessageError, Progress, ServiceStatus
+
+M = TypeVar("M", bound=Message)
+STATUS_PERIOD_S = 1.0
+
+
+def configure_logging(verbose: bool, name: str) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format=f"%(asctime)s {name:>10} %(levelname)-7s %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+        force=True,
+    )
+    for noisy in ("zenoh", "numexpr"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def rss_mb() -> float:
+    """Current resident set size (Linux), or the peak where /proc is unavailable."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except OSError:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+
+
+class Metrics:
+    """Counters and latency samples (last 10,000 per name) with percentiles for status and stats.json."""
+
+    def __init__(self) -> None:
+        self.counters: dict[str, int] = {}
+        self._samples: dict[str, deque[float]] = {}
+        self.peak_rss_mb = 0.0
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    def time_ms(self, name: str, value_ms: float) -> None:
+        self._samples.setdefault(name, deque(maxlen=10_000)).append(value_ms)
+
+    def timer(self, name: str) -> _Timer:
+        return _Timer(self, name)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        out = {}
+        for name, samples in self._samples.items():
+            if samples:
+                a = np.fromiter(samples, float)
+                out[name] = {"n": float(len(a)), "mean": float(a.mean()), "p50": float(np.percentile(a, 50)),
+                             "p95": float(np.percentile(a, 95)), "p99": float(np.percentile(a, 99)),
+                             "max": float(a.max())}
+        return out
+
+
+class _Timer:
+    def __init__(self, metrics: Metrics, name: str) -> None:
+        self.metrics, self.name, self.ms = metrics, name, 0.0
+
+    def __enter__(self) -> _Timer:
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.ms = (time.perf_counter() - self._t0) * 1e3
+        self.metrics.time_ms(self.name, self.ms)
+
+
+def common_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags every service takes (the CLI passes them on to each child process)."""
+    parser.add_argument("--robot", default=None, help="robot name in the key expressions (default from config)")
+    parser.add_argument("--config", default=None, help="YAML config file (defaults: semmap/config/default.yaml)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one setting; repeatable")
+    parser.add_argument("--out", default=None, help="output directory for this service's files")
+    parser.add_argument("--instance", default=None, help="instance name (default: random)")
+    parser.add_argument("--connect", default=None, help="Zenoh endpoints to connect to, comma-separated")
+    parser.add_argument("--listen", default=None, help="Zenoh endpoints to listen on, comma-separated")
+    parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client", "router"))
+    parser.add_argument("--mode", default=None, choices=("lockstep", "realtime"), help="playback mode")
+    parser.add_argument("-v", "--verbose", action="store_true")
+
+
+class Service:
+    """Base class of a service process. Subclasses set `name`, implement `setup()` and message handlers."""
+
+    name = "service"
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.config: dict[str, Any] = load_config(args.config, args.overrides)
+        if args.mode:
+            self.config["run"]["mode"] = args.mode
+        self.robot: str = args.robot or self.config["run"]["robot"]
+        self.instance: str = args.instance or f"{self.name}-{uuid.uuid4().hex[:6]}"
+        self.out_dir: Path | None = Path(args.out) if args.out else None
+        self.lockstep = self.config["run"]["mode"] == "lockstep"
+        self.log = logging.getLogger(self.name)
+        self.metrics = Metrics()
+        self.inbox = Inbox()
+        self.stop_event = threading.Event()
+        self.state = "starting"
+        self.last_frame_id = -1
+        self.end_of_stream: Control | None = None
+        self.finished = False
+        self._handlers: dict[str, Callable[[Any], None]] = {}
+        self._error_count = 0
+        self.idle_timeout_s = 0.05
+        self.bus: Bus
+        self._status_pub: Publisher
+        self._progress_pub: Publisher
+
+    # -- to be provided by subclasses ------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Declare subscriptions (`self.listen`) and publishers; load models."""
+
+    def on_end_of_stream(self, control: Control) -> None:
+        """The player sent its last frame. Default: finish once this service has handled that frame."""
+        if self.last_frame_id >= control.last_frame_id:
+            self.finish()
+
+    def write_outputs(self) -> None:
+        """Write this service's files to `self.out_dir` (called on finish and on shutdown)."""
+
+    def teardown(self) -> None:
+        """Release resources."""
+
+    def tick(self) -> None:
+        """Called on every loop turn (at least every `idle_timeout_s`): for services that produce on a clock."""
+
+    # -- helpers for subclasses -------------------------------------------------------------------------------
+    def listen(self, key: str, kind: type[M], handler: Callable[[M], None], capacity: int = 100_000) -> None:
+        stream = f"{key}#{kind.SCHEMA}"
+        self._handlers[stream] = handler
+        self.bus.subscribe_to_inbox(key, kind, self.inbox, stream, capacity)
+
+    def publisher(self, key: str) -> Publisher:
+        return self.bus.publisher(key)
+
+    def report_progress(self, frame_id: int) -> None:
+        """Everything frame `frame_id` caused is done here (lockstep playback waits for it)."""
+        self.last_frame_id = max(self.last_frame_id, frame_id)
+        self._progress_pub.put(Progress(self.robot, self.name, frame_id))
+        if self.end_of_stream is not None and not self.finished:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def finish(self) -> None:
+        """All input handled: write outputs and tell the run so. The service stays up until told to stop."""
+        if self.finished:
+            return
+        self.finished = True
+        self._write_outputs_safely()
+        self.state = "finished"
+        self.publish_status()
+        self.log.info("finished (last frame %d)", self.last_frame_id)
+
+    def fail(self, reason: str) -> None:
+        """A fatal condition: tell the run why, then stop."""
+        self.log.error("%s", reason)
+        self.state = "failed"
+        self.publish_status(reason)
+        self.stop_event.set()
+
+    def publish_status(self, message: str = "") -> None:
+        rss = rss_mb()
+        self.metrics.peak_rss_mb = max(self.metrics.peak_rss_mb, rss)
+        counters = dict(self.metrics.counters)
+        for stream, n in self.inbox.dropped.items():
+            if n:
+                counters[f"dropped[{stream.split('#')[0].rsplit('/', 1)[-1]}]"] = n
+        for key, n in self.bus.rejected.items():
+            counters[f"rejected[{key.rsplit('/', 1)[-1]}]"] = n
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        status = ServiceStatus(self.robot, self.name, self.instance, self.state, self.last_frame_id, counters,
+                               self.metrics.summary(), rss, usage.ru_utime + usage.ru_stime, message)
+        status.timings["peak_rss_mb"] = {"max": self.metrics.peak_rss_mb}
+        try:
+            self._status_pub.put(status)
+        except Exception as exc:  # the bus may already be closing
+            self.log.debug("status not sent: %s", exc)
+
+    # -- the loop --------------------------------------------------------------------------------------------
+    def _on_control(self, control: Control) -> None:
+        if control.command == "stop":
+            self.stop_event.set()
+        elif control.command == "end_of_stream":
+            self.end_of_stream = control
+            self.on_end_of_stream(control)
+
+    def _write_outputs_safely(self) -> None:
+        if self.out_dir is None:
+            return
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self.write_outputs()
+        except Exception:
+            self.log.error("writing outputs failed:\n%s", traceback.format_exc())
+
+    def _guarded(self, fn: Callable[..., None], message: Any = None, what: str = "tick") -> None:
+        """Run one handler; bad input is a counted skip, any other failure a counted, logged error."""
+        try:
+            fn() if message is None else fn(message)
+        except (MessageError, ValueError) as exc:
+            self.metrics.count("bad_input")
+            self.log.warning("skipped a bad %s message: %s", what, exc)
+        except Exception:
+            self._error_count += 1
+            self.metrics.count("errors")
+            self.log.error("%s handler failed (error %d):\n%s", what, self._error_count, traceback.format_exc())
+
+    def run(self) -> int:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.stop_event.set())
+        self.bus = Bus(BusConfig.from_env(self.args.connect, self.args.zenoh_mode, self.args.listen), self.robot)
+        self._status_pub = self.bus.publisher(self.bus.keys.status(self.name, self.instance))
+        self._progress_pub = self.bus.publisher(self.bus.keys.progress(self.name))
+        try:
+            self.listen(self.bus.keys.control, Control, self._on_control)
+            self.setup()
+        except Exception as exc:
+            self.state = "failed"
+            self.publish_status(f"setup failed: {exc}")
+            self.log.error("setup failed: %s", exc)
+            self.bus.close()
+            return 2
+        self.state = "running"
+        self.log.info("started as %s (robot %s, %s)", self.instance, self.robot, "lockstep" if self.lockstep else "realtime")
+        self.publish_status()
+        next_status = time.monotonic() + STATUS_PERIOD_S
+        try:
+            while not self.stop_event.is_set():
+                item = self.inbox.get(timeout=self.idle_timeout_s)
+                if item is not None:
+                    stream, message = item
+                    self._guarded(self._handlers[stream], message, stream.split("#")[0].rsplit("/", 1)[-1])
+                self._guarded(self.tick)
+                if time.monotonic() >= next_status:
+                    self.publish_status()
+                    next_status = time.monotonic() + STATUS_PERIOD_S
+        finally:
+            if not self.finished:
+                self._write_outputs_safely()
+            if self.state != "failed":
+                self.state = "finished" if self.finished else "stopped"
+                self.publish_status()
+            self.log.info("stopped (%s)", ", ".join(f"{k}={v}" for k, v in sorted(self.metrics.counters.items())))
+            try:
+                self.teardown()
+            finally:
+                self.bus.close()
+        return 0
+
+
+def service_main(service_cls: type[Service], argv: list[str] | None = None,
+                 extra_arguments: Callable[[argparse.ArgumentParser], None] | None = None) -> int:
+    """Entry point of `python -m services.<name>`."""
+    parser = argparse.ArgumentParser(prog=f"semmap-{service_cls.name}", description=service_cls.__doc__)
+    common_arguments(parser)
+    if extra_arguments:
+        extra_arguments(parser)
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose, service_cls.name)
+    try:
+        service = service_cls(args)
+    except (ConfigError, InvalidNameError, ValueError) as exc:
+        logging.getLogger(service_cls.name).error("%s", exc)
+        return 2
+    return service.run()

@@ -1,0 +1,139 @@
+"""Dataset player: publishes a dataset's frames on the bus, in real time or in lockstep with the pipeline.
+
+Lockstep: frame i+1 goes out only when every service named in `--wait-for` has reported progress for frame i,
+so a run is deterministic and as fast as the machine allows. Real time: frames go out at the dataset rate
+(times `run.speed`) whatever happens downstream; services drop what they cannot keep up with and count it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from semmap.datasets import DatasetError, open_dataset
+from semmap.datasets.base import Dataset, FrameData
+from semmap.datasets.trajectory_io import write_tum
+from semmap.messages import Control, Frame, GroundTruthInstance, Intrinsics, Progress, ServiceStatus
+from semmap.service import Service, service_main
+
+
+def frame_message(robot: str, data: FrameData) -> Frame:
+    """A dataset frame as a bus message."""
+    k = data.intrinsics
+    return Frame.from_arrays(
+        robot, data.index, data.stamp, data.rgb, data.depth, data.depth_scale,
+        Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height), data.gt_pose,
+        [GroundTruthInstance(i.instance_id, i.class_name, tuple(i.box), i.visible_pixels, i.moving)
+         for i in data.instances],
+    )
+
+
+def parse_wait_for(spec: str) -> dict[str, int]:
+    """'detector:2,tracker' -> {'detector': 2, 'tracker': 1}: services (and replica counts) lockstep waits on."""
+    out: dict[str, int] = {}
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        name, _, count = item.partition(":")
+        out[name] = int(count or 1)
+    return out
+
+
+class PlayerService(Service):
+    """Publishes dataset frames (see module docstring)."""
+
+    name = "player"
+
+    def setup(self) -> None:
+        run = self.config["run"]
+        self.dataset: Dataset = open_dataset(self.args.data)
+        limit = int(run.get("max_frames") or 0)
+        self.total = min(len(self.dataset), limit) if limit > 0 else len(self.dataset)
+        self.metrics.counters["frames_total"] = self.total
+        self.wait_for = parse_wait_for(self.args.wait_for or "")
+        self.speed = float(run.get("speed", 1.0))
+        self.frame_timeout_s = float(run["frame_timeout_s"])
+        self.start_timeout_s = float(run["start_timeout_s"])
+        self.progress: dict[str, int] = {}
+        self.running: dict[str, set[str]] = {name: set() for name in self.wait_for}
+        self.next_index = 0
+        self.started_at: float | None = None
+        self.waiting_since = time.monotonic()
+        self.frames_pub = self.publisher(self.bus.keys.frames)
+        self.control_pub = self.publisher(self.bus.keys.control)
+        self.listen(self.bus.keys.progress_all, Progress, self._on_progress)
+        self.listen(self.bus.keys.status_all, ServiceStatus, self._on_status)
+        self.idle_timeout_s = 0.002
+        self.log.info("playing %s: %d frames at %.1f Hz, %s", self.dataset.name, self.total, self.dataset.rate_hz,
+                      "lockstep" if self.lockstep else f"real time x{self.speed:g}")
+
+    def _on_progress(self, p: Progress) -> None:
+        if p.service in self.wait_for:
+            self.progress[p.service] = max(self.progress.get(p.service, -1), p.frame_id)
+
+    def _on_status(self, s: ServiceStatus) -> None:
+        if s.service in self.running and s.state == "running":
+            self.running[s.service].add(s.instance)
+
+    def _pipeline_ready(self) -> bool:
+        ready = all(len(self.running[n]) >= count for n, count in self.wait_for.items())
+        if not ready and time.monotonic() - self.waiting_since > self.start_timeout_s:
+            missing = [n for n, c in self.wait_for.items() if len(self.running[n]) < c]
+            self.fail(f"services not up after {self.start_timeout_s:.0f} s: {', '.join(missing)}")
+            return False
+        return ready and (not self.wait_for or self.frames_pub.matching())
+
+    def tick(self) -> None:
+        if self.finished or self.state == "failed" or self.next_index >= self.total:
+            return
+        if self.started_at is None:
+            if not self._pipeline_ready():
+                return
+            self.started_at = time.monotonic()
+            self.waiting_since = self.started_at
+            self.log.info("pipeline ready: %s", ", ".join(f"{n} x{len(i)}" for n, i in self.running.items()) or "-")
+        if self.lockstep:
+            done = min((self.progress.get(n, -1) for n in self.wait_for), default=self.next_index - 1)
+            if done < self.next_index - 1:
+                if time.monotonic() - self.waiting_since > self.frame_timeout_s:
+                    late = [n for n in self.wait_for if self.progress.get(n, -1) < self.next_index - 1]
+                    self.fail(f"lockstep: no progress for frame {self.next_index - 1} from {', '.join(late)} "
+                              f"within {self.frame_timeout_s:.0f} s")
+                return
+        else:
+            due = self.started_at + self.next_index / (self.dataset.rate_hz * self.speed)
+            if time.monotonic() < due:
+                return
+        self._publish(self.next_index)
+
+    def _publish(self, index: int) -> None:
+        self.next_index = index + 1
+        self.waiting_since = time.monotonic()
+        try:
+            with self.metrics.timer("read_ms"):
+                data = self.dataset[index]
+            with self.metrics.timer("encode_ms"):
+                message = frame_message(self.robot, data)
+        except DatasetError as exc:
+            self.metrics.count("frames_unreadable")
+            self.log.warning("frame %d skipped: %s", index, exc)
+            return
+        with self.metrics.timer("publish_ms"):
+            self.frames_pub.put(message)
+        self.metrics.count("frames_published")
+        self.last_frame_id = index
+        if self.next_index >= self.total:
+            self.control_pub.put(Control(self.robot, "end_of_stream", index, self.total))
+            self.log.info("all %d frames published", self.total)
+            self.finish()
+
+    def write_outputs(self) -> None:
+        if self.dataset.has_groundtruth and self.out_dir is not None:
+            write_tum(self.out_dir / "groundtruth.tum", self.dataset.groundtruth()[: self.total])
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="dataset path, or 'synthetic[:k=v,...]'")
+    parser.add_argument("--wait-for", default="", help="lockstep: services to wait for, e.g. detector:2,tracker")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(PlayerService, argv, _arguments)
