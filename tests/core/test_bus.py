@@ -95,7 +95,7 @@ def test_round_trip_through_a_service_process(tmp_path: Path) -> None:
         bus.publisher(bus.keys.control).put(Control("busrobot", "stop"))
         assert proc.wait(timeout=15) == 0
         lines = (tmp_path / "trajectory_odometry.tum").read_text().splitlines()
-    assert len([ln for ln in lines if not ln.startswith("#")]) == 5
+        assert len([ln for ln in lines if not ln.startswith("#")]) == 5
     finally:
         if proc.poll() is None:
             proc.kill()
