@@ -8,6 +8,7 @@ in client mode (`SEMMAP_ZENOH_MODE=client`).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -181,10 +182,8 @@ class Bus:
 
     def close(self) -> None:
         for entity in reversed(self._undeclare):
-            try:
+            with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
-            except zenoh.ZError:
-                pass
         self._undeclare.clear()
         self.session.close()
 

@@ -11,7 +11,30 @@ from semmap.config import ConfigError, load_config
 from semmap.service import configure_logging
 
 # services a run starts, in data-flow order; each is `python -m services.<name>`
-PIPELINE = ("odometry",)
+PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
+
+
+def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: list[str] | None = None) -> list:
+    """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
+    unless disabled."""
+    from semmap.orchestrator import ServiceSpec
+
+    synthetic = data == "synthetic" or data.startswith("synthetic:")
+    chosen = [n for n in PIPELINE if only is None or n in only]
+    specs = []
+    for name in chosen:
+        if name == "viz" and not (viz and config["viz"]["enabled"]):
+            continue
+        extra: list[str] = []
+        if name == "detector" and config["detector"]["kind"] == "auto":
+            extra = ["--set", f"detector.kind={'oracle' if synthetic else 'onnx'}"]
+        elif name == "associator" and "backend" in chosen:
+            extra = ["--await-backend"]
+        elif name == "viz" and "associator" in chosen:
+            extra = ["--wait-for-map"]
+        specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
+                                 lockstep=name != "viz"))
+    return specs
 
 
 def _add_run(sub: argparse._SubParsersAction) -> None:
@@ -34,13 +57,16 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
     p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    p.add_argument("--no-viz", action="store_true", help="do not record run.rrd")
+    p.add_argument("--only", default=None, metavar="SERVICES",
+                   help=f"start only these services (comma-separated; the player always runs): {','.join(PIPELINE)}")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from semmap.orchestrator import Orchestrator, RunPlan, ServiceSpec
+    from semmap.orchestrator import Orchestrator, RunPlan
 
     overrides = list(args.overrides)
     if args.odometry:
@@ -57,7 +83,15 @@ def _run(args: argparse.Namespace) -> int:
     if args.data != "synthetic" and not args.data.startswith("synthetic:") and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
-    specs = [ServiceSpec(name, replicas=args.detectors if name == "detector" else 1) for name in PIPELINE]
+    if args.detectors < 1:
+        print("error: --detectors must be at least 1", file=sys.stderr)
+        return 2
+    only = [s.strip() for s in args.only.split(",")] if args.only else None
+    unknown = sorted(set(only or []) - set(PIPELINE))
+    if unknown:
+        print(f"error: unknown service(s) {', '.join(unknown)}; known: {', '.join(PIPELINE)}", file=sys.stderr)
+        return 2
+    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only)
     plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or config["run"]["robot"],
                    mode=args.mode or config["run"]["mode"], services=specs, config_path=args.config,
                    overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,

@@ -103,7 +103,8 @@ def encode_array(array: np.ndarray) -> dict:
     array = np.ascontiguousarray(array)
     if array.dtype.name not in _ALLOWED_DTYPES:
         raise MessageError(f"dtype {array.dtype} cannot travel")
-    return {"dtype": array.dtype.name, "shape": list(array.shape), "data": array.astype(array.dtype.newbyteorder("<")).tobytes()}
+    data = array.astype(array.dtype.newbyteorder("<")).tobytes()
+    return {"dtype": array.dtype.name, "shape": list(array.shape), "data": data}
 
 
 def decode_array(d: Any, name: str, ndim: int | None = None, dtype: str | None = None) -> np.ndarray:

@@ -7,6 +7,7 @@ the failing service's log tail when one dies, and writes `stats.json` from their
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -149,10 +150,8 @@ class Orchestrator:
 
     def _stop_children(self, control_pub: object | None) -> None:
         if control_pub is not None:
-            try:
+            with contextlib.suppress(Exception):  # the bus may be gone; signals follow anyway
                 control_pub.put(Control(self.plan.robot, "stop"))  # type: ignore[attr-defined]
-            except Exception:
-                pass
         deadline = time.monotonic() + STOP_GRACE_S
         for child in self.children:
             if child.proc.poll() is None and control_pub is None:
@@ -181,6 +180,7 @@ class Orchestrator:
         done_services = [s.name for s in self.plan.services if s.lockstep]
         with self.lock:
             processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        published = max(published, processed)
         dropped = self._counter_sum("dropped[") + self._counter_sum("frames_dropped")
         elapsed = max(time.monotonic() - started, 1e-6)
         fps = processed / elapsed
@@ -204,9 +204,11 @@ class Orchestrator:
             statuses = dict(self.statuses)
         services: dict[str, dict] = {}
         for instance, s in sorted(statuses.items()):
+            timings = {k: v for k, v in s.timings.items() if k != "peak_rss_mb"}
+            peak = s.timings.get("peak_rss_mb", {}).get("max", s.rss_mb)
             services[instance] = {"service": s.service, "state": s.state, "last_frame_id": s.last_frame_id,
-                                  "counters": s.counters, "timings_ms": s.timings, "rss_mb": round(s.rss_mb, 1),
-                                  "cpu_s": round(s.cpu_s, 2)}
+                                  "counters": s.counters, "timings_ms": timings, "rss_mb": round(s.rss_mb, 1),
+                                  "peak_rss_mb": round(max(peak, s.rss_mb), 1), "cpu_s": round(s.cpu_s, 2)}
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         dropped = sum(v for s in statuses.values() for k, v in s.counters.items()

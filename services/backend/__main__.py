@@ -1,0 +1,5 @@
+import sys
+
+from services.backend.service import main
+
+sys.exit(main())

@@ -1,0 +1,204 @@
+"""Detector service: detections for every frame on `semmap/v1/<robot>/detections`.
+
+Scaling out: each replica holds a liveliness token; the live replicas, sorted by name, share frames by rank
+(frame_id % n == rank), so N replicas detect each frame once. Every frame gets exactly one `Detections`
+message, `skipped` ones too (not this frame's turn under `every_n_frames`, dropped under real-time overload),
+so consumers never wait for a frame that will not come; they re-order by frame id and drop duplicates.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from semmap.messages import Control, DepthPatch, Detection, Detections, Frame
+from semmap.service import Service, service_main
+from services.detector.onnx_detector import DetectedBox, OnnxDetector, depth_gate
+from services.detector.oracle import OracleDetector
+
+MEMBERSHIP_SETTLE_S = 0.5
+
+
+def depth_patch(depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
+    """The depth pixels under a box, every `stride`-th in x and y, for the associator's back-projection."""
+    h, w = depth.shape
+    x0 = int(np.clip(np.floor(box[0]), 0, w - 1))
+    y0 = int(np.clip(np.floor(box[1]), 0, h - 1))
+    x1 = int(np.clip(np.ceil(box[2]), x0 + 1, w))
+    y1 = int(np.clip(np.ceil(box[3]), y0 + 1, h))
+    return DepthPatch(x0, y0, stride, np.ascontiguousarray(depth[y0:y1:stride, x0:x1:stride]))
+
+
+class DetectorService(Service):
+    """Detects COCO objects in frames (see module docstring)."""
+
+    name = "detector"
+
+    def setup(self) -> None:
+        cfg = self.config["detector"]
+        self.cfg = cfg
+        self.kind = cfg["kind"] if cfg["kind"] != "auto" else "onnx"
+        self.every_n = max(1, int(cfg["every_n_frames"]))
+        self.stride = max(1, int(cfg["depth_patch_stride"]))
+        if self.kind == "oracle":
+            self.oracle = OracleDetector(
+                seed=int(cfg["oracle_seed"]),
+                miss_rate=cfg["oracle_miss_rate"],
+                false_positive_rate=cfg["oracle_false_positive_rate"],
+                confusion_rate=cfg["oracle_confusion_rate"],
+            )
+        elif self.kind == "onnx":
+            from services.detector.model_store import default_model_path
+
+            model = cfg["model"] or default_model_path()
+            self.onnx = OnnxDetector(
+                model,
+                conf=cfg["confidence"],
+                iou=cfg["iou"],
+                threads=int(cfg["threads"]),
+                allow=set(cfg["classes"]) or None,
+                deny=set(cfg["exclude"]) or None,
+                names=cfg["names"] or None,
+            )
+            self.log.info("model %s on %s", model, ", ".join(self.onnx.providers))
+        else:
+            raise ValueError(f"unknown detector kind {cfg['kind']!r}: use auto, onnx or oracle")
+        self.allow = set(cfg["classes"])
+        self.deny = set(cfg["exclude"])
+        self.pub = self.publisher(self.bus.keys.detections)
+        # replica membership from liveliness tokens
+        self._members: set[str] = {self.instance}
+        self._members_lock = threading.Lock()
+        self._members_changed = time.monotonic()
+        liveliness = self.bus.session.liveliness()
+        self._token = liveliness.declare_token(self.bus.keys.detector_replica(self.instance))
+        self._live_sub = liveliness.declare_subscriber(
+            self.bus.keys.detector_replicas, self._on_liveliness, history=True
+        )
+        self.last_mine = -1
+        self._last_frame: Frame | None = None
+        capacity = 100_000 if self.lockstep else max(1, int(cfg["queue"]))
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=capacity)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() - self._members_changed < MEMBERSHIP_SETTLE_S and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self.log.info("replica %d of %d", *self._rank())
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._members_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._members.add(name)
+            else:
+                self._members.discard(name)
+            self._members_changed = time.monotonic()
+
+    def _rank(self) -> tuple[int, int]:
+        with self._members_lock:
+            members = sorted(self._members | {self.instance})
+        return members.index(self.instance), len(members)
+
+    def _detect(self, frame: Frame) -> list[DetectedBox]:
+        if self.kind == "oracle":
+            boxes = self.oracle.detect(frame.frame_id, frame.instances, frame.intrinsics.width, frame.intrinsics.height)
+            if self.allow:
+                boxes = [b for b in boxes if b.class_name in self.allow]
+            return [b for b in boxes if b.class_name not in self.deny]
+        return self.onnx.detect(frame.rgb())
+
+    def on_frame(self, frame: Frame) -> None:
+        rank, n = self._rank()
+        if frame.frame_id % n != rank:
+            return
+        started = time.time()
+        # frames of our share that never reached us were dropped upstream of this handler (bounded queue)
+        for missed in range(self.last_mine + 1, frame.frame_id):
+            if missed % n == rank and self.last_mine >= 0:
+                self._publish_skip(frame, missed, "dropped")
+        self.last_mine = frame.frame_id
+        self._last_frame = frame
+        if frame.frame_id % self.every_n:
+            self._publish_skip(frame, frame.frame_id, "stride")
+            return
+        with self.metrics.timer("detect_ms") as t_detect:
+            try:
+                boxes = self._detect(frame)
+                depth = frame.depth()
+            except ValueError as exc:
+                self.metrics.count("frames_bad")
+                self.log.warning("frame %d not detected: %s", frame.frame_id, exc)
+                self._publish_skip(frame, frame.frame_id, "bad_frame")
+                return
+        with self.metrics.timer("depth_ms"):
+            kept = depth_gate(boxes, depth, frame.depth_scale, self.cfg["depth_min_m"], self.cfg["depth_max_m"])
+            detections = [
+                Detection(
+                    (b.x1, b.y1, b.x2, b.y2),
+                    b.class_name,
+                    float(b.score),
+                    d,
+                    depth_patch(depth, (b.x1, b.y1, b.x2, b.y2), self.stride),
+                )
+                for b, d in kept
+            ]
+        self.metrics.count("frames_detected")
+        self.metrics.count("detections", len(detections))
+        self.metrics.count("depth_gated", len(boxes) - len(kept))
+        queue_ms = max(0.0, (started - frame.sent_at) * 1e3) if frame.sent_at else 0.0
+        self.metrics.time_ms("queue_ms", queue_ms)
+        self.pub.put(
+            Detections(
+                self.robot,
+                frame.frame_id,
+                frame.stamp,
+                frame.intrinsics,
+                frame.depth_scale,
+                detections,
+                "",
+                self.instance,
+                {"detect_ms": t_detect.ms, "queue_ms": queue_ms},
+                frame.sent_at,
+            )
+        )
+        self.report_progress(frame.frame_id)
+
+    def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
+        self.metrics.count(f"frames_{reason}")
+        stamp = frame.stamp if frame_id == frame.frame_id else -1.0
+        self.pub.put(
+            Detections(
+                self.robot,
+                frame_id,
+                stamp,
+                frame.intrinsics,
+                frame.depth_scale,
+                [],
+                reason,
+                self.instance,
+                {},
+                frame.sent_at if frame_id == frame.frame_id else 0.0,
+            )
+        )
+        self.report_progress(frame_id)
+
+    def on_end_of_stream(self, control: Control) -> None:
+        """Frames of our share that have not arrived by now were dropped: say so, then finish."""
+        if self.finished:
+            return
+        rank, n = self._rank()
+        if self._last_frame is not None:
+            for missed in range(self.last_mine + 1, control.last_frame_id + 1):
+                if missed % n == rank:
+                    self._publish_skip(self._last_frame, missed, "dropped")
+        self.finish()
+
+    def teardown(self) -> None:
+        self._live_sub.undeclare()
+        self._token.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(DetectorService, argv)

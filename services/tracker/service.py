@@ -1,0 +1,50 @@
+"""Tracker service: IOU tracklets from detections; tracklets of 5+ measurements become landmark candidates.
+
+Detections may arrive out of order (several detector replicas) or twice (a replica set that changed): they
+are re-ordered by frame id and duplicates dropped, so the tracker sees each frame once, in order.
+"""
+
+from __future__ import annotations
+
+from semmap.messages import Detections, Tracks
+from semmap.reorder import FrameReorderBuffer
+from semmap.service import Service, service_main
+from services.tracker.iou_tracker import IouTracker, TrackerParams
+
+
+class TrackerService(Service):
+    """Turns per-frame detections into tracklets and landmark candidates (see module docstring)."""
+
+    name = "tracker"
+
+    def setup(self) -> None:
+        self.tracker = IouTracker(TrackerParams(**self.config["tracker"]))
+        self.pub = self.publisher(self.bus.keys.tracks)
+        self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
+        self.listen(self.bus.keys.detections, Detections, self.on_detections)
+
+    def on_detections(self, message: Detections) -> None:
+        if not self.reorder.push(message.frame_id, message):
+            self.metrics.count("duplicates_dropped")
+            return
+        for det in self.reorder.pop_ready():
+            self._process(det)
+
+    def _process(self, det: Detections) -> None:
+        with self.metrics.timer("proposal_ms") as timer:
+            if det.skipped:
+                if det.stamp >= 0:
+                    self.tracker.skip(det.frame_id, det.stamp)
+                candidates, ended, boxes = [], [], []
+            else:
+                out = self.tracker.update(det.frame_id, det.stamp, det.detections, det.intrinsics, det.depth_scale)
+                candidates, ended, boxes = out.candidates, out.ended, out.boxes
+        self.metrics.count("frames")
+        self.metrics.count("candidates_proposed", sum(1 for c in candidates if c.first))
+        self.pub.put(Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
+                            {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at))
+        self.report_progress(det.frame_id)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(TrackerService, argv)

@@ -1,0 +1,202 @@
+"""Rerun sink: records the run to `DIR/run.rrd` (and optionally serves the web viewer for a live run).
+
+Entity layout (Rerun 0.41):
+- `world/landmarks`: one solid sphere per landmark (`Ellipsoids3D`), radius from the object size, a stable colour
+  per landmark id, label `class #id`.
+- `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
+- `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
+  `.../detections`, `.../tracks` (tentative / candidate) and `.../rejected` as 2D boxes;
+  `world/camera/depth` every `viz.depth_every` frames.
+- `timings/<service>/<stage>`: per-stage latency time series in ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import colorsys
+
+import numpy as np
+
+from semmap.messages import (
+    CorrectedPoses,
+    Detections,
+    Frame,
+    Landmark,
+    MapUpdate,
+    OdometryPose,
+    ServiceStatus,
+    Tracks,
+)
+from semmap.service import Service, service_main
+
+TRACK_COLORS = {"tentative": (160, 160, 160), "candidate": (40, 200, 90), "rejected": (230, 40, 40)}
+
+
+def landmark_color(landmark_id: int) -> tuple[int, int, int]:
+    """A stable, well-spread colour per id (golden-ratio hue steps)."""
+    hue = (landmark_id * 0.618033988749895) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+class VizService(Service):
+    """Logs everything on the bus worth seeing to Rerun (see module docstring)."""
+
+    name = "viz"
+
+    def setup(self) -> None:
+        import rerun as rr
+        import rerun.blueprint as rrb
+
+        self.rr = rr
+        cfg = self.config["viz"]
+        self.images = bool(cfg.get("images", True))
+        self.depth_every = max(0, int(cfg.get("depth_every", 10)))
+        rr.init(f"semmap-{self.robot}", spawn=False)
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            rr.save(str(self.out_dir / "run.rrd"))
+        if self.args.serve:
+            uri = rr.serve_grpc()
+            rr.serve_web_viewer(open_browser=False, connect_to=uri)
+            self.log.info("web viewer at http://localhost:9090 (gRPC %s)", uri)
+        rr.send_blueprint(rrb.Blueprint(rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="map"),
+            rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="camera"),
+                         rrb.TimeSeriesView(origin="timings", name="latency (ms)"), row_shares=[3, 2]),
+            column_shares=[3, 2])))
+        rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.landmarks: dict[int, Landmark] = {}
+        self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
+        self.optimized: np.ndarray | None = None
+        self.correction: np.ndarray | None = None
+        self.map_frame = -1
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=8 if not self.lockstep else 100_000)
+        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
+        self.listen(self.bus.keys.detections, Detections, self.on_detections)
+        self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
+        self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map)
+        self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
+        self.listen(self.bus.keys.status_all, ServiceStatus, self.on_status)
+
+    def _at(self, frame_id: int) -> None:
+        self.rr.set_time("frame", sequence=frame_id)
+
+    def on_frame(self, frame: Frame) -> None:
+        rr = self.rr
+        self._at(frame.frame_id)
+        k = frame.intrinsics
+        rr.log("world/camera", rr.Pinhole(focal_length=[k.fx, k.fy], principal_point=[k.cx, k.cy],
+                                          resolution=[k.width, k.height], image_plane_distance=0.3))
+        if self.images:
+            rr.log("world/camera/image", rr.EncodedImage(contents=frame.rgb_jpeg, media_type="image/jpeg"))
+        if self.depth_every and frame.frame_id % self.depth_every == 0:
+            rr.log("world/camera/depth", rr.DepthImage(frame.depth(), meter=1.0 / frame.depth_scale))
+        self.metrics.count("frames")
+        self.last_frame_id = max(self.last_frame_id, frame.frame_id)
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def on_odometry(self, pose: OdometryPose) -> None:
+        rr = self.rr
+        self._at(pose.frame_id)
+        self.odometry[pose.frame_id] = pose.pose.copy()
+        # show the camera where the optimised map puts it: the newest correction applied to the odometry
+        current = pose.pose if self.correction is None else self.correction @ pose.pose
+        rr.log("world/camera", rr.Transform3D(translation=current[:3, 3], mat3x3=current[:3, :3]))
+        if pose.frame_id % 5 == 0:
+            path = np.array([self.odometry[i][:3, 3] for i in sorted(self.odometry)])
+            rr.log("world/trajectory/odometry", rr.LineStrips3D([path], colors=[(230, 120, 30)], radii=0.005))
+
+    def on_corrected(self, poses: CorrectedPoses) -> None:
+        if len(poses.poses) == 0:
+            return
+        self._at(poses.frame_id)
+        self.optimized = poses.poses[:, :3, 3]
+        self.rr.log("world/trajectory/optimized", self.rr.LineStrips3D([self.optimized], colors=[(40, 140, 255)],
+                                                                       radii=0.006))
+        last_id = int(poses.frame_ids[-1])
+        if last_id in self.odometry:
+            self.correction = poses.poses[-1] @ np.linalg.inv(self.odometry[last_id])
+        for name, ms in poses.timing_ms.items():
+            self.rr.log(f"timings/backend/{name}", self.rr.Scalars(ms))
+
+    def on_detections(self, det: Detections) -> None:
+        rr = self.rr
+        self._at(det.frame_id)
+        if det.detections:
+            rr.log("world/camera/image/detections", rr.Boxes2D(
+                array=[d.box for d in det.detections], array_format=rr.Box2DFormat.XYXY,
+                labels=[f"{d.class_name} {d.score:.2f}" for d in det.detections], colors=[(255, 210, 0)]))
+        else:
+            rr.log("world/camera/image/detections", rr.Clear(recursive=False))
+        for name, ms in det.timing_ms.items():
+            rr.log(f"timings/detector/{name}", rr.Scalars(ms))
+
+    def on_tracks(self, tracks: Tracks) -> None:
+        rr = self.rr
+        self._at(tracks.frame_id)
+        if tracks.boxes:
+            states = ["candidate" if b.candidate else "tentative" for b in tracks.boxes]
+            rr.log("world/camera/image/tracks", rr.Boxes2D(
+                array=[b.box for b in tracks.boxes], array_format=rr.Box2DFormat.XYXY,
+                labels=[f"{b.class_name} t{b.track_id} ({s})" for b, s in zip(tracks.boxes, states, strict=True)],
+                colors=[TRACK_COLORS[s] for s in states]))
+        else:
+            rr.log("world/camera/image/tracks", rr.Clear(recursive=False))
+        if "proposal" in tracks.timing_ms:
+            rr.log("timings/tracker/proposal", rr.Scalars(tracks.timing_ms["proposal"]))
+
+    def on_map(self, update: MapUpdate) -> None:
+        rr = self.rr
+        self._at(update.frame_id)
+        if update.full:
+            self.landmarks.clear()
+        for gone in update.removed:
+            self.landmarks.pop(gone, None)
+        for absorbed, _ in update.merges:
+            self.landmarks.pop(absorbed, None)
+        for lm in update.landmarks:
+            self.landmarks[lm.id] = lm
+        self.map_frame = max(self.map_frame, update.frame_id)
+        if update.landmarks or update.removed or update.merges or update.full:
+            self._log_landmarks()
+        if update.rejected_candidates:
+            rr.log("world/rejected", rr.TextLog(f"rejected candidates {update.rejected_candidates}",
+                                                level="WARN"))
+        for name, ms in update.timing_ms.items():
+            rr.log(f"timings/associator/{name}", rr.Scalars(ms))
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def _log_landmarks(self) -> None:
+        rr = self.rr
+        items = [self.landmarks[i] for i in sorted(self.landmarks)]
+        if not items:
+            rr.log("world/landmarks", rr.Clear(recursive=False))
+            return
+        rr.log("world/landmarks", rr.Ellipsoids3D(
+            centers=[lm.centroid for lm in items], half_sizes=[[max(lm.radius, 0.02)] * 3 for lm in items],
+            colors=[landmark_color(lm.id) for lm in items], labels=[f"{lm.class_name} #{lm.id}" for lm in items],
+            fill_mode="solid"))
+
+    def on_status(self, status: ServiceStatus) -> None:
+        pass  # statuses are summarised in stats.json by the orchestrator
+
+    def on_end_of_stream(self, control) -> None:  # noqa: ANN001 - Control
+        frames_done = self.last_frame_id >= control.last_frame_id
+        if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
+            self.finish()
+
+    def teardown(self) -> None:
+        self.rr.disconnect()
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--serve", action="store_true", help="also serve the Rerun web viewer (port 9090)")
+    parser.add_argument("--wait-for-map", action="store_true",
+                        help="finish only after the map update of the last frame (the run has an associator)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(VizService, argv, _arguments)
