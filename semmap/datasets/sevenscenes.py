@@ -1,0 +1,117 @@
+"""Microsoft 7-Scenes reader: one folder of frame-NNNNNN.{color.jpg,depth.png,pose.txt} per sequence.
+
+The files carry no timestamps; the Kinect ran at 30 Hz, so frame n is stamped n/30 s.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .images import image_size, read_depth_u16, read_rgb
+from .trajectory_io import orthonormalize_pose
+
+_FRAME_RE = re.compile(r"^frame-(\d+)\.color\.(?:jpg|png)$")
+# The published 7-Scenes calibration, used when a folder has no camera-intrinsics.txt (the original zips have none).
+DEFAULT_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
+INVALID_DEPTH = 65535  # the Kinect "no reading" marker in 7-Scenes; mapped to 0 like every other reader
+
+
+def is_sevenscenes_dir(path: Path) -> bool:
+    """A folder with frame-*.color.jpg files (camera-intrinsics.txt optional)."""
+    return path.is_dir() and any(path.glob("frame-*.color.jpg"))
+
+
+def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    try:
+        values = np.array(path.read_text().split(), dtype=float)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {shape[0]}x{shape[1]} matrix from {path}: {exc}") from exc
+    if values.size != shape[0] * shape[1] or not np.all(np.isfinite(values)):
+        raise DatasetError(f"expected {shape[0] * shape[1]} finite numbers in {path}, got {values.size}")
+    return values.reshape(shape)
+
+
+class SevenScenesDataset(Dataset):
+    """Frames of one 7-Scenes sequence folder, sorted by frame number; depth in mm (scale 0.001)."""
+
+    name = "7scenes"
+    rate_hz = 30.0
+    depth_scale = 0.001
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(f"7-Scenes folder not found: {self.root}")
+        frames: list[tuple[int, str]] = []
+        for path in self.root.iterdir():
+            match = _FRAME_RE.match(path.name)
+            if match:
+                frames.append((int(match.group(1)), path.name))
+        if not frames:
+            raise DatasetError(f"no frame-NNNNNN.color.jpg files in {self.root}")
+        frames.sort()
+        self._numbers = [n for n, _ in frames]
+        self._color_names = [name for _, name in frames]
+        self.name = f"7scenes/{self.root.name}"
+
+        k_path = self.root / "camera-intrinsics.txt"
+        k = _read_matrix(k_path, (3, 3)) if k_path.exists() else DEFAULT_K
+        width, height = image_size(self.root / self._color_names[0])
+        self.intrinsics = CameraIntrinsics(
+            fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), width=width, height=height
+        )
+        self._gt_cache: list[tuple[float, np.ndarray]] | None = None
+
+    def __len__(self) -> int:
+        return len(self._numbers)
+
+    def _stem(self, index: int) -> str:
+        return f"frame-{self._numbers[index]:06d}"
+
+    def stamp(self, index: int) -> float:
+        return self._numbers[index] / self.rate_hz
+
+    def _pose(self, index: int) -> np.ndarray | None:
+        path = self.root / f"{self._stem(index)}.pose.txt"
+        if not path.exists():
+            return None
+        pose = _read_matrix(path, (4, 4))
+        return orthonormalize_pose(pose)
+
+    def __getitem__(self, index: int) -> FrameData:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range 0..{len(self) - 1}")
+        index %= len(self)
+        stem = self._stem(index)
+        rgb = read_rgb(self.root / self._color_names[index])
+        depth = read_depth_u16(self.root / f"{stem}.depth.png")
+        if depth.shape != rgb.shape[:2]:
+            raise DatasetError(f"{stem}: depth {depth.shape} and colour {rgb.shape[:2]} sizes differ in {self.root}")
+        depth[depth == INVALID_DEPTH] = 0
+        return FrameData(
+            index=index,
+            stamp=self.stamp(index),
+            rgb=rgb,
+            depth=depth,
+            depth_scale=self.depth_scale,
+            intrinsics=self.intrinsics,
+            gt_pose=self._pose(index),
+        )
+
+    @property
+    def has_groundtruth(self) -> bool:
+        return (self.root / f"{self._stem(0)}.pose.txt").exists()
+
+    def groundtruth(self) -> list[tuple[float, np.ndarray]]:
+        if self._gt_cache is None:
+            result = []
+            for i in range(len(self)):
+                pose = self._pose(i)
+                if pose is not None:
+                    result.append((self.stamp(i), pose))
+            self._gt_cache = result
+        return [(stamp, pose.copy()) for stamp, pose in self._gt_cache]

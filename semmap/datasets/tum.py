@@ -1,0 +1,215 @@
+"""TUM RGB-D reader: rgb.txt / depth.txt / groundtruth.txt lists, associated by nearest stamp.
+
+The TUM streams are not synchronised, so frames are the rgb images that have a depth image within
+`max_difference` seconds, matched greedily by smallest time difference exactly like TUM's associate.py;
+ground truth (100 Hz mocap) is matched to each rgb stamp the same way (frames without one get None).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .images import image_size, read_depth_u16, read_rgb
+from .trajectory_io import read_tum
+
+# Published TUM calibrations (fx, fy, cx, cy) of the colour camera; depth is registered to it.
+TUM_INTRINSICS: dict[str, tuple[float, float, float, float]] = {
+    "fr1": (517.3, 516.5, 318.6, 255.3),
+    "fr2": (520.9, 521.0, 325.1, 249.7),
+    "fr3": (535.4, 539.2, 320.1, 247.6),
+    "default": (525.0, 525.0, 319.5, 239.5),  # the "ROS default" TUM recommends when in doubt
+}
+DEPTH_FACTOR = 5000.0  # TUM depth PNG units per metre
+_FREIBURG_RE = re.compile(r"(?:freiburg|fr)([123])(?![0-9])", re.IGNORECASE)
+
+
+def is_tum_dir(path: Path) -> bool:
+    return path.is_dir() and (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
+
+
+def read_file_list(path: Path) -> list[tuple[float, list[str]]]:
+    """(stamp, remaining fields) of every data line of a TUM list file, sorted by stamp."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise DatasetError(f"cannot read TUM list {path}: {exc}") from exc
+    entries: list[tuple[float, list[str]]] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        try:
+            entries.append((float(fields[0]), fields[1:]))
+        except ValueError as exc:
+            raise DatasetError(f"{path}:{number}: bad timestamp {fields[0]!r}") from exc
+    entries.sort(key=lambda e: e[0])
+    return entries
+
+
+def associate(
+    first: Sequence[float], second: Sequence[float], max_difference: float = 0.02, offset: float = 0.0
+) -> list[tuple[int, int]]:
+    """Index pairs (i, j) with |first[i] - (second[j] + offset)| < max_difference, one-to-one.
+
+    Same result as TUM's associate.py (all candidate pairs, closest first, each stamp used once) but
+    only pairs inside the window are generated, so long sequences stay fast. Returned sorted by i.
+    """
+    a = np.asarray(first, dtype=float)
+    b = np.asarray(second, dtype=float) + offset
+    order = np.argsort(b, kind="stable")
+    b_sorted = b[order]
+    lo = np.searchsorted(b_sorted, a - max_difference, side="left")
+    hi = np.searchsorted(b_sorted, a + max_difference, side="right")
+    candidates: list[tuple[float, int, int]] = []
+    for i in range(len(a)):
+        for k in range(lo[i], hi[i]):
+            diff = abs(a[i] - b_sorted[k])
+            if diff < max_difference:
+                candidates.append((diff, i, int(order[k])))
+    candidates.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    matches: list[tuple[int, int]] = []
+    for _, i, j in candidates:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            matches.append((i, j))
+    matches.sort()
+    return matches
+
+
+def _intrinsics_override(root: Path) -> tuple[tuple[float, float, float, float], float | None] | None:
+    """(fx, fy, cx, cy) and an optional depth factor from camera.yaml or intrinsics.txt, if present.
+
+    camera.yaml: fx/fy/cx/cy (+ depth_factor) at top level or under `camera:`/`intrinsics:`, or ORB-SLAM
+    style `Camera.fx` keys (its `%YAML:1.0` header is skipped). intrinsics.txt: "fx fy cx cy" or a 3x3 K.
+    """
+    yaml_path = root / "camera.yaml"
+    if yaml_path.is_file():
+        try:
+            text = "\n".join(ln for ln in yaml_path.read_text().splitlines() if not ln.startswith("%YAML"))
+            data = yaml.safe_load(text) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise DatasetError(f"cannot parse {yaml_path}: {exc}") from exc
+        if not isinstance(data, dict):
+            raise DatasetError(f"{yaml_path} must hold a mapping with fx, fy, cx, cy")
+        for key in ("camera", "intrinsics", "Camera"):
+            if isinstance(data.get(key), dict):
+                data = {**data, **data[key]}
+        flat = {str(k).removeprefix("Camera."): v for k, v in data.items()}
+        try:
+            fx, fy, cx, cy = (float(flat[k]) for k in ("fx", "fy", "cx", "cy"))
+            factor = flat.get("depth_factor", flat.get("DepthMapFactor"))
+            return (fx, fy, cx, cy), (float(factor) if factor is not None else None)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(f"{yaml_path} needs numeric fx, fy, cx, cy: {exc}") from exc
+    txt_path = root / "intrinsics.txt"
+    if txt_path.is_file():
+        try:
+            numbers = np.array(txt_path.read_text().replace(",", " ").split(), dtype=float)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"cannot parse {txt_path}: {exc}") from exc
+        if numbers.size == 4:
+            return (float(numbers[0]), float(numbers[1]), float(numbers[2]), float(numbers[3])), None
+        if numbers.size == 9:
+            k = numbers.reshape(3, 3)
+            return (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])), None
+        raise DatasetError(f"{txt_path} must hold 'fx fy cx cy' or a 3x3 K, got {numbers.size} numbers")
+    return None
+
+
+def tum_camera_name(root: Path) -> str:
+    """'fr1' / 'fr2' / 'fr3' from the folder name (rgbd_dataset_freiburg2_desk -> fr2), else 'default'."""
+    match = _FREIBURG_RE.search(root.resolve().name)
+    return f"fr{match.group(1)}" if match else "default"
+
+
+class TumDataset(Dataset):
+    """One TUM RGB-D sequence folder; depth in 1/5000 m units (scale 0.0002)."""
+
+    name = "tum"
+    rate_hz = 30.0
+
+    def __init__(self, root: str | Path, max_difference: float = 0.02) -> None:
+        self.root = Path(root)
+        if not is_tum_dir(self.root):
+            raise DatasetError(f"not a TUM RGB-D folder (needs rgb.txt and depth.txt): {self.root}")
+        self.name = f"tum/{self.root.name}"
+        self.max_difference = float(max_difference)
+        rgb_list = read_file_list(self.root / "rgb.txt")
+        depth_list = read_file_list(self.root / "depth.txt")
+        if not rgb_list:
+            raise DatasetError(f"{self.root / 'rgb.txt'} lists no images")
+        for path, entries in (("rgb.txt", rgb_list), ("depth.txt", depth_list)):
+            if any(not fields for _, fields in entries):
+                raise DatasetError(f"{self.root / path}: every line needs 'stamp filename'")
+        pairs = associate([s for s, _ in rgb_list], [s for s, _ in depth_list], self.max_difference)
+        if not pairs:
+            raise DatasetError(
+                f"no rgb/depth pairs within {self.max_difference} s in {self.root} (check the timestamps)"
+            )
+        self._stamps = [rgb_list[i][0] for i, _ in pairs]
+        self._rgb_files = [rgb_list[i][1][0] for i, _ in pairs]
+        self._depth_files = [depth_list[j][1][0] for _, j in pairs]
+
+        self._poses: list[np.ndarray | None] = [None] * len(pairs)
+        gt_path = self.root / "groundtruth.txt"
+        if gt_path.is_file():
+            gt = read_tum(gt_path)
+            for i, j in associate(self._stamps, [s for s, _ in gt], self.max_difference):
+                self._poses[i] = gt[j][1]
+
+        override = _intrinsics_override(self.root)
+        if override is not None:
+            (fx, fy, cx, cy), factor = override
+            self.camera_name = "file"
+        else:
+            self.camera_name = tum_camera_name(self.root)
+            fx, fy, cx, cy = TUM_INTRINSICS[self.camera_name]
+            factor = None
+        self.depth_scale = 1.0 / (factor or DEPTH_FACTOR)
+        width, height = image_size(self.root / self._rgb_files[0])
+        self.intrinsics = CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def __getitem__(self, index: int) -> FrameData:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range 0..{len(self) - 1}")
+        index %= len(self)
+        rgb = read_rgb(self.root / self._rgb_files[index])
+        depth = read_depth_u16(self.root / self._depth_files[index])
+        if depth.shape != rgb.shape[:2]:
+            raise DatasetError(
+                f"depth {self._depth_files[index]} {depth.shape} and colour {rgb.shape[:2]} sizes differ"
+            )
+        pose = self._poses[index]
+        return FrameData(
+            index=index,
+            stamp=self._stamps[index],
+            rgb=rgb,
+            depth=depth,
+            depth_scale=self.depth_scale,
+            intrinsics=self.intrinsics,
+            gt_pose=None if pose is None else pose.copy(),
+        )
+
+    @property
+    def has_groundtruth(self) -> bool:
+        return any(p is not None for p in self._poses)
+
+    def groundtruth(self) -> list[tuple[float, np.ndarray]]:
+        return [(s, p.copy()) for s, p in zip(self._stamps, self._poses, strict=True) if p is not None]
+
+    def files(self, index: int) -> tuple[str, str]:
+        """(rgb, depth) file names of a frame, relative to the folder (for checking the association)."""
+        return self._rgb_files[index], self._depth_files[index]
