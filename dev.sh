@@ -47,10 +47,30 @@ model() {
   .venv/bin/semmap models fetch
 }
 
+compose_schema() {
+  # The Compose Specification JSON schema, for the offline compose.yaml test (no Docker engine here).
+  # It ships inside the docker-compose 1.29.2 wheel on PyPI; only that file is kept.
+  [ -f .cache/compose_spec.json ] && return 0
+  mkdir -p .cache
+  local tmp
+  tmp=$(mktemp -d)
+  .venv/bin/python -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+    docker-compose==1.29.2 -d "$tmp"
+  .venv/bin/python - "$tmp" <<'PY'
+import glob, hashlib, sys, zipfile
+wheel = glob.glob(sys.argv[1] + "/docker_compose-1.29.2-*.whl")[0]
+body = zipfile.ZipFile(wheel).read("compose/config/compose_spec.json")
+assert hashlib.sha256(body).hexdigest() == "0dc04bd346dcfee1b1419628fff79937bbf076925f298f272a2b490e2b112bac"
+open(".cache/compose_spec.json", "wb").write(body)
+PY
+  rm -rf "$tmp"
+}
+
 setup() {
   system_packages
   python_env
   model
+  compose_schema
 }
 
 cmd=${1:-help}

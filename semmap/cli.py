@@ -99,10 +99,39 @@ def _run(args: argparse.Namespace) -> int:
     return Orchestrator(plan).run()
 
 
+def _add_view(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("view", help="open a run's Rerun recording (DIR/run.rrd) in the viewer")
+    p.add_argument("dir", help="run output directory (or an .rrd file)")
+    p.add_argument("--web", action="store_true", help="serve the web viewer instead of the native one")
+    p.set_defaults(func=_view)
+
+
+def _view(args: argparse.Namespace) -> int:
+    import os
+    import shutil
+    import subprocess
+
+    path = Path(args.dir)
+    rrd = path / "run.rrd" if path.is_dir() else path
+    if not rrd.is_file():
+        print(f"error: no Rerun recording at {rrd} (runs record one unless --no-viz)", file=sys.stderr)
+        return 2
+    viewer = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if viewer is None:
+        print("error: the rerun viewer is not installed (pip install rerun-sdk)", file=sys.stderr)
+        return 2
+    cmd = [viewer, *(["--web-viewer"] if args.web else []), str(rrd)]
+    return subprocess.call(cmd, env={**os.environ, "RERUN_ANALYTICS": os.environ.get("RERUN_ANALYTICS", "0")})
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="semmap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_run(sub)
+    _add_view(sub)
+    from semmap.eval_cli import register as register_eval
+
+    register_eval(sub)
     try:
         from services.detector.commands import register as register_detector
     except ImportError:  # pragma: no cover - the detector commands are part of the package

@@ -8,6 +8,7 @@ handler is logged and counted, never fatal: a long-running service must not lose
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import resource
@@ -31,6 +32,12 @@ from semmap.messages import Control, Message, MessageError, Progress, ServiceSta
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
+HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched with every status (see semmap.health)
+
+
+def touch_health(path: str) -> None:
+    with contextlib.suppress(OSError):  # a read-only disk must not stop the service
+        Path(path).touch()
 
 
 def configure_logging(verbose: bool, name: str) -> None:
@@ -97,7 +104,8 @@ class _Timer:
 
 def common_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags every service takes (the CLI passes them on to each child process)."""
-    parser.add_argument("--robot", default=None, help="robot name in the key expressions (default from config)")
+    parser.add_argument("--robot", default=os.environ.get("SEMMAP_ROBOT"),
+                        help="robot name in the key expressions (env SEMMAP_ROBOT; default from config)")
     parser.add_argument("--config", default=None, help="YAML config file (defaults: semmap/config/default.yaml)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override one setting; repeatable")
@@ -207,6 +215,8 @@ class Service:
             self._status_pub.put(status)
         except Exception as exc:  # the bus may already be closing
             self.log.debug("status not sent: %s", exc)
+        if HEALTH_FILE and self.state in ("running", "finished"):
+            touch_health(HEALTH_FILE)
 
     # -- the loop --------------------------------------------------------------------------------------------
     def _on_control(self, control: Control) -> None:

@@ -20,6 +20,7 @@ from services.detector.onnx_detector import DetectedBox, OnnxDetector, depth_gat
 from services.detector.oracle import OracleDetector
 
 MEMBERSHIP_SETTLE_S = 0.5
+EOS_GRACE_S = 2.0  # real time: how long after the end of the stream a late frame may still arrive
 
 
 def depth_patch(depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
@@ -80,6 +81,7 @@ class DetectorService(Service):
         )
         self.last_mine = -1
         self._last_frame: Frame | None = None
+        self._eos_since: float | None = None
         capacity = 100_000 if self.lockstep else max(1, int(cfg["queue"]))
         self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=capacity)
         deadline = time.monotonic() + 5.0
@@ -184,16 +186,28 @@ class DetectorService(Service):
         )
         self.report_progress(frame_id)
 
+    def _owed(self, last_frame_id: int) -> list[int]:
+        """Frames of our share up to `last_frame_id` that we have not answered yet."""
+        rank, n = self._rank()
+        return [f for f in range(self.last_mine + 1, last_frame_id + 1) if f % n == rank]
+
     def on_end_of_stream(self, control: Control) -> None:
-        """Frames of our share that have not arrived by now were dropped: say so, then finish."""
+        """Finish once our share is answered; frames still missing after a grace period were dropped."""
         if self.finished:
             return
-        rank, n = self._rank()
-        if self._last_frame is not None:
-            for missed in range(self.last_mine + 1, control.last_frame_id + 1):
-                if missed % n == rank:
+        if not self._owed(control.last_frame_id):
+            self.finish()
+        elif self._eos_since is None:
+            self._eos_since = time.monotonic()
+
+    def tick(self) -> None:
+        if self.end_of_stream is None or self.finished or self._eos_since is None:
+            return
+        if time.monotonic() - self._eos_since > EOS_GRACE_S and len(self.inbox) == 0:
+            if self._last_frame is not None:
+                for missed in self._owed(self.end_of_stream.last_frame_id):
                     self._publish_skip(self._last_frame, missed, "dropped")
-        self.finish()
+            self.finish()
 
     def teardown(self) -> None:
         self._live_sub.undeclare()

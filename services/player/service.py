@@ -37,6 +37,9 @@ def parse_wait_for(spec: str) -> dict[str, int]:
     return out
 
 
+RETRY_AFTER_S = 5.0
+
+
 class PlayerService(Service):
     """Publishes dataset frames (see module docstring)."""
 
@@ -55,6 +58,7 @@ class PlayerService(Service):
         self.progress: dict[str, int] = {}
         self.running: dict[str, set[str]] = {name: set() for name in self.wait_for}
         self.next_index = 0
+        self.retried = -1
         self.started_at: float | None = None
         self.waiting_since = time.monotonic()
         self.frames_pub = self.publisher(self.bus.keys.frames)
@@ -81,8 +85,22 @@ class PlayerService(Service):
             return False
         return ready and (not self.wait_for or self.frames_pub.matching())
 
+    def _lockstep_done(self) -> int:
+        """The newest frame every waited-for service has finished."""
+        return min((self.progress.get(n, -1) for n in self.wait_for), default=self.next_index - 1)
+
     def tick(self) -> None:
-        if self.finished or self.state == "failed" or self.next_index >= self.total:
+        if self.finished or self.state == "failed":
+            return
+        if self.next_index >= self.total:
+            # lockstep: end the stream once the last frame is through (a small control message would overtake
+            # the big last frame otherwise); real time: right away, services give late frames a grace period
+            if not self.lockstep or self._lockstep_done() >= self.total - 1:
+                self.control_pub.put(Control(self.robot, "end_of_stream", self.total - 1, self.total))
+                self.log.info("end of stream after %d frames", self.total)
+                self.finish()
+            elif time.monotonic() - self.waiting_since > self.frame_timeout_s:
+                self.fail(f"lockstep: the last frame was not processed within {self.frame_timeout_s:.0f} s")
             return
         if self.started_at is None:
             if not self._pipeline_ready():
@@ -91,9 +109,16 @@ class PlayerService(Service):
             self.waiting_since = self.started_at
             self.log.info("pipeline ready: %s", ", ".join(f"{n} x{len(i)}" for n, i in self.running.items()) or "-")
         if self.lockstep:
-            done = min((self.progress.get(n, -1) for n in self.wait_for), default=self.next_index - 1)
-            if done < self.next_index - 1:
-                if time.monotonic() - self.waiting_since > self.frame_timeout_s:
+            if self._lockstep_done() < self.next_index - 1:
+                waited = time.monotonic() - self.waiting_since
+                if waited > RETRY_AFTER_S and self.retried != self.next_index - 1:
+                    # a frame can fall between two detector replicas while their membership changes: resend it
+                    # once; every consumer drops the duplicate if the first copy did arrive
+                    self.retried = self.next_index - 1
+                    self.metrics.count("frames_republished")
+                    self.log.warning("no progress for frame %d after %.0f s: republishing it", self.retried, waited)
+                    self._send(self.retried)
+                if waited > self.frame_timeout_s:
                     late = [n for n in self.wait_for if self.progress.get(n, -1) < self.next_index - 1]
                     self.fail(f"lockstep: no progress for frame {self.next_index - 1} from {', '.join(late)} "
                               f"within {self.frame_timeout_s:.0f} s")
@@ -120,10 +145,13 @@ class PlayerService(Service):
             self.frames_pub.put(message)
         self.metrics.count("frames_published")
         self.last_frame_id = index
-        if self.next_index >= self.total:
-            self.control_pub.put(Control(self.robot, "end_of_stream", index, self.total))
-            self.log.info("all %d frames published", self.total)
-            self.finish()
+
+    def _send(self, index: int) -> None:
+        """Publish a frame again (no counters moved but the republish count)."""
+        try:
+            self.frames_pub.put(frame_message(self.robot, self.dataset[index]))
+        except DatasetError as exc:
+            self.log.warning("frame %d not republished: %s", index, exc)
 
     def write_outputs(self) -> None:
         if self.dataset.has_groundtruth and self.out_dir is not None:

@@ -1,0 +1,75 @@
+"""compose.yaml, checked without a Docker engine: the Compose Specification schema, and every command exists."""
+
+from __future__ import annotations
+
+import importlib
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+import yaml
+
+PROJECT = Path(__file__).resolve().parents[2]
+SCHEMA = PROJECT / ".cache" / "compose_spec.json"
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return yaml.safe_load((PROJECT / "compose.yaml").read_text())
+
+
+def test_compose_file_matches_the_compose_specification(compose: dict) -> None:
+    if not SCHEMA.is_file():
+        pytest.skip("the Compose Specification schema is fetched by ./dev.sh setup (.cache/compose_spec.json)")
+    schema = json.loads(SCHEMA.read_text())
+    jsonschema.Draft201909Validator(schema).validate(compose)  # the draft the schema names
+
+
+def test_services_join_the_router_and_detectors_scale(compose: dict) -> None:
+    services = compose["services"]
+    assert services["zenoh"]["image"].startswith("eclipse/zenoh:")
+    for name, service in services.items():
+        if name == "zenoh":
+            continue
+        env = service["environment"]
+        assert env["SEMMAP_ZENOH_CONNECT"] == "tcp/zenoh:7447" and env["SEMMAP_ZENOH_MODE"] == "client", name
+        assert "container_name" not in service, f"{name}: a fixed name would stop --scale"
+    detector = services["detector"]
+    assert "ports" not in detector, "published ports would stop --scale detector=3"
+    assert detector["build"]["target"] == "detector"
+
+
+def _service_parser(module_name: str):
+    module = importlib.import_module(f"services.{module_name}.service")
+    return module
+
+
+@pytest.mark.parametrize("name", ["odometry", "detector", "tracker", "associator", "backend", "viz", "player"])
+def test_every_command_names_a_real_service_with_real_flags(compose: dict, name: str) -> None:
+    command = compose["services"][name]["command"]
+    assert command[:2] == ["python", "-m"], command
+    module = command[2]
+    assert module == f"services.{name}"
+    assert importlib.util.find_spec(f"{module}.__main__") is not None
+    # the flags parse with the service's own parser (no process started)
+    import argparse
+
+    from semmap.service import common_arguments
+
+    service_module = importlib.import_module(f"{module}.service")
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    common_arguments(parser)
+    extra = {"player": "_arguments", "viz": "_arguments", "associator": "_arguments"}.get(name)
+    if extra:
+        getattr(service_module, extra)(parser)
+    args = [a.replace("${SEMMAP_DATASET:-7scenes-redkitchen}", "x").replace("${SEMMAP_ODOMETRY:-gt}", "gt")
+            for a in command[3:]]
+    parser.parse_args(args)
+
+
+def test_dockerfile_targets_exist() -> None:
+    text = (PROJECT / "docker" / "Dockerfile").read_text()
+    for target in ("AS base", "AS service", "AS detector"):
+        assert target in text
+    assert "USER semmap" in text and "HEALTHCHECK" in text
