@@ -95,6 +95,14 @@ def validate_pose(values: Any, name: str = "pose") -> np.ndarray:
     return pose
 
 
+def _non_rigid(poses: np.ndarray) -> np.ndarray:
+    """Indices of the Nx4x4 poses that are not rigid transforms (vectorised: trajectories are long)."""
+    rot = poses[:, :3, :3]
+    ortho = np.abs(rot @ np.transpose(rot, (0, 2, 1)) - np.eye(3)).max(axis=(1, 2)) <= 1e-3
+    rows = np.abs(poses[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) <= 1e-6
+    return np.flatnonzero(~(ortho & rows & (np.linalg.det(rot) > 0)))
+
+
 def pose_to_wire(pose: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(pose, dtype=np.float64).reshape(16)]
 
@@ -328,7 +336,7 @@ class OdometryPose(Message):
     """A camera pose from the SLAM front end (ours or an external one) for one frame.
 
     sigma_translation / sigma_rotation: the front end's 1-sigma uncertainty of the motion since the previous
-    keyframe (metres, radians); the backend turns them into its odometry noise.
+    frame (metres, radians); the backend scales them by sqrt(frames) between two of its nodes.
     """
 
     SCHEMA: ClassVar[str] = "semmap.odometry/1"
@@ -710,8 +718,9 @@ class CorrectedPoses(Message):
             raise MessageError("frame_ids, stamps and poses must have the same length and poses be Nx4x4")
         if len(lids) != len(lpos) or lpos.shape[1] != 3:
             raise MessageError("landmark_ids and landmark_positions must match (Nx3)")
-        for i, pose in enumerate(poses):
-            validate_pose(pose.reshape(16).tolist(), f"poses[{i}]")
+        bad = _non_rigid(poses)
+        if bad.size:
+            raise MessageError(f"poses[{int(bad[0])}] is not a rigid transform")
         return cls(_robot(d), _non_negative_int(d, "seq"), _non_negative_int(d, "frame_id"), ids, stamps, poses,
                    lids, lpos, _timings(d), _get(d, "sent_at", float))
 
