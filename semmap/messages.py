@@ -87,6 +87,8 @@ def _non_negative_int(d: dict, key: str) -> int:
 def validate_pose(values: Any, name: str = "pose") -> np.ndarray:
     """A 4x4 rigid transform from 16 floats: finite, orthonormal rotation, det +1, last row 0 0 0 1."""
     pose = np.asarray(_finite_floats(values, 16, name), dtype=np.float64).reshape(4, 4)
+    if np.abs(pose).max() > 1e9:
+        raise MessageError(f"'{name}' holds implausibly large numbers")
     rot = pose[:3, :3]
     if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise MessageError(f"'{name}' last row must be 0 0 0 1")
