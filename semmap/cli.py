@@ -130,8 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_view(sub)
     from semmap.eval_cli import register as register_eval
+    from semmap.map_cli import register as register_map
 
     register_eval(sub)
+    register_map(sub)
     try:
         from services.detector.commands import register as register_detector
     except ImportError:  # pragma: no cover - the detector commands are part of the package

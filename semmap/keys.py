@@ -53,6 +53,11 @@ class Keys:
         return f"{self.root}/observations"
 
     @property
+    def landmark_tags(self) -> str:
+        """The observations again as AprilTag-like id + pose detections (RTAB-Map's landmark form)."""
+        return f"{self.root}/observations/tags"
+
+    @property
     def map_updates(self) -> str:
         return f"{self.root}/map/updates"
 

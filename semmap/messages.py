@@ -99,10 +99,12 @@ def validate_pose(values: Any, name: str = "pose") -> np.ndarray:
 
 def _non_rigid(poses: np.ndarray) -> np.ndarray:
     """Indices of the Nx4x4 poses that are not rigid transforms (vectorised: trajectories are long)."""
+    sane = np.abs(poses).reshape(len(poses), -1).max(axis=1, initial=0.0) <= 1e9
+    poses = np.where(sane[:, None, None], poses, np.eye(4))
     rot = poses[:, :3, :3]
     ortho = np.abs(rot @ np.transpose(rot, (0, 2, 1)) - np.eye(3)).max(axis=(1, 2)) <= 1e-3
     rows = np.abs(poses[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) <= 1e-6
-    return np.flatnonzero(~(ortho & rows & (np.linalg.det(rot) > 0)))
+    return np.flatnonzero(~(sane & ortho & rows & (np.linalg.det(rot) > 0)))
 
 
 def pose_to_wire(pose: np.ndarray) -> list[float]:
@@ -648,6 +650,60 @@ def _merges(raw: list) -> list[tuple[int, int]]:
 
 
 @dataclass
+class TagDetection:
+    """An observation in the AprilTag-like form RTAB-Map consumes: id, size, camera-frame pose, 6x6 covariance.
+
+    Objects carry no orientation: the rotation is identity and its covariance large (rotation unconstrained).
+    """
+
+    id: int
+    size: float
+    pose: np.ndarray  # 4x4 in the camera frame
+    covariance: np.ndarray  # 6x6, (x, y, z, roll, pitch, yaw)
+
+    @classmethod
+    def from_observation(cls, obs: Observation, rotation_sigma_rad: float = 1e3) -> TagDetection:
+        pose = np.eye(4)
+        pose[:3, 3] = obs.point_camera
+        cov = np.diag([obs.sigma**2] * 3 + [rotation_sigma_rad**2] * 3)
+        return cls(obs.landmark_id, obs.size, pose, cov)
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "size": self.size, "pose": pose_to_wire(self.pose),
+                "covariance": [float(v) for v in np.asarray(self.covariance, float).reshape(36)]}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> TagDetection:
+        if not isinstance(d, dict):
+            raise MessageError("a tag detection must be a map")
+        cov = np.asarray(_finite_floats(d.get("covariance"), 36, "covariance")).reshape(6, 6)
+        if np.any(np.diag(cov) < 0):
+            raise MessageError("covariance must have a non-negative diagonal")
+        return cls(_non_negative_int(d, "id"), _get(d, "size", float), validate_pose(d.get("pose")), cov)
+
+
+@dataclass
+class TagDetections(Message):
+    """The frame's landmark observations as tag detections (key `observations/tags`)."""
+
+    SCHEMA: ClassVar[str] = "semmap.landmark_tags/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    detections: list[TagDetection] = field(default_factory=list)
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
+                "detections": [t.to_dict() for t in self.detections], "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TagDetections:
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   [TagDetection.from_dict(t) for t in _get(d, "detections", list)], _get(d, "sent_at", float))
+
+
+@dataclass
 class MapUpdate(Message):
     """Landmarks that changed (or all, when `full`), removed ids and merges, after processing `frame_id`."""
 
@@ -814,5 +870,6 @@ class ServiceStatus(Message):
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
-    Frame, OdometryPose, Detections, Tracks, Observations, MapUpdate, CorrectedPoses, Control, Progress, ServiceStatus,
+    Frame, OdometryPose, Detections, Tracks, Observations, TagDetections, MapUpdate, CorrectedPoses, Control, Progress,
+    ServiceStatus,
 )

@@ -53,10 +53,19 @@ class RunPlan:
     quiet: bool = False
 
 
-def free_loopback_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
+
+
+def free_loopback_port(preferred: int = 0) -> int:
+    """`preferred` if it is free on loopback, else any free port."""
+    for port in (preferred, 0) if preferred else (0,):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return int(s.getsockname()[1])
+    raise OSError("no free loopback port")
 
 
 class _Child:
@@ -86,6 +95,7 @@ class Orchestrator:
         self.progress: dict[str, int] = {}
         self.lock = threading.Lock()
         self.interrupted = threading.Event()
+        self.endpoint = ""
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _bus_config(self) -> tuple[BusConfig, list[str]]:
@@ -96,8 +106,9 @@ class Orchestrator:
             if self.plan.zenoh_mode:
                 child += ["--zenoh-mode", self.plan.zenoh_mode]
             return cfg, child
-        port = free_loopback_port()
+        port = free_loopback_port(DEFAULT_PORT)
         hub = f"tcp/127.0.0.1:{port}"
+        self.endpoint = hub
         return BusConfig(mode="peer", listen=[hub]), ["--zenoh-mode", "peer", "--connect", hub,
                                                       "--listen", "tcp/127.0.0.1:0"]
 
@@ -233,6 +244,8 @@ class Orchestrator:
         plan.out_dir.mkdir(parents=True, exist_ok=True)
         bus_cfg, child_args = self._bus_config()
         bus = Bus(bus_cfg, plan.robot)
+        if self.endpoint:
+            log.info("bus: %s (robot %s); e.g. semmap query --connect %s", self.endpoint, plan.robot, self.endpoint)
         bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
         bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
         control_pub = bus.publisher(bus.keys.control)

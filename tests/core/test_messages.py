@@ -28,6 +28,8 @@ from semmap.messages import (
     OdometryPose,
     Progress,
     ServiceStatus,
+    TagDetection,
+    TagDetections,
     TrackedBox,
     Tracks,
 )
@@ -63,6 +65,8 @@ def _samples() -> list:
         Tracks("robot1", 7, 0.25, [CandidateUpdate(2, "cup", [measurement], True)], [1],
                [TrackedBox(2, "cup", (4.0, 6.0, 14.0, 14.0), 5, True)]),
         Observations("robot1", 7, 0.25, [Observation(4, "cup", (0.1, -0.2, 1.5), 0.03, 0.1)], [(5, 4)]),
+        TagDetections("robot1", 7, 0.25, [TagDetection.from_observation(Observation(4, "cup", (0.1, -0.2, 1.5),
+                                                                                     0.03, 0.1))]),
         MapUpdate("robot1", 3, 7, 0.25, [Landmark(4, "cup", (1.0, 2.0, 0.8), 0.06, (0.1, 0.1, 0.12), 9, 0.0, 0.25)],
                   [6], [(5, 4)], False, [11], {"association": 0.8}),
         CorrectedPoses("robot1", 3, 7, np.array([0, 7]), np.array([0.0, 0.25]), np.stack([_pose(), _pose(0.1)]),
@@ -123,7 +127,7 @@ def test_wrong_version_is_rejected_clearly() -> None:
     with pytest.raises(MessageError, match="unsupported version 'semmap.odometry/2'"):
         OdometryPose.decode(_mutate(pose, schema="semmap.odometry/2"))
     with pytest.raises(MessageError, match="expected schema"):
-        OdometryPose.decode(_samples()[8].encode())
+        OdometryPose.decode(_samples()[9].encode())
 
 
 @pytest.mark.parametrize(
@@ -145,8 +149,8 @@ def test_wrong_version_is_rejected_clearly() -> None:
         (0, {"depth": {"dtype": "uint16", "shape": [4, 4], "data": b"\x00" * 32}}, "does not match intrinsics"),
         (0, {"depth_scale": 0.0}, "depth_scale"),
         (4, {"merges": [[1]]}, "merge"),
-        (7, {"command": "reboot"}, "unknown control command"),
-        (9, {"state": "confused"}, "unknown service state"),
+        (8, {"command": "reboot"}, "unknown control command"),
+        (10, {"state": "confused"}, "unknown service state"),
     ],
 )
 def test_malformed_fields_are_rejected(index: int, changes: dict, reason: str) -> None:
@@ -170,7 +174,7 @@ def test_garbage_is_rejected(payload: bytes) -> None:
 
 
 def test_corrected_poses_must_be_rigid() -> None:
-    sample = _samples()[6]
+    sample = _samples()[7]
     sample.poses[1, 0, 0] = 3.0
     with pytest.raises(MessageError, match="poses\\[1\\]"):
         CorrectedPoses.decode(sample.encode())
