@@ -20,7 +20,7 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
     from semmap.orchestrator import ServiceSpec
 
     synthetic = data == "synthetic" or data.startswith("synthetic:")
-    chosen = [n for n in PIPELINE if only is None or n in only]
+    chosen = [n for n in PIPELINE if (only is None or n in only) and not (data == "external" and n == "odometry")]
     specs = []
     for name in chosen:
         if name == "viz" and not (viz and config["viz"]["enabled"]):
@@ -40,7 +40,8 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
 def _add_run(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the whole pipeline on a dataset (or 'synthetic')",
                        description="Start every service as its own process over Zenoh and play DATA through them.")
-    p.add_argument("data", help="dataset path (7-Scenes, TUM RGB-D, KITTI odometry) or 'synthetic[:frames=N,seed=S]'")
+    p.add_argument("data", help="dataset path (7-Scenes, TUM RGB-D, KITTI odometry), 'synthetic[:frames=N,seed=S]', "
+                   "or 'external' (no player or odometry: a SLAM publishes frames and poses, see semmap.client)")
     p.add_argument("--out", default="out", help="output directory (default: out)")
     p.add_argument("--odometry", default=None, help="gt | gt+drift | rgbd | file:PATH (default from config)")
     p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
@@ -80,7 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if args.data != "synthetic" and not args.data.startswith("synthetic:") and not Path(args.data).exists():
+    special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
+    if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
     if args.detectors < 1:

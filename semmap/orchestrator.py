@@ -26,6 +26,7 @@ from semmap.messages import Control, Progress, ServiceStatus
 log = logging.getLogger("semmap.run")
 
 STOP_GRACE_S = 15.0
+EXTERNAL = "external"  # `semmap run external`: no player, no odometry; a SLAM feeds the bus (semmap.client)
 
 
 @dataclass
@@ -133,7 +134,9 @@ class Orchestrator:
         if plan.verbose:
             common.append("--verbose")
         wait_for = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if s.lockstep)
-        specs = [*plan.services, ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for], 1, False)]
+        specs = list(plan.services)
+        if plan.data != EXTERNAL:  # an external SLAM publishes the frames and poses itself
+            specs.append(ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for], 1, False))
         for spec in specs:
             for r in range(spec.replicas):
                 instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"

@@ -166,5 +166,5 @@ def make_frontend(mode: str, config: dict) -> FrontEnd:
     if mode == "rgbd":
         return RgbdOdometry(config["rgbd_sigma_translation_m"], config["rgbd_sigma_rotation_deg"])
     if mode.startswith("file:"):
-        return FileOdometry(mode[5:], config["rgbd_sigma_translation_m"], config["rgbd_sigma_rotation_deg"])
+        return FileOdometry(mode[5:], config["file_sigma_translation_m"], config["file_sigma_rotation_deg"])
     raise OdometryError(f"unknown odometry mode {mode!r}: use gt, gt+drift, rgbd or file:PATH")

@@ -1,0 +1,61 @@
+"""Drive semmap like an external SLAM would: frames from a dataset, poses from a TUM trajectory file.
+
+    semmap run external --out out/ext &            # the pipeline, waiting for a SLAM
+    python examples/slam_from_tum.py DATASET TRAJECTORY.tum --connect tcp/127.0.0.1:7447
+
+A real SLAM publishes its own images and its own poses; here the dataset stands in for the camera and the
+trajectory file for the SLAM's estimate. Lockstep: each frame waits until semmap has processed it, so the map
+is the same as `semmap run DATASET --odometry file:TRAJECTORY.tum`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import numpy as np
+
+from semmap.client import SemmapClient
+from semmap.datasets import open_dataset
+from semmap.datasets.trajectory_io import read_tum
+from semmap.messages import GroundTruthInstance, Intrinsics
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("dataset", help="dataset path or 'synthetic[:...]' (the camera)")
+    parser.add_argument("trajectory", help="TUM trajectory (the SLAM's poses)")
+    parser.add_argument("--connect", default=None, help="semmap's Zenoh endpoint (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--robot", default="robot1")
+    parser.add_argument("--max-frames", type=int, default=0)
+    parser.add_argument("--sigma-translation", type=float, default=0.01, help="per-frame, metres")
+    parser.add_argument("--sigma-rotation-deg", type=float, default=0.5, help="per-frame, degrees")
+    args = parser.parse_args(argv)
+
+    dataset = open_dataset(args.dataset)
+    poses = read_tum(args.trajectory)
+    stamps = np.array([t for t, _ in poses])
+    total = min(len(dataset), args.max_frames) if args.max_frames > 0 else len(dataset)
+    with SemmapClient(args.robot, args.connect or "tcp/127.0.0.1:7447") as client:
+        client.wait_ready()
+        for i in range(total):
+            frame = dataset[i]
+            k = frame.intrinsics
+            instances = [GroundTruthInstance(x.instance_id, x.class_name, tuple(x.box), x.visible_pixels, x.moving)
+                         for x in frame.instances]
+            client.publish_frame(i, frame.stamp, frame.rgb, frame.depth, frame.depth_scale,
+                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height), instances)
+            pose = poses[int(np.argmin(np.abs(stamps - frame.stamp)))][1]
+            client.publish_pose(i, frame.stamp, pose, sigma_translation=args.sigma_translation,
+                                sigma_rotation=math.radians(args.sigma_rotation_deg))
+            client.wait_frame_done(i)
+        client.end_of_stream(total - 1, total)
+        corrected = client.latest_corrected()
+        print(f"sent {total} frames; backend corrected {0 if corrected is None else len(corrected.poses)} poses",
+              file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
