@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from semmap.config import ConfigError, load_config
+from semmap.config import ConfigError, load_config, validate_sections
 from semmap.service import configure_logging
 
 # services a run starts, in data-flow order; each is `python -m services.<name>`
@@ -78,6 +78,7 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f"run.max_frames={args.max_frames}")
     try:
         config = load_config(args.config, overrides)
+        validate_sections(config)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

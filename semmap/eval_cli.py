@@ -7,6 +7,10 @@ import sys
 from pathlib import Path
 
 
+def _pct(value: float | None) -> str:
+    return "n/a (exact odometry)" if value is None else f"{value:.1f} %"
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "eval", help="ATE of a run's odometry and optimised trajectories against ground truth",
@@ -24,6 +28,6 @@ def run_eval(args: argparse.Namespace) -> int:
     except EvaluationError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"ATE odometry {result['ate_odometry_m']:.3f} m, optimised {result['ate_optimized_m']:.3f} m, "
-          f"improvement {result['improvement_pct']:.1f} % over {result['poses']} poses")
+    print(f"ATE odometry {result['ate_odometry_m']:.4f} m, optimised {result['ate_optimized_m']:.4f} m, "
+          f"improvement {_pct(result['improvement_pct'])} over {result['poses']} poses")
     return 0

@@ -1,6 +1,7 @@
 """Run configuration: the packaged defaults, a user YAML on top, then `--set a.b=value` overrides.
 
-Unknown sections or keys are errors (a typo must not silently fall back to a default).
+Unknown sections or keys are errors (a typo must not silently fall back to a default). The `associator` and
+`backend` sections are checked against their algorithms' parameter dataclasses instead (`validate_sections`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def _parse_value(text: str) -> Any:
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> dict[str, Any]:
     """Defaults <- YAML file <- `section.key=value` overrides (values parsed as YAML scalars/lists)."""
     config = default_config()
-    open_sections = {name for name, section in config.items() if section == {}}
+    open_sections = set(DATACLASS_SECTIONS)
     if path:
         try:
             user = yaml.safe_load(Path(path).read_text()) or {}
@@ -61,6 +62,22 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             nested = {part: nested}
         _merge(config, nested, "", open_sections)
     return config
+
+
+DATACLASS_SECTIONS = ("associator", "backend")
+
+
+def validate_sections(config: dict[str, Any]) -> None:
+    """Check the sections owned by parameter dataclasses now, before any process starts."""
+    from services.associator.params import MapperParams
+    from services.associator.service import SERVICE_DEFAULTS
+    from services.backend.pose_graph import BackendParams
+
+    try:
+        MapperParams.from_dict({k: v for k, v in config["associator"].items() if k not in SERVICE_DEFAULTS})
+        BackendParams.from_config(config["backend"])
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def section(config: dict[str, Any], name: str) -> dict[str, Any]:

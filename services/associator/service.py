@@ -12,16 +12,39 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
+from semmap.map_query import MapQuery, QueryError, reply_document, run_query
 from semmap.map_store import MapStore, write_map_json
-from semmap.messages import Control, CorrectedPoses, MapUpdate, Observations, OdometryPose, Tracks
+from semmap.messages import (
+    Control,
+    CorrectedPoses,
+    Landmark,
+    MapUpdate,
+    Observations,
+    OdometryPose,
+    TagDetection,
+    TagDetections,
+    Tracks,
+)
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
 from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 
 SAVE_PERIOD_S = 1.0
+# settings of the service around the mapper (the rest of the `associator:` section is MapperParams)
+SERVICE_DEFAULTS = {"refine_every_n_frames": 10}
+
+
+def combined(a: MapperStep, b: MapperStep) -> MapperStep:
+    """Two steps of one frame as one: later landmark states win, removals stay removed."""
+    removed = list(dict.fromkeys(a.removed + b.removed))
+    updated = {lm.id: lm for lm in a.updated + b.updated if lm.id not in removed}
+    timing = {k: a.timing_ms.get(k, 0.0) + b.timing_ms.get(k, 0.0) for k in a.timing_ms.keys() | b.timing_ms.keys()}
+    return MapperStep(list(updated.values()), removed, a.merges + b.merges, a.observations + b.observations,
+                      a.rejected + b.rejected, timing)
 
 
 class PoseBook:
@@ -58,8 +81,11 @@ class AssociatorService(Service):
     name = "associator"
 
     def setup(self) -> None:
-        self.params = MapperParams.from_config(self.config.get("associator"))
+        section = dict(self.config.get("associator") or {})
+        self.service_cfg = {k: section.pop(k, v) for k, v in SERVICE_DEFAULTS.items()}
+        self.params = MapperParams.from_dict(section)
         self.mapper = LandmarkMapper(self.params)
+        self.snapshot: list[Landmark] = []  # what map queries answer from (swapped whole, read from Zenoh threads)
         self.poses = PoseBook()
         self.await_backend = bool(self.args.await_backend) and self.lockstep
         self.tracks: FrameReorderBuffer[Tracks] = FrameReorderBuffer(max_pending=100_000)
@@ -69,19 +95,32 @@ class AssociatorService(Service):
         self.map_seq = 0
         self.last_saved = 0.0
         self.dirty = False
-        self.store = MapStore(self.out_dir / "map.sqlite") if self.out_dir is not None else None
+        db = self.args.map_db or (self.out_dir / "map.sqlite" if self.out_dir is not None else None)
+        self.store = MapStore(db) if db is not None else None
         if self.store is not None:
             state = self.store.load()
             if state is not None:
-                self.mapper = LandmarkMapper.from_state(self.params, state)
+                self.mapper = LandmarkMapper.from_state(state, self.params)
                 self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
+        self.snapshot = self.mapper.landmarks()
         self.obs_pub = self.publisher(self.bus.keys.observations)
+        self.tags_pub = self.publisher(self.bus.keys.landmark_tags)
         self.map_pub = self.publisher(self.bus.keys.map_updates)
+        self._queryable = self.bus.session.declare_queryable(self.bus.keys.map_query, self._on_query)
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
         self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
-        if self.mapper.landmarks():
-            self._publish_map(MapperStep.empty(), self.last_frame_id, 0.0, full=True)
+        if self.snapshot:
+            self._publish_map(MapperStep(), self.last_frame_id, 0.0, full=True)
+
+    def _on_query(self, query) -> None:  # noqa: ANN001 - zenoh.Query, answered on a Zenoh thread
+        try:
+            spec = MapQuery.from_parameters(dict(query.parameters))
+        except QueryError as exc:
+            query.reply_err(str(exc).encode())
+            return
+        self.metrics.count("queries")
+        query.reply(self.bus.keys.map_query, reply_document(run_query(spec, self.snapshot)))
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def on_odometry(self, pose: OdometryPose) -> None:
@@ -119,24 +158,27 @@ class AssociatorService(Service):
             merges = self.pending_merges + list(step.merges)
             self.pending_merges = []
             self.obs_pub.put(Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges))
+            if step.observations:
+                self.tags_pub.put(TagDetections(self.robot, tracks.frame_id, tracks.stamp,
+                                                [TagDetection.from_observation(o) for o in step.observations]))
             if self.await_backend:
                 self.awaiting = (tracks, step)
             else:
                 self._complete(tracks, step)
 
     def _refine_due(self, frame_id: int) -> bool:
-        every = max(1, int(self.params.refine_every_n_frames))
+        every = max(1, int(self.service_cfg["refine_every_n_frames"]))
         return frame_id % every == 0 and len(self.mapper.landmarks()) > 0
 
     def _complete(self, tracks: Tracks, step: MapperStep) -> None:
         refine_ms = 0.0
         if self.await_backend and self._refine_due(tracks.frame_id):
             t0 = time.perf_counter()
-            refined = self.mapper.refine(self.poses)
+            refined = self.mapper.refine(self.poses, tracks.stamp)
             refine_ms = (time.perf_counter() - t0) * 1e3
             self.metrics.time_ms("refine_ms", refine_ms)
             self.pending_merges += list(refined.merges)
-            step = step.combined(refined)
+            step = combined(step, refined)
         self._publish_map(step, tracks.frame_id, tracks.stamp, frame_sent_at=tracks.frame_sent_at,
                           refine_ms=refine_ms)
         self.metrics.count("frames")
@@ -157,7 +199,8 @@ class AssociatorService(Service):
             timing["refine"] = refine_ms
         self.map_pub.put(MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
                                    step.merges, full, step.rejected, timing, frame_sent_at))
-        self.metrics.counters["landmarks"] = len(self.mapper.landmarks())
+        self.snapshot = self.mapper.landmarks()
+        self.metrics.counters["landmarks"] = len(self.snapshot)
         if step.updated or step.removed or step.merges or full:
             self.dirty = True
         self.metrics.count("merges", len(step.merges))
@@ -166,11 +209,11 @@ class AssociatorService(Service):
 
     # -- persistence ----------------------------------------------------------------------------------------
     def _save(self) -> None:
-        if self.store is None or self.out_dir is None:
-            return
         with self.metrics.timer("save_ms"):
-            self.store.save(self.mapper.to_state())
-            write_map_json(self.out_dir / "map.json", self.mapper.landmarks())
+            if self.store is not None:
+                self.store.save(self.mapper.to_state())
+            if self.out_dir is not None:
+                write_map_json(self.out_dir / "map.json", self.snapshot)
         self.last_saved = time.monotonic()
         self.dirty = False
 
@@ -179,12 +222,18 @@ class AssociatorService(Service):
             self.finish()
 
     def write_outputs(self) -> None:
+        self.snapshot = self.mapper.landmarks()
         self._save()
+
+    def teardown(self) -> None:
+        self._queryable.undeclare()
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--await-backend", action="store_true",
                         help="lockstep: wait for the backend's corrected poses of each frame before the next")
+    parser.add_argument("--map-db", type=Path, default=None,
+                        help="SQLite file of the persisted map (default DIR/map.sqlite)")
 
 
 def main(argv: list[str] | None = None) -> int:
