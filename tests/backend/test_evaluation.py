@@ -99,7 +99,7 @@ def test_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert run_cli(["eval", str(tmp_path)]) == 0
     out = capsys.readouterr().out.strip()
     result = json.loads((tmp_path / "eval.json").read_text())
-    assert out == (f"ATE odometry {result['ate_odometry_m']:.3f} m, optimised {result['ate_optimized_m']:.3f} m, "
+    assert out == (f"ATE odometry {result['ate_odometry_m']:.4f} m, optimised {result['ate_optimized_m']:.4f} m, "
                    f"improvement {result['improvement_pct']:.1f} % over 100 poses")
     assert run_cli(["eval", str(tmp_path / "missing")]) == 2
     assert "error: run directory" in capsys.readouterr().err
