@@ -134,9 +134,11 @@ class Orchestrator:
         if plan.verbose:
             common.append("--verbose")
         wait_for = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if s.lockstep)
+        start_after = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if not s.lockstep)
         specs = list(plan.services)
         if plan.data != EXTERNAL:  # an external SLAM publishes the frames and poses itself
-            specs.append(ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for], 1, False))
+            specs.append(ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for, "--start-after",
+                                                start_after], 1, False))
         for spec in specs:
             for r in range(spec.replicas):
                 instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"

@@ -52,11 +52,12 @@ class PlayerService(Service):
         self.total = min(len(self.dataset), limit) if limit > 0 else len(self.dataset)
         self.metrics.counters["frames_total"] = self.total
         self.wait_for = parse_wait_for(self.args.wait_for or "")
+        self.start_after = {**parse_wait_for(self.args.start_after or ""), **self.wait_for}
         self.speed = float(run.get("speed", 1.0))
         self.frame_timeout_s = float(run["frame_timeout_s"])
         self.start_timeout_s = float(run["start_timeout_s"])
         self.progress: dict[str, int] = {}
-        self.running: dict[str, set[str]] = {name: set() for name in self.wait_for}
+        self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
         self.next_index = 0
         self.retried = -1
         self.started_at: float | None = None
@@ -78,12 +79,12 @@ class PlayerService(Service):
             self.running[s.service].add(s.instance)
 
     def _pipeline_ready(self) -> bool:
-        ready = all(len(self.running[n]) >= count for n, count in self.wait_for.items())
+        ready = all(len(self.running[n]) >= count for n, count in self.start_after.items())
         if not ready and time.monotonic() - self.waiting_since > self.start_timeout_s:
-            missing = [n for n, c in self.wait_for.items() if len(self.running[n]) < c]
+            missing = [n for n, c in self.start_after.items() if len(self.running[n]) < c]
             self.fail(f"services not up after {self.start_timeout_s:.0f} s: {', '.join(missing)}")
             return False
-        return ready and (not self.wait_for or self.frames_pub.matching())
+        return ready and (not self.start_after or self.frames_pub.matching())
 
     def _lockstep_done(self) -> int:
         """The newest frame every waited-for service has finished."""
@@ -161,6 +162,8 @@ class PlayerService(Service):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset path, or 'synthetic[:k=v,...]'")
     parser.add_argument("--wait-for", default="", help="lockstep: services to wait for, e.g. detector:2,tracker")
+    parser.add_argument("--start-after", default="", help="services that must be up before the first frame "
+                        "(without gating each frame), e.g. viz")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,104 @@
+"""The external-SLAM interface: the example client (its own process) gives the same map as the built-in front end
+fed the same poses; live map queries over Zenoh answer what map.json holds."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semmap.client import SemmapClient
+from semmap.datasets import open_dataset
+from semmap.datasets.trajectory_io import write_tum
+from semmap.map_query import MapQuery
+from semmap.map_store import read_map_json
+from semmap.messages import Intrinsics
+
+PROJECT = Path(__file__).resolve().parents[2]
+SYNTH = "synthetic:frames=40"
+
+
+def _drifted_trajectory(path: Path) -> None:
+    """A SLAM-like estimate: the synthetic ground truth with a slow drift."""
+    poses = []
+    for i, (stamp, pose) in enumerate(open_dataset(SYNTH).groundtruth()):
+        drifted = pose.copy()
+        drifted[:3, 3] += [0.002 * i, -0.001 * i, 0.0]
+        poses.append((stamp, drifted))
+    write_tum(path, poses)
+
+
+def test_example_client_gives_the_same_map_as_the_builtin_front_end(tmp_path: Path, router, semmap_run) -> None:
+    trajectory = tmp_path / "slam.tum"
+    _drifted_trajectory(trajectory)
+    builtin = tmp_path / "builtin"
+    result = semmap_run([SYNTH, "--out", str(builtin), "--odometry", f"file:{trajectory}", "--no-viz"])
+    assert result.returncode == 0, result.stderr[-3000:]
+
+    external = tmp_path / "external"
+    outcome: dict = {}
+
+    def run_semmap() -> None:
+        outcome["run"] = semmap_run(["external", "--out", str(external), "--no-viz", "--connect", router.endpoint,
+                                     "--zenoh-mode", "client", "--set", "detector.kind=oracle"])
+
+    runner = threading.Thread(target=run_semmap)
+    runner.start()
+    client = subprocess.run([sys.executable, "examples/slam_from_tum.py", SYNTH, str(trajectory), "--connect",
+                             router.endpoint], cwd=PROJECT, capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "CI": "true"})
+    runner.join(timeout=300)
+    assert client.returncode == 0, client.stderr[-3000:]
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    assert json.loads((external / "map.json").read_text()) == json.loads((builtin / "map.json").read_text())
+    assert (external / "trajectory_optimized.tum").read_text() == (builtin / "trajectory_optimized.tum").read_text()
+
+
+@pytest.mark.needs_data
+@pytest.mark.needs_model
+def test_live_queries_match_map_json_on_7scenes(tmp_path: Path, router, semmap_run, data_root: Path) -> None:
+    out = tmp_path / "run"
+    outcome: dict = {}
+    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
+        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client"],
+        timeout=400)))
+    runner.start()
+    dataset = open_dataset(str(data_root / "7scenes-redkitchen"))
+    frames = 90
+    with SemmapClient("robot1", router.endpoint) as client:
+        client.wait_ready(timeout=120)
+        for i in range(frames):
+            f = dataset[i]
+            k = f.intrinsics
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale,
+                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+            client.publish_pose(i, f.stamp, f.gt_pose, sigma_translation=2e-4, sigma_rotation=2e-4)
+            client.wait_frame_done(i, timeout=120)
+        everything = client.query_map()
+        assert everything, "the first 90 frames show cups and chairs"
+        first = everything[0]
+        by_class = client.query_map(MapQuery(class_name=first.class_name))
+        near = client.query_map(MapQuery(near=first.centroid, radius=0.5))
+        by_id = client.query_map(MapQuery(ids=frozenset({first.id})))
+        client.end_of_stream(frames - 1)
+    runner.join(timeout=300)
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    saved = {lm.id: lm for lm in read_map_json(out / "map.json")}
+    assert {lm.id for lm in everything} == set(saved)
+    for lm in everything:
+        assert np.allclose(lm.centroid, saved[lm.id].centroid, atol=1e-4) and lm.class_name == saved[lm.id].class_name
+    assert {lm.id for lm in by_class} == {i for i, lm in saved.items() if lm.class_name == first.class_name}
+    assert {lm.id for lm in near} == {i for i, lm in saved.items()
+                                      if np.linalg.norm(np.subtract(lm.centroid, first.centroid)) <= 0.5}
+    assert [lm.id for lm in by_id] == [first.id]
+    # the CLI on the saved map answers the same
+    cli = subprocess.run([sys.executable, "-m", "semmap.cli", "query", str(out), "--class", first.class_name,
+                          "--json"], cwd=PROJECT, capture_output=True, text=True, timeout=60)
+    assert cli.returncode == 0, cli.stderr
+    assert {lm["id"] for lm in json.loads(cli.stdout)["landmarks"]} == {lm.id for lm in by_class}

@@ -1,0 +1,110 @@
+"""`semmap run` as a user runs it: separate processes over Zenoh, outputs, determinism, failures, Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from semmap.datasets.trajectory_io import read_tum
+
+PROJECT = Path(__file__).resolve().parents[2]
+
+
+def _assert_outputs(out: Path, frames: int, groundtruth: bool = True) -> dict:
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["outcome"] == "completed"
+    assert stats["frames"]["published"] == frames and stats["frames"]["processed"] == frames
+    assert len(read_tum(out / "trajectory_odometry.tum")) == frames
+    assert len(read_tum(out / "trajectory_optimized.tum")) == frames
+    assert (out / "groundtruth.tum").is_file() == groundtruth
+    body = json.loads((out / "map.json").read_text())
+    assert body["schema"] == "semmap.map/1"
+    for lm in body["landmarks"]:
+        assert set(lm) == {"id", "class", "centroid", "radius", "extent", "observations", "first_seen", "last_seen"}
+    assert (out / "run.rrd").stat().st_size > 1000
+    for name in ("player", "odometry", "detector", "tracker", "associator", "backend", "viz"):
+        assert stats["services"][name]["state"] == "finished", name
+    return body
+
+
+def test_synthetic_run_writes_every_output(tmp_path: Path, semmap_run) -> None:
+    result = semmap_run(["synthetic:frames=45", "--out", str(tmp_path), "--odometry", "gt+drift"])
+    assert result.returncode == 0, result.stderr[-3000:]
+    body = _assert_outputs(tmp_path, 45)
+    assert len(body["landmarks"]) >= 3
+    assert "bus: tcp/127.0.0.1:" in result.stderr
+
+
+@pytest.mark.needs_data
+def test_7scenes_run_through_separate_processes(tmp_path: Path, data_root: Path, semmap_run) -> None:
+    result = semmap_run([str(data_root / "7scenes-redkitchen"), "--out", str(tmp_path), "--odometry", "gt+drift",
+                         "--lockstep", "--max-frames", "60"], timeout=400)
+    assert result.returncode == 0, result.stderr[-3000:]
+    _assert_outputs(tmp_path, 60)
+    gt = read_tum(tmp_path / "groundtruth.tum")
+    assert [round(t, 6) for t, _ in gt[:3]] == [0.0, round(1 / 30, 6), round(2 / 30, 6)]
+
+
+def test_replay_is_deterministic(tmp_path: Path, semmap_run) -> None:
+    outputs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        result = semmap_run(["synthetic:frames=40", "--out", str(out), "--odometry", "gt+drift", "--seed", "3",
+                             "--no-viz"])
+        assert result.returncode == 0, result.stderr[-3000:]
+        outputs.append(out)
+    for name in ("map.json", "trajectory_odometry.tum", "trajectory_optimized.tum"):
+        assert (outputs[0] / name).read_text() == (outputs[1] / name).read_text(), name
+
+
+def test_a_failing_service_fails_the_run_with_its_reason(tmp_path: Path, semmap_run) -> None:
+    missing = tmp_path / "no-such-trajectory.tum"
+    result = semmap_run(["synthetic:frames=10", "--out", str(tmp_path / "out"), "--odometry", f"file:{missing}"],
+                        timeout=120)
+    assert result.returncode == 1
+    err = result.stderr
+    assert "error: odometry" in err and ("failed" in err or "exited with code" in err), err[-2000:]
+    assert "no-such-trajectory.tum" in err
+
+
+def test_bad_arguments_are_clear_errors(tmp_path: Path, semmap_run) -> None:
+    result = semmap_run([str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")], timeout=60)
+    assert result.returncode == 2 and "does not exist" in result.stderr
+    result = semmap_run(["synthetic", "--set", "tracker.sigma=1"], timeout=60)
+    assert result.returncode == 2 and "unknown setting 'tracker.sigma'" in result.stderr
+
+
+def test_ctrl_c_stops_every_service_and_keeps_outputs(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "semmap.cli", "run", "synthetic:frames=2000", "--out",
+                             str(tmp_path), "--quiet", "--no-viz"], cwd=PROJECT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "CI": "true"})
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (tmp_path / "logs" / "player.log").is_file():
+        time.sleep(0.2)
+    time.sleep(12)  # let some frames through
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["outcome"] == "interrupted"
+    assert 0 < stats["frames"]["published"] < 2000
+    assert len(read_tum(tmp_path / "trajectory_odometry.tum")) > 0
+    assert (tmp_path / "map.json").is_file()
+    for service in stats["services"].values():
+        assert service["state"] in ("stopped", "finished")
+
+
+@pytest.mark.slow
+@pytest.mark.needs_data
+def test_full_7scenes_sequence(tmp_path: Path, data_root: Path, semmap_run) -> None:
+    result = semmap_run([str(data_root / "7scenes-redkitchen"), "--out", str(tmp_path), "--odometry", "gt+drift",
+                         "--lockstep"], timeout=1800)
+    assert result.returncode == 0, result.stderr[-3000:]
+    _assert_outputs(tmp_path, 1000)
