@@ -35,10 +35,10 @@ def _assert_outputs(out: Path, frames: int, groundtruth: bool = True) -> dict:
 
 
 def test_synthetic_run_writes_every_output(tmp_path: Path, semmap_run) -> None:
-    result = semmap_run(["synthetic:frames=45", "--out", str(tmp_path), "--odometry", "gt+drift"])
+    result = semmap_run(["synthetic:frames=90", "--out", str(tmp_path), "--odometry", "gt+drift"])
     assert result.returncode == 0, result.stderr[-3000:]
-    body = _assert_outputs(tmp_path, 45)
-    assert len(body["landmarks"]) >= 3
+    body = _assert_outputs(tmp_path, 90)
+    assert len(body["landmarks"]) >= 5
     assert "bus: tcp/127.0.0.1:" in result.stderr
 
 
