@@ -40,6 +40,29 @@ def test_synthetic_run_writes_every_output(tmp_path: Path, semmap_run) -> None:
     body = _assert_outputs(tmp_path, 90)
     assert len(body["landmarks"]) >= 5
     assert "bus: tcp/127.0.0.1:" in result.stderr
+    _assert_recording(tmp_path / "run.rrd", body)
+
+
+def _rerun(*args: str) -> subprocess.CompletedProcess:
+    rerun = Path(sys.executable).with_name("rerun")
+    return subprocess.run([str(rerun), *args], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "CI": "true"})
+
+
+def _assert_recording(rrd: Path, body: dict) -> None:
+    """The recording loads, and holds landmark spheres labelled `class #id`, trajectories, camera and timings."""
+    assert _rerun("rrd", "verify", str(rrd)).returncode == 0
+    summary = _rerun("rrd", "print", str(rrd)).stdout
+    for entity, archetype in [("/world/landmarks ", "Ellipsoids3D:half_sizes"),
+                              ("/world/trajectory/odometry", "LineStrips3D:strips"),
+                              ("/world/trajectory/optimized", "LineStrips3D:strips"),
+                              ("/world/camera/image ", "EncodedImage:blob"),
+                              ("/world/camera/image/detections", "Boxes2D:"),
+                              ("/world/camera/image/tracks", "Boxes2D:"),
+                              ("/timings/detector/detect_ms", "Scalars:")]:
+        assert any(entity in line and archetype in line for line in summary.splitlines()), entity
+    table = _rerun("rrd", "print", "-vvv", str(rrd)).stdout  # wide cells are cut: look for any landmark's label
+    assert any(f"{lm['class']} #{lm['id']}" in table for lm in body["landmarks"])
 
 
 @pytest.mark.needs_data
