@@ -1,0 +1,258 @@
+"""LandmarkMapper on analytic scenes: proposal, feeding, rejection of moving objects, near-by objects, merges
+after a pose correction, observations, state round trip and determinism."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import msgpack
+import numpy as np
+import pytest
+
+from semmap.messages import Landmark, MapUpdate, Observation
+from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
+from services.tracker.iou_tracker import IouTracker
+from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
+
+RATE = 30.0
+
+
+def run(
+    spheres_at: Callable[[float], list[Sphere]],
+    frames: range,
+    pose_at: Callable[[float], np.ndarray] = orbit_pose,
+    mapper: LandmarkMapper | None = None,
+    tracker: IouTracker | None = None,
+    lookup_at: Callable[[float], np.ndarray] | None = None,
+) -> tuple[LandmarkMapper, list[MapperStep]]:
+    """Render, track and map frames; the mapper sees poses from lookup_at (default: the true ones)."""
+    mapper = mapper or LandmarkMapper()
+    tracker = tracker or IouTracker()
+    lookup_at = lookup_at or pose_at
+    steps = []
+    for f in frames:
+        t = f / RATE
+        dets = detections(pose_at(t), spheres_at(t))
+        out = tracker.update(f, t, dets, K_SMALL, 0.001)
+        steps.append(mapper.process(f, t, out.candidates, out.ended, lambda i: lookup_at(i / RATE)))
+    return mapper, steps
+
+
+CUP = Sphere((0.0, 0.0, 0.8), 0.05, "cup")
+
+
+def test_a_static_object_becomes_one_landmark_that_keeps_being_fed() -> None:
+    mapper, steps = run(lambda t: [CUP], range(90))
+    lms = mapper.landmarks()
+    assert len(lms) == 1
+    lm = lms[0]
+    assert lm.class_name == "cup" and lm.observations >= 80
+    assert np.linalg.norm(np.subtract(lm.centroid, CUP.centre)) < 0.03
+    assert 0.03 < lm.radius < 0.12
+    created = next(i for i, s in enumerate(steps) if s.updated)
+    assert created / RATE >= MapperParams().min_track_span_s - 0.05  # young candidates wait
+    assert all(u.id == lm.id for s in steps for u in s.updated)  # fed: the same landmark, never a new one
+    assert mapper.track_landmark(0) == lm.id
+    assert set(steps[-1].timing_ms) == {"proposal", "association", "pointcloud", "update_merge"}
+
+
+def test_a_walking_person_never_becomes_a_landmark() -> None:
+    def scene(t: float) -> list[Sphere]:
+        return [CUP, Sphere((-1.0 + 1.0 * t, 0.6, 0.9), 0.25, "person")]
+
+    mapper, steps = run(scene, range(60), pose_at=lambda t: orbit_pose(0.0))
+    classes = [lm.class_name for lm in mapper.landmarks()]
+    assert "person" not in classes and "cup" in classes
+    assert any(s.rejected for s in steps)
+
+
+def test_an_object_that_starts_moving_is_removed() -> None:
+    def scene(t: float) -> list[Sphere]:
+        y = 0.3 if t < 1.5 else 0.3 + 0.9 * (t - 1.5)  # static for 1.5 s, then walks off at 0.9 m/s
+        return [Sphere((0.1, y, 0.8), 0.12, "chair")]
+
+    mapper, steps = run(scene, range(110), pose_at=lambda t: orbit_pose(0.0))
+    created = [u.id for s in steps[:45] for u in s.updated]
+    assert created, "the static phase must create the landmark"
+    removed = [i for s in steps for i in s.removed]
+    assert created[0] in removed
+    assert mapper.landmarks() == []
+
+
+def test_two_cups_15_cm_apart_are_two_landmarks() -> None:
+    cups = [Sphere((-0.075, 0.0, 0.8), 0.04, "cup"), Sphere((0.075, 0.0, 0.8), 0.04, "cup")]
+    mapper, _ = run(lambda t: cups, range(120))
+    lms = sorted(mapper.landmarks(), key=lambda lm: lm.centroid[0])
+    assert len(lms) == 2
+    for lm, cup in zip(lms, cups, strict=True):
+        assert np.linalg.norm(np.subtract(lm.centroid, cup.centre)) < 0.04
+
+
+def drifted(t: float) -> np.ndarray:
+    """Odometry that drifted by 0.4 m sideways after 1.6 s (a jump, for a clear test)."""
+    pose = orbit_pose(t).copy()
+    if t >= 1.6:
+        pose[:3, 3] += np.array([0.4, 0.0, 0.0])
+    return pose
+
+
+def test_duplicates_from_drift_merge_after_the_pose_correction() -> None:
+    # Seen for 1.2 s, out of view for a while (the track ends), seen again with drifted poses:
+    # the gate (small dt) makes a second landmark; the corrected poses make the two overlap.
+    def scene(t: float) -> list[Sphere]:
+        return [CUP] if t < 1.2 or t >= 1.8 else []
+
+    mapper, steps = run(scene, range(110), lookup_at=drifted)
+    assert len(mapper.landmarks()) == 2
+    step = mapper.refine(lambda i: orbit_pose(i / RATE), stamp=110 / RATE)
+    assert step.merges == [(1, 0)] and 1 in step.removed
+    lms = mapper.landmarks()
+    assert [lm.id for lm in lms] == [0]
+    assert np.linalg.norm(np.subtract(lms[0].centroid, CUP.centre)) < 0.03
+    assert lms[0].observations == sum(1 for s in steps for _ in ()) or lms[0].observations > 60
+
+
+def test_refine_moves_landmarks_with_corrected_poses() -> None:
+    shift = np.array([0.0, 0.2, 0.0])
+
+    def off(t: float) -> np.ndarray:
+        pose = orbit_pose(t).copy()
+        pose[:3, 3] += shift
+        return pose
+
+    mapper, _ = run(lambda t: [CUP], range(60), lookup_at=off)
+    before = np.array(mapper.landmarks()[0].centroid)
+    assert np.linalg.norm(before - (np.array(CUP.centre) + shift)) < 0.03
+    step = mapper.refine(lambda i: orbit_pose(i / RATE))
+    after = np.array(mapper.landmarks()[0].centroid)
+    assert [u.id for u in step.updated] == [0]
+    assert np.linalg.norm(after - np.array(CUP.centre)) < 0.03
+
+
+def test_observations_are_throttled_and_in_the_camera_frame() -> None:
+    mapper, steps = run(lambda t: [CUP], range(200))
+    obs: list[tuple[int, float, Observation]] = [
+        (f, f / RATE, o) for f, s in enumerate(steps) for o in s.observations
+    ]
+    assert len(obs) >= 2
+    stamps = [t for _, t, _ in obs]
+    assert all(b - a >= 2.0 - 1e-9 for a, b in zip(stamps, stamps[1:], strict=False))
+    for f, _, o in obs:
+        pose = orbit_pose(f / RATE)
+        world = pose[:3, :3] @ np.array(o.point_camera) + pose[:3, 3]
+        assert np.linalg.norm(world - np.array(CUP.centre)) < 0.04
+        assert 0.0 < o.sigma < 0.2 and o.landmark_id == 0 and o.class_name == "cup"
+
+
+def test_pose_unknown_measurements_wait_for_their_pose() -> None:
+    late: set[int] = set(range(0, 40))  # the odometry for frames < 40 arrives only at frame 50
+
+    mapper = LandmarkMapper()
+    tracker = IouTracker()
+    for f in range(70):
+        t = f / RATE
+        out = tracker.update(f, t, detections(orbit_pose(t), [CUP]), K_SMALL, 0.001)
+
+        def lookup(i: int, f: int = f) -> np.ndarray | None:
+            return None if i in late and f < 50 else orbit_pose(i / RATE)
+
+        mapper.process(f, t, out.candidates, out.ended, lookup)
+    assert len(mapper.landmarks()) == 1
+
+
+def test_state_round_trip_continues_identically() -> None:
+    cups = [Sphere((-0.2, 0.0, 0.8), 0.05, "cup"), Sphere((0.2, 0.1, 0.8), 0.05, "cup")]
+    tracker_a = IouTracker()
+    mapper_a, _ = run(lambda t: cups, range(45), tracker=tracker_a)
+    blob = msgpack.packb(mapper_a.to_state(), use_bin_type=True)
+    mapper_b = LandmarkMapper.from_state(msgpack.unpackb(blob, raw=False, strict_map_key=False))
+    assert [lm.to_dict() for lm in mapper_b.landmarks()] == [lm.to_dict() for lm in mapper_a.landmarks()]
+    import copy
+
+    tracker_b = copy.deepcopy(tracker_a)
+    _, steps_a = run(lambda t: cups, range(45, 100), mapper=mapper_a, tracker=tracker_a)
+    _, steps_b = run(lambda t: cups, range(45, 100), mapper=mapper_b, tracker=tracker_b)
+    assert [lm.to_dict() for lm in mapper_a.landmarks()] == [lm.to_dict() for lm in mapper_b.landmarks()]
+    assert [[o.to_dict() for o in s.observations] for s in steps_a] == [
+        [o.to_dict() for o in s.observations] for s in steps_b
+    ]
+
+
+def test_same_inputs_give_same_ids_and_centroids() -> None:
+    cups = [
+        Sphere((-0.3, 0.0, 0.8), 0.05, "cup"),
+        Sphere((0.3, 0.0, 0.8), 0.05, "cup"),
+        Sphere((0.0, 0.4, 0.75), 0.2, "chair"),
+    ]
+    a, steps_a = run(lambda t: cups, range(80))
+    b, steps_b = run(lambda t: cups, range(80))
+    assert [lm.to_dict() for lm in a.landmarks()] == [lm.to_dict() for lm in b.landmarks()]
+    assert [[u.to_dict() for u in s.updated] for s in steps_a] == [
+        [u.to_dict() for u in s.updated] for s in steps_b
+    ]
+
+
+def test_outputs_fit_the_wire_messages() -> None:
+    mapper, steps = run(lambda t: [CUP], range(90))
+    last = steps[-1]
+    msg = MapUpdate(
+        "robot1",
+        1,
+        89,
+        89 / RATE,
+        landmarks=last.updated,
+        removed=last.removed,
+        merges=last.merges,
+        rejected_candidates=last.rejected,
+        timing_ms=last.timing_ms,
+    )
+    back = MapUpdate.decode(msg.encode())
+    assert [Landmark.from_dict(x.to_dict()) for x in back.landmarks] == back.landmarks
+    assert back.landmarks == last.updated
+
+
+def run_with_boxes(
+    spheres_at: Callable[[float], list[Sphere]],
+    frames: range,
+    mapper: LandmarkMapper,
+    pose_at: Callable[[float], np.ndarray],
+) -> list[MapperStep]:
+    tracker = IouTracker()
+    steps = []
+    for f in frames:
+        t = f / RATE
+        out = tracker.update(f, t, detections(pose_at(t), spheres_at(t)), K_SMALL, 0.001)
+        steps.append(mapper.process(f, t, out.candidates, out.ended, lambda i: pose_at(i / RATE), out.boxes))
+    return steps
+
+
+def test_absence_evidence_removes_what_left_and_keeps_what_stays() -> None:
+    # A person stands still for 1.6 s (and becomes a landmark), then is gone; the cup stays.
+    def scene(t: float) -> list[Sphere]:
+        person = [Sphere((0.35, 0.2, 0.9), 0.15, "person")] if t < 1.6 else []
+        return [Sphere((-0.25, 0.0, 0.8), 0.06, "cup"), *person]
+
+    def still(t: float) -> np.ndarray:
+        return orbit_pose(0.0)
+
+    on = LandmarkMapper(MapperParams(absence_removal=True, absence_min_px=5.0))
+    steps = run_with_boxes(scene, range(100), on, still)
+    classes = {u.id: u.class_name for s in steps for u in s.updated}
+    assert "person" in classes.values()
+    assert [lm.class_name for lm in on.landmarks()] == ["cup"]
+    assert any(i for s in steps for i in s.removed if classes.get(i) == "person")
+
+    off = LandmarkMapper()  # the default: no negative evidence
+    run_with_boxes(scene, range(100), off, still)
+    assert sorted(lm.class_name for lm in off.landmarks()) == ["cup", "person"]
+
+
+def test_params_from_the_yaml_section() -> None:
+    p = MapperParams.from_dict(
+        {"gate_u": 8, "observation_period_s": "3.0", "seed": 2, "absence_removal": True}
+    )
+    assert p.gate_u == 8.0 and p.observation_period_s == 3.0 and p.seed == 2 and p.absence_removal is True
+    assert MapperParams.from_dict(None) == MapperParams()
+    assert MapperParams.from_dict({"absence_removal": "false"}).absence_removal is False
+    with pytest.raises(ValueError, match="unknown settings"):
+        MapperParams.from_dict({"gate_uu": 1.0})
