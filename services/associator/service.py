@@ -150,7 +150,8 @@ class AssociatorService(Service):
         while self.awaiting is None and self.ready and self.ready[0].frame_id in self.poses.odometry:
             tracks = self.ready.pop(0)
             with self.metrics.timer("process_ms"):
-                step = self.mapper.process(tracks.frame_id, tracks.stamp, tracks.candidates, tracks.ended, self.poses)
+                step = self.mapper.process(tracks.frame_id, tracks.stamp, tracks.candidates, tracks.ended, self.poses,
+                                           boxes=None if tracks.skipped else tracks.boxes)
             for stage, ms in step.timing_ms.items():
                 self.metrics.time_ms(f"{stage}_ms", ms)
             self.metrics.count("candidates_rejected", len(step.rejected))
