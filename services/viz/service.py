@@ -5,7 +5,8 @@ Entity layout (Rerun 0.41):
   per landmark id, label `class #id`.
 - `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
 - `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
-  `.../detections`, `.../tracks` (tentative / candidate) and `.../rejected` as 2D boxes;
+  `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
+  rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
   `world/camera/depth` every `viz.depth_every` frames.
 - `timings/<service>/<stage>`: per-stage latency time series in ms.
 """
@@ -71,6 +72,7 @@ class VizService(Service):
         self.optimized: np.ndarray | None = None
         self.correction: np.ndarray | None = None
         self.map_frame = -1
+        self.rejected: set[int] = set()  # track ids of rejected candidates
         self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=8 if not self.lockstep else 100_000)
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.detections, Detections, self.on_detections)
@@ -137,7 +139,8 @@ class VizService(Service):
         rr = self.rr
         self._at(tracks.frame_id)
         if tracks.boxes:
-            states = ["candidate" if b.candidate else "tentative" for b in tracks.boxes]
+            states = ["rejected" if b.track_id in self.rejected else "candidate" if b.candidate else "tentative"
+                      for b in tracks.boxes]
             rr.log("world/camera/image/tracks", rr.Boxes2D(
                 array=[b.box for b in tracks.boxes], array_format=rr.Box2DFormat.XYXY,
                 labels=[f"{b.class_name} t{b.track_id} ({s})" for b, s in zip(tracks.boxes, states, strict=True)],
@@ -162,8 +165,10 @@ class VizService(Service):
         if update.landmarks or update.removed or update.merges or update.full:
             self._log_landmarks()
         if update.rejected_candidates:
-            rr.log("world/rejected", rr.TextLog(f"rejected candidates {update.rejected_candidates}",
-                                                level="WARN"))
+            # drawn red on the image from now on (see on_tracks), and noted in the log view
+            self.rejected.update(update.rejected_candidates)
+            rr.log("world/rejected", rr.TextLog(f"rejected candidates (moving / unstable): tracks "
+                                                f"{update.rejected_candidates}", level="WARN"))
         for name, ms in update.timing_ms.items():
             rr.log(f"timings/associator/{name}", rr.Scalars(ms))
         if self.end_of_stream is not None:
