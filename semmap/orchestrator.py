@@ -26,6 +26,8 @@ from semmap.messages import Control, Progress, ServiceStatus
 log = logging.getLogger("semmap.run")
 
 STOP_GRACE_S = 15.0
+MAX_RESTARTS = 5
+RESTART_BACKOFF_S = 0.5
 EXTERNAL = "external"  # `semmap run external`: no player, no odometry; a SLAM feeds the bus (semmap.client)
 
 
@@ -70,11 +72,25 @@ def free_loopback_port(preferred: int = 0) -> int:
 
 
 class _Child:
+    """One service process; restarted in place (same instance name, same log) when it crashes."""
+
     def __init__(self, name: str, instance: str, argv: list[str], log_path: Path) -> None:
         self.name, self.instance, self.argv, self.log_path = name, instance, argv, log_path
         self.log_file = open(log_path, "ab")  # noqa: SIM115 - lives as long as the process
-        self.proc = subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True)
+        self.restarts = 0
+        self.restart_at: float | None = None  # when a crashed process is due to come back
+        self.proc = self._spawn(argv)
+
+    def _spawn(self, argv: list[str]) -> subprocess.Popen:
+        return subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True)
+
+    def restart(self, extra_args: list[str]) -> None:
+        self.restarts += 1
+        self.restart_at = None
+        self.log_file.write(f"--- restart {self.restarts} ---\n".encode())
+        self.log_file.flush()
+        self.proc = self._spawn([*self.argv, *extra_args])
 
     def tail(self, lines: int = 25) -> str:
         try:
@@ -97,6 +113,7 @@ class Orchestrator:
         self.lock = threading.Lock()
         self.interrupted = threading.Event()
         self.endpoint = ""
+        self.restarts: dict[str, int] = {}
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _bus_config(self) -> tuple[BusConfig, list[str]]:
@@ -148,17 +165,43 @@ class Orchestrator:
                 log.info("started %s (pid %d)", instance, self.children[-1].proc.pid)
 
     def _check_children(self) -> None:
+        """Fail the run on a service that reports failure (bad config, missing model: a restart cannot help);
+        restart one that crashed (killed, an uncaught error) with backoff, up to MAX_RESTARTS times."""
+        now = time.monotonic()
         for child in self.children:
+            if child.restart_at is not None:
+                if now >= child.restart_at:
+                    child.restart(self._resume_args(child))
+                    log.warning("restarted %s (restart %d, pid %d)", child.instance, child.restarts, child.proc.pid)
+                continue
             code = child.proc.poll()
             status = self.statuses.get(child.instance)
             if status is not None and status.state == "failed":
                 raise RunFailed(f"{child.instance} failed: {status.message}\n--- {child.log_path} ---\n{child.tail()}")
-            if code is not None and code != 0:
-                raise RunFailed(f"{child.instance} exited with code {code}\n--- {child.log_path} ---\n{child.tail()}")
-            if code == 0 and not (status and status.state in ("finished", "stopped")):
-                raise RunFailed(f"{child.instance} exited early\n--- {child.log_path} ---\n{child.tail()}")
+            if code is None or (code == 0 and status is not None and status.state in ("finished", "stopped")):
+                continue
+            if code == 2 or child.restarts >= MAX_RESTARTS:  # 2: a usage / set-up error, it would fail again
+                why = f"exited with code {code}" if code != 0 else "exited early"
+                more = f" after {child.restarts} restarts" if child.restarts else ""
+                raise RunFailed(f"{child.instance} {why}{more}\n--- {child.log_path} ---\n{child.tail()}")
+            delay = min(RESTART_BACKOFF_S * 2**child.restarts, 10.0)
+            child.restart_at = now + delay
+            with self.lock:
+                self.statuses.pop(child.instance, None)
+                self.restarts[child.instance] = child.restarts + 1
+            log.warning("%s died (exit %s); restarting in %.1f s", child.instance, code, delay)
+
+    def _resume_args(self, child: _Child) -> list[str]:
+        """A restarted service picks up its saved state; the player continues after the last finished frame."""
+        if child.name != "player":
+            return ["--resume"]
+        with self.lock:
+            done = min((self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep), default=-1)
+        return ["--start-at", str(max(done + 1, 0))]
 
     def _all_finished(self) -> bool:
+        if any(c.restart_at is not None for c in self.children):
+            return False
         with self.lock:
             return all(
                 (s := self.statuses.get(c.instance)) is not None and s.state == "finished" for c in self.children
@@ -232,11 +275,16 @@ class Orchestrator:
         with self.lock:
             done_services = [sp.name for sp in self.plan.services if sp.lockstep]
             processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        with self.lock:
+            restarts = dict(self.restarts)
+        for instance, n in restarts.items():
+            services.setdefault(instance, {})["restarts"] = n
         stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
                  "robot": self.plan.robot, "wall_s": round(wall_s, 2),
                  "frames": {"published": published, "processed": processed, "detected": detected,
                             "dropped": dropped},
-                 "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "services": services}
+                 "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
+                 "services": services}
         path = self.plan.out_dir / "stats.json"
         tmp = path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(stats, indent=2))

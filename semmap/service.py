@@ -32,6 +32,7 @@ from semmap.messages import Control, Message, MessageError, Progress, ServiceSta
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
+REPLAY_FRAMES = 8  # how many recent frames' outputs a service can send again
 HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched with every status (see semmap.health)
 
 
@@ -115,6 +116,8 @@ def common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--listen", default=None, help="Zenoh endpoints to listen on, comma-separated")
     parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client", "router"))
     parser.add_argument("--mode", default=None, choices=("lockstep", "realtime"), help="playback mode")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the state this service saved in --out (after a crash or restart)")
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -143,6 +146,8 @@ class Service:
         self._handlers: dict[str, Callable[[Any], None]] = {}
         self._error_count = 0
         self.idle_timeout_s = 0.05
+        self.resume = bool(getattr(args, "resume", False))
+        self._sent: dict[int, list[tuple[Publisher, Message]]] = {}  # recent outputs by frame, for replays
         self.bus: Bus
         self._status_pub: Publisher
         self._progress_pub: Publisher
@@ -173,6 +178,25 @@ class Service:
 
     def publisher(self, key: str) -> Publisher:
         return self.bus.publisher(key)
+
+    def emit(self, publisher: Publisher, message: Message, frame_id: int) -> None:
+        """Publish an output of frame `frame_id`, remembered for a while so a repeated input can be answered."""
+        publisher.put(message)
+        self._sent.setdefault(frame_id, []).append((publisher, message))
+        for old in [f for f in self._sent if f < frame_id - REPLAY_FRAMES]:
+            del self._sent[old]
+
+    def replay(self, frame_id: int) -> bool:
+        """A frame's input came again (the player resends a frame that got lost, e.g. in a crashed service):
+        send what it produced again, and the progress. False if it is too old to remember."""
+        outputs = self._sent.get(frame_id)
+        if outputs is None:
+            return False
+        for publisher, message in outputs:
+            publisher.put(message)
+        self._progress_pub.put(Progress(self.robot, self.name, frame_id))
+        self.metrics.count("replays")
+        return True
 
     def report_progress(self, frame_id: int) -> None:
         """Everything frame `frame_id` caused is done here (lockstep playback waits for it)."""

@@ -97,7 +97,7 @@ class AssociatorService(Service):
         self.dirty = False
         db = self.args.map_db or (self.out_dir / "map.sqlite" if self.out_dir is not None else None)
         self.store = MapStore(db) if db is not None else None
-        if self.store is not None:
+        if self.store is not None and (self.resume or self.args.map_db):
             state = self.store.load()
             if state is not None:
                 self.mapper = LandmarkMapper.from_state(state, self.params)
@@ -130,6 +130,10 @@ class AssociatorService(Service):
     def on_tracks(self, tracks: Tracks) -> None:
         if not self.tracks.push(tracks.frame_id, tracks):
             self.metrics.count("tracks_duplicates")
+            if self.awaiting is not None and self.awaiting[0].frame_id == tracks.frame_id:
+                self.obs_pub.put(self._awaited_observations)  # the backend may have lost them
+            elif not any(t.frame_id == tracks.frame_id for t in self.ready):
+                self.replay(tracks.frame_id)
             return
         self.ready.extend(self.tracks.pop_ready())
         self._drain()
@@ -158,10 +162,13 @@ class AssociatorService(Service):
             self.metrics.count("observations", len(step.observations))
             merges = self.pending_merges + list(step.merges)
             self.pending_merges = []
-            self.obs_pub.put(Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges))
+            observations = Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges)
+            self._awaited_observations = observations
+            self.emit(self.obs_pub, observations, tracks.frame_id)
             if step.observations:
-                self.tags_pub.put(TagDetections(self.robot, tracks.frame_id, tracks.stamp,
-                                                [TagDetection.from_observation(o) for o in step.observations]))
+                self.emit(self.tags_pub, TagDetections(self.robot, tracks.frame_id, tracks.stamp,
+                                                       [TagDetection.from_observation(o) for o in step.observations]),
+                          tracks.frame_id)
             if self.await_backend:
                 self.awaiting = (tracks, step)
             else:
@@ -198,14 +205,18 @@ class AssociatorService(Service):
         timing = dict(step.timing_ms)
         if refine_ms:
             timing["refine"] = refine_ms
-        self.map_pub.put(MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
-                                   step.merges, full, step.rejected, timing, frame_sent_at))
+        self.emit(self.map_pub, MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
+                                          step.merges, full, step.rejected, timing, frame_sent_at), max(frame_id, 0))
+        known = {lm.id for lm in self.snapshot}
         self.snapshot = self.mapper.landmarks()
         self.metrics.counters["landmarks"] = len(self.snapshot)
         if step.updated or step.removed or step.merges or full:
             self.dirty = True
         self.metrics.count("merges", len(step.merges))
-        if self.dirty and time.monotonic() - self.last_saved > SAVE_PERIOD_S:
+        # a new, removed or merged landmark is saved at once (a crash must not lose it); refinements of
+        # existing ones at most once a second
+        structural = bool(step.removed or step.merges or {lm.id for lm in self.snapshot} - known)
+        if self.dirty and (structural or time.monotonic() - self.last_saved > SAVE_PERIOD_S):
             self._save()
 
     # -- persistence ----------------------------------------------------------------------------------------
@@ -234,7 +245,8 @@ def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--await-backend", action="store_true",
                         help="lockstep: wait for the backend's corrected poses of each frame before the next")
     parser.add_argument("--map-db", type=Path, default=None,
-                        help="SQLite file of the persisted map (default DIR/map.sqlite)")
+                        help="SQLite file of a persistent map, loaded at start if present (default: DIR/map.sqlite, "
+                             "loaded only with --resume)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,6 +9,7 @@ consume the same key.
 from __future__ import annotations
 
 from semmap.datasets.trajectory_io import write_tum
+from semmap.journal import FrameJournal
 from semmap.messages import Control, CorrectedPoses, Observations, OdometryPose
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
@@ -27,6 +28,12 @@ class BackendService(Service):
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
         self.seq = 0
+        self.journal = FrameJournal(self.out_dir / "backend.sqlite") if self.out_dir is not None else None
+        if self.journal is not None:
+            if self.resume:
+                self._restore()
+            else:
+                self.journal.clear()
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
 
@@ -38,6 +45,10 @@ class BackendService(Service):
         self._drain()
 
     def on_observations(self, obs: Observations) -> None:
+        if obs.frame_id <= self.last_frame_id:
+            self.metrics.count("observations_duplicates")
+            self.replay(obs.frame_id)
+            return
         self.observations[obs.frame_id] = obs
         self._drain()
 
@@ -46,6 +57,8 @@ class BackendService(Service):
         while self.ready_odometry and self.ready_odometry[0].frame_id in self.observations:
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
+            if self.journal is not None:
+                self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             with self.metrics.timer("update_ms") as timer:
                 self.graph.add_odometry_message(pose)
                 self.graph.add_observations_message(obs)
@@ -54,8 +67,8 @@ class BackendService(Service):
                 ids, stamps, poses = self.graph.corrected_poses()
                 lids, lpos = self.graph.landmark_positions()
                 self.seq += 1
-                self.pub.put(CorrectedPoses(self.robot, self.seq, pose.frame_id, ids, stamps, poses, lids, lpos,
-                                            {"update": timer.ms}))
+                self.emit(self.pub, CorrectedPoses(self.robot, self.seq, pose.frame_id, ids, stamps, poses, lids,
+                                                   lpos, {"update": timer.ms}), pose.frame_id)
             self.metrics.count("frames")
             self.metrics.count("observations", len(obs.observations))
             self.report_progress(pose.frame_id)
@@ -64,6 +77,20 @@ class BackendService(Service):
         for stale in [f for f in self.observations if first is not None and f < first - 1]:
             del self.observations[stale]
             self.metrics.count("observations_unjoined")
+
+    def _restore(self) -> None:
+        """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
+        n = 0
+        for frame_id, odometry, observations in self.journal.frames():
+            self.graph.add_odometry_message(OdometryPose.decode(odometry))
+            self.graph.add_observations_message(Observations.decode(observations))
+            self.graph.update()
+            self.odometry.push(frame_id, None)  # type: ignore[arg-type] - only marks the frame as handled
+            self.odometry.pop_ready()
+            self.last_frame_id = frame_id
+            n += 1
+        if n:
+            self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
 
     def on_end_of_stream(self, control: Control) -> None:
         if self.last_frame_id >= control.last_frame_id:

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -43,6 +44,13 @@ class FrontEnd(ABC):
 
     @abstractmethod
     def estimate(self, frame: OdometryInput) -> np.ndarray: ...
+
+    def state(self) -> dict:
+        """What a restarted service needs to continue the same trajectory (plain data)."""
+        return {}
+
+    def restore(self, state: dict) -> None:  # noqa: B027 - stateless front ends have nothing to restore
+        """Continue from `state()` output."""
 
 
 def _require_gt(frame: OdometryInput) -> np.ndarray:
@@ -92,6 +100,25 @@ class DriftingOdometry(FrontEnd):
         self._prev_gt = gt
         return self._est.copy()
 
+    def state(self) -> dict:
+        # the generator's state holds 128-bit integers: JSON text travels where msgpack integers cannot
+        return {"rng": json.dumps(self.rng.bit_generator.state), "est": _flat(self._est), "prev_gt": _flat(self._prev_gt),
+                "up": _flat(self.up)}
+
+    def restore(self, state: dict) -> None:
+        self.rng.bit_generator.state = json.loads(state["rng"])
+        self._est = _unflat(state["est"], (4, 4))
+        self._prev_gt = _unflat(state["prev_gt"], (4, 4))
+        self.up = _unflat(state["up"], (3,))
+
+
+def _flat(a: np.ndarray | None) -> list[float] | None:
+    return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
+
+
+def _unflat(values: list[float] | None, shape: tuple[int, ...]) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, float).reshape(shape)
+
 
 class RgbdOdometry(FrontEnd):
     """Frame-to-frame Open3D RGB-D odometry (tensor, multi-scale); starts at the first GT pose if known."""
@@ -135,6 +162,13 @@ class RgbdOdometry(FrontEnd):
             self._pose = self._pose @ relative
         self._prev = current
         return self._pose.copy()
+
+    def state(self) -> dict:
+        return {"pose": _flat(self._pose)}
+
+    def restore(self, state: dict) -> None:
+        """The previous image is not kept: the next frame starts a new frame-to-frame chain at the saved pose."""
+        self._pose = _unflat(state["pose"], (4, 4))
 
 
 class FileOdometry(FrontEnd):

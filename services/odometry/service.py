@@ -5,7 +5,10 @@ It stands in for an external SLAM; a real one publishes the same messages on the
 
 from __future__ import annotations
 
+import msgpack
+
 from semmap.datasets.trajectory_io import write_tum
+from semmap.journal import FrameJournal
 from semmap.messages import Frame, OdometryPose
 from semmap.service import Service, service_main
 from services.odometry.frontends import FrontEnd, OdometryInput, make_frontend
@@ -22,12 +25,19 @@ class OdometryService(Service):
         self.frontend: FrontEnd = make_frontend(self.mode, cfg)
         self.keyframe_every = max(1, int(cfg["keyframe_every"]))
         self.trajectory: list[tuple[float, object]] = []
+        self.journal = FrameJournal(self.out_dir / "odometry.sqlite") if self.out_dir is not None else None
+        if self.journal is not None:
+            if self.resume:
+                self._restore()
+            else:
+                self.journal.clear()
         self.pose_pub = self.publisher(self.bus.keys.odometry)
         self.listen(self.bus.keys.frames, Frame, self.on_frame)
 
     def on_frame(self, frame: Frame) -> None:
         if frame.frame_id <= self.last_frame_id:
-            self.metrics.count("frames_out_of_order")
+            self.metrics.count("frames_repeated")
+            self.replay(frame.frame_id)
             return
         with self.metrics.timer("odometry_ms"):
             data = OdometryInput(frame.frame_id, frame.stamp, frame.gt_pose, depth_scale=frame.depth_scale,
@@ -36,12 +46,27 @@ class OdometryService(Service):
                 data.rgb, data.depth = frame.rgb(), frame.depth()
             pose = self.frontend.estimate(data)
         sigma_t, sigma_r = self.frontend.sigmas
-        self.pose_pub.put(OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
-                                       keyframe=frame.frame_id % self.keyframe_every == 0,
-                                       sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode))
+        self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
+                                              keyframe=frame.frame_id % self.keyframe_every == 0,
+                                              sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode),
+                  frame.frame_id)
         self.trajectory.append((frame.stamp, pose))
+        if self.journal is not None:
+            self.journal.append(frame.frame_id, self._sent[frame.frame_id][0][1].encode(),
+                                msgpack.packb(self.frontend.state()))
         self.metrics.count("poses_published")
         self.report_progress(frame.frame_id)
+
+    def _restore(self) -> None:
+        """Continue the trajectory after a crash: earlier poses from the journal, the front end's state."""
+        state = None
+        for frame_id, pose_bytes, state_bytes in self.journal.frames():
+            pose = OdometryPose.decode(pose_bytes)
+            self.trajectory.append((pose.stamp, pose.pose))
+            self.last_frame_id, state = frame_id, state_bytes
+        if state is not None:
+            self.frontend.restore(msgpack.unpackb(state))
+            self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))
 
     def write_outputs(self) -> None:
         if self.out_dir is not None and self.trajectory:

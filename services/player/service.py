@@ -58,8 +58,10 @@ class PlayerService(Service):
         self.start_timeout_s = float(run["start_timeout_s"])
         self.progress: dict[str, int] = {}
         self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
-        self.next_index = 0
+        self.next_index = max(0, int(self.args.start_at))
         self.retried = -1
+        if self.next_index:
+            self.log.info("resuming at frame %d", self.next_index)
         self.started_at: float | None = None
         self.waiting_since = time.monotonic()
         self.frames_pub = self.publisher(self.bus.keys.frames)
@@ -162,6 +164,7 @@ class PlayerService(Service):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset path, or 'synthetic[:k=v,...]'")
     parser.add_argument("--wait-for", default="", help="lockstep: services to wait for, e.g. detector:2,tracker")
+    parser.add_argument("--start-at", type=int, default=0, help="first frame to publish (a restarted player)")
     parser.add_argument("--start-after", default="", help="services that must be up before the first frame "
                         "(without gating each frame), e.g. viz")
 

@@ -26,6 +26,7 @@ class TrackerService(Service):
     def on_detections(self, message: Detections) -> None:
         if not self.reorder.push(message.frame_id, message):
             self.metrics.count("duplicates_dropped")
+            self.replay(message.frame_id)  # a resent frame: answer it again (a consumer may have lost it)
             return
         for det in self.reorder.pop_ready():
             self._process(det)
@@ -41,8 +42,8 @@ class TrackerService(Service):
                 candidates, ended, boxes = out.candidates, out.ended, out.boxes
         self.metrics.count("frames")
         self.metrics.count("candidates_proposed", sum(1 for c in candidates if c.first))
-        self.pub.put(Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
-                            {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at))
+        self.emit(self.pub, Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
+                                   {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at), det.frame_id)
         self.report_progress(det.frame_id)
 
 

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import argparse
 import colorsys
+import os
+import uuid
+from pathlib import Path
 
 import numpy as np
 
@@ -53,10 +56,20 @@ class VizService(Service):
         cfg = self.config["viz"]
         self.images = bool(cfg.get("images", True))
         self.depth_every = max(0, int(cfg.get("depth_every", 10)))
-        rr.init(f"semmap-{self.robot}", spawn=False)
+        # one recording id per run, so what a restarted sink records merges into the same recording
+        run_key = str(self.out_dir.resolve()) if self.out_dir is not None else self.robot
+        recording_id = f"semmap-{self.robot}-{uuid.uuid5(uuid.NAMESPACE_URL, run_key).hex[:12]}"
+        rr.init(f"semmap-{self.robot}", recording_id=recording_id, spawn=False)
+        self.parts: list[Path] = []
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            rr.save(str(self.out_dir / "run.rrd"))
+            rrd = self.out_dir / "run.rrd"
+            self.parts = sorted(self.out_dir.glob("run.part-*.rrd")) if self.resume else []
+            if self.resume and rrd.is_file():  # keep what the crashed sink recorded; merged when we finish
+                part = self.out_dir / f"run.part-{len(self.parts) + 1}.rrd"
+                rrd.rename(part)
+                self.parts.append(part)
+            rr.save(str(rrd))
         if self.args.serve:
             uri = rr.serve_grpc()
             rr.serve_web_viewer(open_browser=False, connect_to=uri)
@@ -80,6 +93,19 @@ class VizService(Service):
         self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map)
         self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
         self.listen(self.bus.keys.status_all, ServiceStatus, self.on_status)
+        self._load_current_map()
+
+    def _load_current_map(self) -> None:
+        """Start from the map as it is (a sink started late or restarted would see only later changes)."""
+        import json
+
+        for reply in self.bus.session.get(self.bus.keys.map_query, timeout=1.0):
+            if reply.ok is not None:
+                body = json.loads(reply.ok.payload.to_bytes())
+                self.landmarks = {lm.id: lm for lm in map(Landmark.from_dict, body.get("landmarks", []))}
+                if self.landmarks:
+                    self._log_landmarks()
+                break
 
     def _at(self, frame_id: int) -> None:
         self.rr.set_time("frame", sequence=frame_id)
@@ -192,6 +218,31 @@ class VizService(Service):
         frames_done = self.last_frame_id >= control.last_frame_id
         if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
             self.finish()
+
+    def write_outputs(self) -> None:
+        """After a restart: merge the earlier parts and this one into run.rrd."""
+        if not self.parts or self.out_dir is None:
+            return
+        import shutil
+        import subprocess
+        import sys
+
+        self.rr.disconnect()
+        rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+        rrd = self.out_dir / "run.rrd"
+        merged = self.out_dir / "run.merged.rrd"
+        if rerun is None:
+            self.log.warning("rerun CLI missing: the recording stays in parts %s", [p.name for p in self.parts])
+            return
+        result = subprocess.run([rerun, "rrd", "merge", *map(str, self.parts), str(rrd), "-o", str(merged)],
+                                capture_output=True, text=True, env={**os.environ, "CI": "true"})
+        if result.returncode == 0:
+            merged.replace(rrd)
+            for part in self.parts:
+                part.unlink()
+            self.parts = []
+        else:
+            self.log.warning("could not merge the recording parts: %s", result.stderr[-500:])
 
     def teardown(self) -> None:
         self.rr.disconnect()
