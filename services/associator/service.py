@@ -213,6 +213,8 @@ class AssociatorService(Service):
         if step.updated or step.removed or step.merges or full:
             self.dirty = True
         self.metrics.count("merges", len(step.merges))
+        for absorbed, survivor in step.merges:
+            self.log.info("merged landmark %d into %d", absorbed, survivor)
         # a new, removed or merged landmark is saved at once (a crash must not lose it); refinements of
         # existing ones at most once a second
         structural = bool(step.removed or step.merges or {lm.id for lm in self.snapshot} - known)

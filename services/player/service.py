@@ -59,7 +59,7 @@ class PlayerService(Service):
         self.progress: dict[str, int] = {}
         self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
         self.next_index = max(0, int(self.args.start_at))
-        self.retried = -1
+        self.last_sent = 0.0
         if self.next_index:
             self.log.info("resuming at frame %d", self.next_index)
         self.started_at: float | None = None
@@ -114,13 +114,13 @@ class PlayerService(Service):
         if self.lockstep:
             if self._lockstep_done() < self.next_index - 1:
                 waited = time.monotonic() - self.waiting_since
-                if waited > RETRY_AFTER_S and self.retried != self.next_index - 1:
-                    # a frame can fall between two detector replicas while their membership changes: resend it
-                    # once; every consumer drops the duplicate if the first copy did arrive
-                    self.retried = self.next_index - 1
+                if time.monotonic() - self.last_sent > RETRY_AFTER_S:
+                    # a frame lost in a crashed service (or between two detector replicas while their membership
+                    # changes): resend it; services answer a repeated frame with what it produced before
                     self.metrics.count("frames_republished")
-                    self.log.warning("no progress for frame %d after %.0f s: republishing it", self.retried, waited)
-                    self._send(self.retried)
+                    self.log.warning("no progress for frame %d after %.0f s: republishing it", self.next_index - 1,
+                                     waited)
+                    self._send(self.next_index - 1)
                 if waited > self.frame_timeout_s:
                     late = [n for n in self.wait_for if self.progress.get(n, -1) < self.next_index - 1]
                     self.fail(f"lockstep: no progress for frame {self.next_index - 1} from {', '.join(late)} "
@@ -144,6 +144,7 @@ class PlayerService(Service):
             self.metrics.count("frames_unreadable")
             self.log.warning("frame %d skipped: %s", index, exc)
             return
+        self.last_sent = time.monotonic()
         with self.metrics.timer("publish_ms"):
             self.frames_pub.put(message)
         self.metrics.count("frames_published")
@@ -151,6 +152,7 @@ class PlayerService(Service):
 
     def _send(self, index: int) -> None:
         """Publish a frame again (no counters moved but the republish count)."""
+        self.last_sent = time.monotonic()
         try:
             self.frames_pub.put(frame_message(self.robot, self.dataset[index]))
         except DatasetError as exc:
