@@ -88,7 +88,7 @@ class AssociatorService(Service):
         self.snapshot: list[Landmark] = []  # what map queries answer from (swapped whole, read from Zenoh threads)
         self.poses = PoseBook()
         self.await_backend = bool(self.args.await_backend) and self.lockstep
-        self.tracks: FrameReorderBuffer[Tracks] = FrameReorderBuffer(max_pending=100_000)
+        self.tracks: FrameReorderBuffer[Tracks] = FrameReorderBuffer(max_pending=100_000 if self.lockstep else 8)
         self.ready: list[Tracks] = []
         self.awaiting: tuple[Tracks, MapperStep] | None = None
         self.pending_merges: list[tuple[int, int]] = []
@@ -151,7 +151,7 @@ class AssociatorService(Service):
 
     # -- per frame ------------------------------------------------------------------------------------------
     def _drain(self) -> None:
-        while self.awaiting is None and self.ready and self.ready[0].frame_id in self.poses.odometry:
+        while self.awaiting is None and self.ready and self._pose_known_or_lost(self.ready[0].frame_id):
             tracks = self.ready.pop(0)
             with self.metrics.timer("process_ms"):
                 step = self.mapper.process(tracks.frame_id, tracks.stamp, tracks.candidates, tracks.ended, self.poses,
@@ -173,6 +173,13 @@ class AssociatorService(Service):
                 self.awaiting = (tracks, step)
             else:
                 self._complete(tracks, step)
+
+    def _pose_known_or_lost(self, frame_id: int) -> bool:
+        """Lockstep: wait for the frame's pose. Real time: a later pose means this one was dropped upstream;
+        go on (the mapper keeps measurements without a pose for a while, then drops them)."""
+        if frame_id in self.poses.odometry:
+            return True
+        return not self.lockstep and bool(self.poses.odometry) and max(self.poses.odometry) > frame_id
 
     def _refine_due(self, frame_id: int) -> bool:
         every = max(1, int(self.service_cfg["refine_every_n_frames"]))

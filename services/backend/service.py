@@ -15,6 +15,8 @@ from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
 from services.backend.pose_graph import BackendParams, PoseGraph
 
+REALTIME_MAX_PENDING = 8
+
 
 class BackendService(Service):
     """Optimises the trajectory with landmark constraints (see module docstring)."""
@@ -24,7 +26,9 @@ class BackendService(Service):
     def setup(self) -> None:
         self.graph = PoseGraph(BackendParams.from_config(self.config.get("backend")))
         self.pub = self.publisher(self.bus.keys.corrected_poses)
-        self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(max_pending=100_000)
+        # real time: odometry of a dropped frame never comes; give up on it after a few later ones
+        self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(
+            max_pending=100_000 if self.lockstep else REALTIME_MAX_PENDING)
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
         self.seq = 0

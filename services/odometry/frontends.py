@@ -102,8 +102,8 @@ class DriftingOdometry(FrontEnd):
 
     def state(self) -> dict:
         # the generator's state holds 128-bit integers: JSON text travels where msgpack integers cannot
-        return {"rng": json.dumps(self.rng.bit_generator.state), "est": _flat(self._est), "prev_gt": _flat(self._prev_gt),
-                "up": _flat(self.up)}
+        return {"rng": json.dumps(self.rng.bit_generator.state), "est": _flat(self._est),
+                "prev_gt": _flat(self._prev_gt), "up": _flat(self.up)}
 
     def restore(self, state: dict) -> None:
         self.rng.bit_generator.state = json.loads(state["rng"])
