@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from semmap.bus import Bus, BusConfig
 from semmap.messages import Control, Progress, ServiceStatus
 
@@ -114,6 +116,7 @@ class Orchestrator:
         self.interrupted = threading.Event()
         self.endpoint = ""
         self.restarts: dict[str, int] = {}
+        self.rss: dict[str, list[float]] = {}  # per instance, one sample a second (status period)
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _bus_config(self) -> tuple[BusConfig, list[str]]:
@@ -133,6 +136,7 @@ class Orchestrator:
     def _on_status(self, s: ServiceStatus) -> None:
         with self.lock:
             self.statuses[s.instance] = s
+            self.rss.setdefault(s.instance, []).append(s.rss_mb)
 
     def _on_progress(self, p: Progress) -> None:
         with self.lock:
@@ -265,9 +269,14 @@ class Orchestrator:
         for instance, s in sorted(statuses.items()):
             timings = {k: v for k, v in s.timings.items() if k != "peak_rss_mb"}
             peak = s.timings.get("peak_rss_mb", {}).get("max", s.rss_mb)
+            series = self.rss.get(instance, [])
+            quarter = max(1, len(series) // 4)
             services[instance] = {"service": s.service, "state": s.state, "last_frame_id": s.last_frame_id,
                                   "counters": s.counters, "timings_ms": timings, "rss_mb": round(s.rss_mb, 1),
-                                  "peak_rss_mb": round(max(peak, s.rss_mb), 1), "cpu_s": round(s.cpu_s, 2)}
+                                  "peak_rss_mb": round(max(peak, s.rss_mb), 1), "cpu_s": round(s.cpu_s, 2),
+                                  # memory over the run: mean of the second quarter vs the last quarter
+                                  "rss_early_mb": round(float(np.mean(series[quarter:2 * quarter] or series)), 1),
+                                  "rss_late_mb": round(float(np.mean(series[-quarter:])), 1) if series else 0.0}
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service

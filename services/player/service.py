@@ -49,7 +49,10 @@ class PlayerService(Service):
         run = self.config["run"]
         self.dataset: Dataset = open_dataset(self.args.data)
         limit = int(run.get("max_frames") or 0)
-        self.total = min(len(self.dataset), limit) if limit > 0 else len(self.dataset)
+        self.loops = max(1, int(run.get("loops", 1)))
+        self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops
+        played = len(self.dataset) * self.loops
+        self.total = min(played, limit) if limit > 0 else played
         self.metrics.counters["frames_total"] = self.total
         self.wait_for = parse_wait_for(self.args.wait_for or "")
         self.start_after = {**parse_wait_for(self.args.start_after or ""), **self.wait_for}
@@ -137,7 +140,7 @@ class PlayerService(Service):
         self.waiting_since = time.monotonic()
         try:
             with self.metrics.timer("read_ms"):
-                data = self.dataset[index]
+                data = self._frame(index)
             with self.metrics.timer("encode_ms"):
                 message = frame_message(self.robot, data)
         except DatasetError as exc:
@@ -154,13 +157,23 @@ class PlayerService(Service):
         """Publish a frame again (no counters moved but the republish count)."""
         self.last_sent = time.monotonic()
         try:
-            self.frames_pub.put(frame_message(self.robot, self.dataset[index]))
+            self.frames_pub.put(frame_message(self.robot, self._frame(index)))
         except DatasetError as exc:
             self.log.warning("frame %d not republished: %s", index, exc)
 
+    def _frame(self, index: int) -> FrameData:
+        """Frame `index` of the (possibly looped) stream: later loops continue the ids and the clock."""
+        data = self.dataset[index % len(self.dataset)]
+        if index >= len(self.dataset):
+            data.index = index
+            data.stamp += (index // len(self.dataset)) * self.period_s
+        return data
+
     def write_outputs(self) -> None:
         if self.dataset.has_groundtruth and self.out_dir is not None:
-            write_tum(self.out_dir / "groundtruth.tum", self.dataset.groundtruth()[: self.total])
+            gt = self.dataset.groundtruth()
+            looped = [(t + k * self.period_s, pose) for k in range(self.loops) for t, pose in gt]
+            write_tum(self.out_dir / "groundtruth.tum", looped[: self.total])
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
