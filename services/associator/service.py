@@ -208,6 +208,8 @@ class AssociatorService(Service):
     def _publish_map(self, step: MapperStep, frame_id: int, stamp: float, full: bool = False,
                      frame_sent_at: float = 0.0, refine_ms: float = 0.0) -> None:
         self.map_seq += 1
+        if frame_sent_at > 0:  # from the frame's publication to its map update: the pipeline's latency
+            self.metrics.time_ms("end_to_end_ms", (time.time() - frame_sent_at) * 1e3)
         landmarks = self.mapper.landmarks() if full else step.updated
         timing = dict(step.timing_ms)
         if refine_ms:

@@ -111,6 +111,14 @@ class VizService(Service):
         self.rr.set_time("frame", sequence=frame_id)
 
     def on_frame(self, frame: Frame) -> None:
+        with self.metrics.timer("log_frame_ms"):
+            self._log_frame(frame)
+        self.metrics.count("frames")
+        self.last_frame_id = max(self.last_frame_id, frame.frame_id)
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def _log_frame(self, frame: Frame) -> None:
         rr = self.rr
         self._at(frame.frame_id)
         k = frame.intrinsics
@@ -120,10 +128,6 @@ class VizService(Service):
             rr.log("world/camera/image", rr.EncodedImage(contents=frame.rgb_jpeg, media_type="image/jpeg"))
         if self.depth_every and frame.frame_id % self.depth_every == 0:
             rr.log("world/camera/depth", rr.DepthImage(frame.depth(), meter=1.0 / frame.depth_scale))
-        self.metrics.count("frames")
-        self.last_frame_id = max(self.last_frame_id, frame.frame_id)
-        if self.end_of_stream is not None:
-            self.on_end_of_stream(self.end_of_stream)
 
     def on_odometry(self, pose: OdometryPose) -> None:
         rr = self.rr
@@ -177,6 +181,12 @@ class VizService(Service):
             rr.log("timings/tracker/proposal", rr.Scalars(tracks.timing_ms["proposal"]))
 
     def on_map(self, update: MapUpdate) -> None:
+        with self.metrics.timer("log_map_ms"):
+            self._log_map(update)
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def _log_map(self, update: MapUpdate) -> None:
         rr = self.rr
         self._at(update.frame_id)
         if update.full:
@@ -197,8 +207,6 @@ class VizService(Service):
                                                 f"{update.rejected_candidates}", level="WARN"))
         for name, ms in update.timing_ms.items():
             rr.log(f"timings/associator/{name}", rr.Scalars(ms))
-        if self.end_of_stream is not None:
-            self.on_end_of_stream(self.end_of_stream)
 
     def _log_landmarks(self) -> None:
         rr = self.rr
