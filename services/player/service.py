@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import time
 
+import cv2
+
 from semmap.datasets import DatasetError, open_dataset
 from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.trajectory_io import write_tum
@@ -17,15 +19,20 @@ from semmap.messages import Control, Frame, GroundTruthInstance, Intrinsics, Pro
 from semmap.service import Service, service_main
 
 
-def frame_message(robot: str, data: FrameData) -> Frame:
-    """A dataset frame as a bus message."""
+def frame_message(robot: str, data: FrameData, depth_png: bool = False) -> Frame:
+    """A dataset frame as a bus message (depth as 16-bit PNG: ~3.5x smaller, ~10 ms more, for slow links)."""
     k = data.intrinsics
-    return Frame.from_arrays(
+    frame = Frame.from_arrays(
         robot, data.index, data.stamp, data.rgb, data.depth, data.depth_scale,
         Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height), data.gt_pose,
         [GroundTruthInstance(i.instance_id, i.class_name, tuple(i.box), i.visible_pixels, i.moving)
          for i in data.instances],
     )
+    if depth_png:
+        ok, png = cv2.imencode(".png", frame.depth())
+        if ok:
+            frame.depth_raw = png.tobytes()
+    return frame
 
 
 def parse_wait_for(spec: str) -> dict[str, int]:
@@ -57,6 +64,7 @@ class PlayerService(Service):
         self.wait_for = parse_wait_for(self.args.wait_for or "")
         self.start_after = {**parse_wait_for(self.args.start_after or ""), **self.wait_for}
         self.speed = float(run.get("speed", 1.0))
+        self.depth_png = run.get("depth_encoding", "raw") == "png"
         self.frame_timeout_s = float(run["frame_timeout_s"])
         self.start_timeout_s = float(run["start_timeout_s"])
         self.progress: dict[str, int] = {}
@@ -142,7 +150,7 @@ class PlayerService(Service):
             with self.metrics.timer("read_ms"):
                 data = self._frame(index)
             with self.metrics.timer("encode_ms"):
-                message = frame_message(self.robot, data)
+                message = frame_message(self.robot, data, self.depth_png)
         except DatasetError as exc:
             self.metrics.count("frames_unreadable")
             self.log.warning("frame %d skipped: %s", index, exc)
@@ -157,7 +165,7 @@ class PlayerService(Service):
         """Publish a frame again (no counters moved but the republish count)."""
         self.last_sent = time.monotonic()
         try:
-            self.frames_pub.put(frame_message(self.robot, self._frame(index)))
+            self.frames_pub.put(frame_message(self.robot, self._frame(index), self.depth_png))
         except DatasetError as exc:
             self.log.warning("frame %d not republished: %s", index, exc)
 
