@@ -18,6 +18,9 @@ system_packages() {
   ldconfig -p | grep -q 'libEGL.so.1' || missing+=(libegl1)
   ldconfig -p | grep -q 'libX11.so.6' || missing+=(libx11-6)
   ldconfig -p | grep -q 'libgomp.so.1' || missing+=(libgomp1)
+  # headless Chromium (software WebGL2 through its bundled SwiftShader) for the web-viewer screenshot test;
+  # fonts-liberation is only a Recommends of chromium, so ask for it with it
+  command -v chromium >/dev/null 2>&1 || missing+=(chromium fonts-liberation)
   [ ${#missing[@]} -eq 0 ] && return 0
   echo "dev.sh: installing system packages: ${missing[*]}"
   local sudo=""

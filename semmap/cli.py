@@ -125,7 +125,7 @@ def _loopback_port(port: int) -> int | None:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
             s.bind(("127.0.0.1", port))
-        except OSError:
+        except (OSError, OverflowError):  # in use, or not a port number
             return None
         return int(s.getsockname()[1])
 
@@ -190,7 +190,8 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
     for name, wanted, flag in (("web", args.port, "--port"), ("grpc", args.grpc_port, "--grpc-port")):
         port = _loopback_port(wanted)
         if port is None or port in ports.values():
-            print(f"error: port {wanted} on 127.0.0.1 is in use: choose another with {flag}", file=sys.stderr)
+            print(f"error: cannot listen on 127.0.0.1:{wanted} (in use, or not a port): choose another with {flag}",
+                  file=sys.stderr)
             return 2
         ports[name] = port
     cmd = [viewer, "--serve-web", "--bind", "127.0.0.1", "--port", str(ports["grpc"]),
