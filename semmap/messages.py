@@ -381,6 +381,16 @@ class DepthPatch:
     stride: int
     depth: np.ndarray  # uint16
 
+    @classmethod
+    def from_depth(cls, depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
+        """The depth pixels under `box` (clipped to the image), every `stride`-th in x and y."""
+        h, w = depth.shape
+        x0 = int(np.clip(np.floor(box[0]), 0, w - 1))
+        y0 = int(np.clip(np.floor(box[1]), 0, h - 1))
+        x1 = int(np.clip(np.ceil(box[2]), x0 + 1, w))
+        y1 = int(np.clip(np.ceil(box[3]), y0 + 1, h))
+        return cls(x0, y0, stride, np.ascontiguousarray(depth[y0:y1:stride, x0:x1:stride]))
+
     def to_dict(self) -> dict:
         return {"x0": self.x0, "y0": self.y0, "stride": self.stride, "depth": encode_array(self.depth)}
 

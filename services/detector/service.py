@@ -11,7 +11,6 @@ from __future__ import annotations
 import threading
 import time
 
-import numpy as np
 import zenoh
 
 from semmap.messages import Control, DepthPatch, Detection, Detections, Frame
@@ -21,16 +20,6 @@ from services.detector.oracle import OracleDetector
 
 MEMBERSHIP_SETTLE_S = 0.5
 EOS_GRACE_S = 2.0  # real time: how long after the end of the stream a late frame may still arrive
-
-
-def depth_patch(depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
-    """The depth pixels under a box, every `stride`-th in x and y, for the associator's back-projection."""
-    h, w = depth.shape
-    x0 = int(np.clip(np.floor(box[0]), 0, w - 1))
-    y0 = int(np.clip(np.floor(box[1]), 0, h - 1))
-    x1 = int(np.clip(np.ceil(box[2]), x0 + 1, w))
-    y1 = int(np.clip(np.ceil(box[3]), y0 + 1, h))
-    return DepthPatch(x0, y0, stride, np.ascontiguousarray(depth[y0:y1:stride, x0:x1:stride]))
 
 
 class DetectorService(Service):
@@ -142,7 +131,7 @@ class DetectorService(Service):
                     b.class_name,
                     float(b.score),
                     d,
-                    depth_patch(depth, (b.x1, b.y1, b.x2, b.y2), self.stride),
+                    DepthPatch.from_depth(depth, (b.x1, b.y1, b.x2, b.y2), self.stride),
                 )
                 for b, d in kept
             ]
