@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, TypeVar
 
@@ -137,7 +138,9 @@ def decode_array(d: Any, name: str, ndim: int | None = None, dtype: str | None =
     array = np.frombuffer(data, dtype=dt).reshape(shape)
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
         raise MessageError(f"field '{name}' holds non-finite numbers")
-    return array.astype(np.dtype(kind), copy=False)
+    if sys.byteorder == "little":  # a native dtype: some libraries (Open3D) refuse an explicit '<' byte order
+        return array.view(np.dtype(kind))
+    return array.astype(np.dtype(kind))
 
 
 def _box(values: Any, name: str = "box") -> tuple[float, float, float, float]:

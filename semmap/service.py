@@ -32,7 +32,8 @@ from semmap.messages import Control, Message, MessageError, Progress, ServiceSta
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
-REPLAY_FRAMES = 8  # how many recent frames' outputs a service can send again
+REPLAY_FRAMES = 8
+MAX_ERRORS_IN_A_ROW = 10  # how many recent frames' outputs a service can send again
 HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched with every status (see semmap.health)
 
 
@@ -145,6 +146,7 @@ class Service:
         self.finished = False
         self._handlers: dict[str, Callable[[Any], None]] = {}
         self._error_count = 0
+        self._errors_in_a_row = 0
         self.idle_timeout_s = 0.05
         self.resume = bool(getattr(args, "resume", False))
         self._sent: dict[int, list[tuple[Publisher, Message]]] = {}  # recent outputs by frame, for replays
@@ -268,8 +270,14 @@ class Service:
             self.log.warning("skipped a bad %s message: %s", what, exc)
         except Exception:
             self._error_count += 1
+            self._errors_in_a_row += 1
             self.metrics.count("errors")
             self.log.error("%s handler failed (error %d):\n%s", what, self._error_count, traceback.format_exc())
+            if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:  # not bad luck but a bug or a broken set-up
+                self.fail(f"{self._errors_in_a_row} {what} handler failures in a row; last: "
+                          f"{traceback.format_exc(limit=1).strip().splitlines()[-1]}")
+        else:
+            self._errors_in_a_row = 0
 
     def run(self) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):

@@ -68,16 +68,25 @@ class GroundTruthOdometry(FrontEnd):
 
 
 class DriftingOdometry(FrontEnd):
-    """GT relative motion composed with seeded noise; yaw noise and bias act about the world's up axis."""
+    """GT relative motion composed with seeded noise; yaw noise and bias act about the world's up axis.
+
+    Declared sigmas: the backend adds per-frame variances over the frames between two of its nodes (a random
+    walk), but a constant bias b grows linearly: over n frames the yaw error is n*b, not sqrt(n)*b. The
+    declared rotation sigma is therefore sqrt(yaw_sigma^2 + bias_horizon_frames * b^2): a random walk that
+    matches the bias's error over `bias_horizon_frames` frames (the order of the gap between two landmark
+    constraints), so the odometry does not claim to be tighter than it is over that horizon and landmarks can
+    pull. 1 is the plain hypot(yaw_sigma, bias) per frame.
+    """
 
     def __init__(self, seed: int, translation_sigma_m: float, yaw_sigma_deg: float, yaw_bias_deg: float,
-                 up: np.ndarray | None = None) -> None:
+                 up: np.ndarray | None = None, bias_horizon_frames: float = 1.0) -> None:
         self.rng = np.random.default_rng(seed)
         self.t_sigma = translation_sigma_m
         self.yaw_sigma = math.radians(yaw_sigma_deg)
         self.yaw_bias = math.radians(yaw_bias_deg)
         self.up = None if up is None else np.asarray(up, float) / np.linalg.norm(up)
-        self.sigmas = (max(translation_sigma_m, 1e-4), max(math.hypot(self.yaw_sigma, self.yaw_bias), 1e-4))
+        declared = math.sqrt(self.yaw_sigma**2 + max(float(bias_horizon_frames), 1.0) * self.yaw_bias**2)
+        self.sigmas = (max(translation_sigma_m, 1e-4), max(declared, 1e-4))
         self._prev_gt: np.ndarray | None = None
         self._est: np.ndarray | None = None
 
@@ -132,6 +141,7 @@ class RgbdOdometry(FrontEnd):
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self._prev: object | None = None
         self._pose: np.ndarray | None = None
+        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
         self.failures = 0
 
     def _image(self, frame: OdometryInput) -> object:
@@ -152,7 +162,7 @@ class RgbdOdometry(FrontEnd):
             try:
                 result = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
                     current, self._prev, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
-                    [10, 5, 3], o3d.t.pipelines.odometry.Method.Hybrid)
+                    self._criteria, o3d.t.pipelines.odometry.Method.Hybrid)
                 relative = result.transformation.numpy()
                 if not np.all(np.isfinite(relative)):
                     raise RuntimeError("non-finite odometry")
@@ -196,7 +206,8 @@ def make_frontend(mode: str, config: dict) -> FrontEnd:
         return GroundTruthOdometry(config["gt_sigma_translation_m"], config["gt_sigma_rotation_deg"])
     if mode == "gt+drift":
         return DriftingOdometry(int(config["seed"]), config["drift_translation_sigma_m"],
-                                config["drift_yaw_sigma_deg"], config["drift_yaw_bias_deg"])
+                                config["drift_yaw_sigma_deg"], config["drift_yaw_bias_deg"],
+                                bias_horizon_frames=float(config.get("drift_bias_horizon_frames", 1.0)))
     if mode == "rgbd":
         return RgbdOdometry(config["rgbd_sigma_translation_m"], config["rgbd_sigma_rotation_deg"])
     if mode.startswith("file:"):

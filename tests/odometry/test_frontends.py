@@ -1,0 +1,73 @@
+"""Odometry front ends on real 7-Scenes data: drift strength as documented, RGB-D odometry, trajectory files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semmap.config import load_config
+from semmap.datasets import open_dataset
+from semmap.datasets.trajectory_io import write_tum
+from semmap.evaluation import ate_rmse
+from services.odometry.frontends import OdometryError, OdometryInput, make_frontend
+
+
+@pytest.fixture(scope="module")
+def kitchen(data_root: Path):  # noqa: ANN201
+    return open_dataset(str(data_root / "7scenes-redkitchen"))
+
+
+def _drifted(seed: int, gt: list) -> list:
+    cfg = {**load_config()["odometry"], "seed": seed}
+    frontend = make_frontend("gt+drift", cfg)
+    return [(t, frontend.estimate(OdometryInput(i, t, pose))) for i, (t, pose) in enumerate(gt)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_default_drift_ends_a_7scenes_run_near_the_documented_ate(kitchen, seed: int) -> None:
+    gt = kitchen.groundtruth()
+    ate = ate_rmse(gt, _drifted(seed, gt))
+    assert 0.08 <= ate <= 0.35, ate
+
+
+def test_drift_is_seeded(kitchen) -> None:
+    gt = kitchen.groundtruth()[:200]
+    a, b, c = _drifted(4, gt), _drifted(4, gt), _drifted(5, gt)
+    assert all(np.array_equal(x[1], y[1]) for x, y in zip(a, b, strict=True))
+    assert not np.allclose(a[-1][1], c[-1][1])
+
+
+def test_rgbd_odometry_follows_the_real_camera(kitchen) -> None:
+    frontend = make_frontend("rgbd", load_config()["odometry"])
+    est, gt = [], []
+    for i in range(25):
+        f = kitchen[i]
+        est.append((f.stamp, frontend.estimate(OdometryInput(i, f.stamp, f.gt_pose, f.rgb, f.depth, f.depth_scale,
+                                                             f.intrinsics.matrix))))
+        gt.append((f.stamp, f.gt_pose))
+    assert ate_rmse(gt, est) < 0.03
+    moved = np.linalg.norm(gt[-1][1][:3, 3] - gt[0][1][:3, 3])
+    assert moved > 0.02, "the camera moves in these frames"
+
+
+def test_trajectory_file_is_matched_by_timestamp(tmp_path: Path) -> None:
+    poses = []
+    for i in range(10):
+        pose = np.eye(4)
+        pose[0, 3] = i
+        poses.append((i * 0.1, pose))
+    write_tum(tmp_path / "t.tum", poses)
+    frontend = make_frontend(f"file:{tmp_path / 't.tum'}", load_config()["odometry"])
+    assert frontend.estimate(OdometryInput(0, 0.31, None))[0, 3] == 3.0
+
+
+def test_unusable_modes_are_clear_errors() -> None:
+    with pytest.raises(OdometryError, match="unknown odometry mode"):
+        make_frontend("lidar", load_config()["odometry"])
+    frontend = make_frontend("gt", load_config()["odometry"])
+    with pytest.raises(OdometryError, match="no ground-truth pose"):
+        frontend.estimate(OdometryInput(3, 0.1, None))
+    synthetic = open_dataset("synthetic:frames=2")
+    assert synthetic[0].gt_pose is not None
