@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from semmap.geometry import look_at
+
 from .base import CameraIntrinsics, Dataset, DatasetError, FrameData, InstanceBox, ObjectTruth
 
 Mesh = tuple[np.ndarray, np.ndarray]  # (V x 3 float vertices, T x 3 int triangles)
@@ -456,15 +458,7 @@ class SyntheticDataset(Dataset):
              c.camera_height + c.camera_wave * math.sin(3 * phi)]
         )  # fmt: skip
         target = np.array([0.25 * math.sin(2 * phi), 0.15 * math.sin(phi), 0.8 + 0.05 * math.sin(5 * phi)])
-        forward = target - position
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(forward, right)
-        pose = np.eye(4)
-        pose[:3, :3] = np.column_stack([right, down, forward])
-        pose[:3, 3] = position
-        return pose
+        return look_at(position, target)
 
     def object_poses(self, index: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """(R, t) of every moving object at frame `index`: its mesh frame (feet, facing +x) to world."""

@@ -18,18 +18,7 @@ from services.associator.offline import depth_patch
 K_SMALL = Intrinsics(140.0, 140.0, 79.5, 59.5, 160, 120)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose (OpenCV camera: x right, y down, z forward; world z up)."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack([right, down, forward])
-    pose[:3, 3] = eye
-    return pose
+from semmap.geometry import look_at  # noqa: E402, F401 - tests import it from here
 
 
 @dataclass

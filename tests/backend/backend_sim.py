@@ -30,18 +30,7 @@ def shared_data(name: str) -> Path:
     return (root if root is not None else Path("/nonexistent/semmap-shared-data")) / name
 
 
-def look_at(position: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
-    """Camera-to-world pose (z forward, y down) at `position` looking at `target` (world z up by default)."""
-    up = np.array([0.0, 0.0, 1.0]) if up is None else up
-    z = target - position
-    z = z / np.linalg.norm(z)
-    x = np.cross(-up, z)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack([x, y, z])
-    pose[:3, 3] = position
-    return pose
+from semmap.geometry import look_at  # noqa: E402
 
 
 def square_path(n: int = 100, side: float = 4.0) -> list[np.ndarray]:
