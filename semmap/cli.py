@@ -15,7 +15,8 @@ from semmap.service import configure_logging
 PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
 
 
-def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: list[str] | None = None) -> list:
+def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: list[str] | None = None,
+                   serve: bool = False) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
     unless disabled."""
     from semmap.orchestrator import ServiceSpec
@@ -31,8 +32,8 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
             extra = ["--set", f"detector.kind={'oracle' if synthetic else 'onnx'}"]
         elif name == "associator" and "backend" in chosen:
             extra = ["--await-backend"]
-        elif name == "viz" and "associator" in chosen:
-            extra = ["--wait-for-map"]
+        elif name == "viz":
+            extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
         specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
                                  lockstep=name != "viz"))
     return specs
@@ -60,6 +61,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
     p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
     p.add_argument("--no-viz", action="store_true", help="do not record run.rrd")
+    p.add_argument("--serve", action="store_true",
+                   help="serve the Rerun web viewer for the live run (http://localhost:9090)")
     p.add_argument("--only", default=None, metavar="SERVICES",
                    help=f"start only these services (comma-separated; the player always runs): {','.join(PIPELINE)}")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -95,7 +98,7 @@ def _run(args: argparse.Namespace) -> int:
     if unknown:
         print(f"error: unknown service(s) {', '.join(unknown)}; known: {', '.join(PIPELINE)}", file=sys.stderr)
         return 2
-    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only)
+    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve)
     plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or config["run"]["robot"],
                    mode=args.mode or config["run"]["mode"], services=specs, config_path=args.config,
                    overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,

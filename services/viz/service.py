@@ -69,11 +69,15 @@ class VizService(Service):
                 part = self.out_dir / f"run.part-{len(self.parts) + 1}.rrd"
                 rrd.rename(part)
                 self.parts.append(part)
-            rr.save(str(rrd))
-        if self.args.serve:
-            uri = rr.serve_grpc()
-            rr.serve_web_viewer(open_browser=False, connect_to=uri)
-            self.log.info("web viewer at http://localhost:9090 (gRPC %s)", uri)
+        sinks: list = [rr.FileSink(str(rrd))] if self.out_dir is not None else []
+        if self.args.serve:  # the live run in the web viewer as well as the file
+            server = rr.GrpcServerSink(port=self.args.grpc_port)
+            sinks.append(server)
+            uri = f"rerun+http://127.0.0.1:{self.args.grpc_port}/proxy"  # as the browser on this host sees it
+            rr.serve_web_viewer(web_port=self.args.web_port, open_browser=False, connect_to=uri)
+            self.log.info("web viewer: http://localhost:%d/?url=%s", self.args.web_port, uri)
+        if sinks:
+            rr.set_sinks(*sinks)
         rr.send_blueprint(rrb.Blueprint(rrb.Horizontal(
             rrb.Spatial3DView(origin="world", name="map"),
             rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="camera"),
@@ -257,7 +261,9 @@ class VizService(Service):
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--serve", action="store_true", help="also serve the Rerun web viewer (port 9090)")
+    parser.add_argument("--serve", action="store_true", help="also serve the Rerun web viewer (live run)")
+    parser.add_argument("--web-port", type=int, default=9090, help="web viewer port (with --serve)")
+    parser.add_argument("--grpc-port", type=int, default=9876, help="Rerun gRPC port (with --serve)")
     parser.add_argument("--wait-for-map", action="store_true",
                         help="finish only after the map update of the last frame (the run has an associator)")
 
