@@ -645,6 +645,8 @@ class LandmarkMapper:
         sigma = math.hypot(
             p.obs_sigma_base_m + p.obs_sigma_depth_factor * depth, p.obs_sigma_size_factor * lm.size
         )
+        if view.truncated:
+            sigma *= p.obs_truncated_sigma_factor
         lm.last_obs_sent = stamp
         return Observation(
             lm.id, lm.class_name, (float(point[0]), float(point[1]), float(point[2])), sigma, float(lm.size)

@@ -71,7 +71,8 @@ class PlayerService(Service):
         self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
         self.next_index = max(0, int(self.args.start_at))
         self.last_sent = 0.0
-        if self.next_index:
+        if self.next_index:  # the run knows every service finished the frames before this one
+            self.progress = dict.fromkeys(self.wait_for, self.next_index - 1)
             self.log.info("resuming at frame %d", self.next_index)
         self.started_at: float | None = None
         self.waiting_since = time.monotonic()
