@@ -78,10 +78,10 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class IouTracker:
     """Frame-by-frame IOU tracking; one instance per robot (see module docstring)."""
 
-    def __init__(self, params: TrackerParams | None = None) -> None:
+    def __init__(self, params: TrackerParams | None = None, first_track_id: int = 0) -> None:
         self.params = params or TrackerParams()
         self._active: list[_Tracklet] = []  # kept in creation (= id) order
-        self._next_id = 0
+        self._next_id = first_track_id
         self._class_ids: dict[str, int] = {}
 
     def _class_id(self, name: str) -> int:

@@ -6,10 +6,14 @@ are re-ordered by frame id and duplicates dropped, so the tracker sees each fram
 
 from __future__ import annotations
 
+import time
+
 from semmap.messages import Detections, Tracks
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
 from services.tracker.iou_tracker import IouTracker, TrackerParams
+
+TRACK_ID_BLOCK = 10_000_000
 
 
 class TrackerService(Service):
@@ -18,10 +22,25 @@ class TrackerService(Service):
     name = "tracker"
 
     def setup(self) -> None:
-        self.tracker = IouTracker(TrackerParams(**self.config["tracker"]))
+        self.tracker = IouTracker(TrackerParams(**self.config["tracker"]), first_track_id=self._first_track_id())
         self.pub = self.publisher(self.bus.keys.tracks)
         self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
         self.listen(self.bus.keys.detections, Detections, self.on_detections)
+
+    def _first_track_id(self) -> int:
+        """Track ids must never repeat within a run: the associator keys candidates by them. A restarted tracker
+        starts a new block of ids (one per restart, counted in DIR/tracker.epoch)."""
+        if not self.resume:
+            epoch = 0
+        elif self.out_dir is not None:
+            path = self.out_dir / "tracker.epoch"
+            epoch = (int(path.read_text()) if path.is_file() else 0) + 1
+        else:
+            epoch = int(time.time())  # no run directory: a clock-based block
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "tracker.epoch").write_text(str(epoch))
+        return epoch * TRACK_ID_BLOCK
 
     def on_detections(self, message: Detections) -> None:
         if not self.reorder.push(message.frame_id, message):
