@@ -17,13 +17,16 @@ then merges what now overlaps; the service calls it (throttled) when the backend
 Views cache their world positions between refines: `process()` consults the pose lookup only for the new
 measurements, so a corrected pose takes effect for old views at the next `refine()`.
 
-Observations: at most one per landmark every `observation_period_s` of stamp time (paper: 2 s), only from a
-view of the frame being processed (the message is tied to that frame), only for landmarks old enough that a
-moving object would have been rejected already. With `observation_register`, the view's points are first
-aligned (translation-only trimmed ICP) to the landmark's fused cloud and the landmark centre is measured
-through that alignment: a partial view's own centre moves with the viewpoint (the 3-6 cm scatter floor seen
-on 7-Scenes), the landmark centre seen through the view's alignment does not, yet a pose error still shows
-up in full (the alignment absorbs it), which is what the backend needs.
+Observations: at most one per landmark every `observation_period_s` of stamp time (default 1 s; the paper's
+2 s is a setting), only from an inlier view of the frame being processed (the message is tied to that
+frame), only for landmarks old enough that a moving object would have been rejected already. The observed
+point is the view's own centre in its camera frame: what the depth data says, independent of any pose
+estimate, so a pose error shows up in full in the backend's residual. A view whose box touches the image
+border observes with `obs_truncated_sigma_factor` times the sigma (its centre slides with what is in view).
+`observation_register` (off) measures the landmark centre through a translation-only ICP of the view to the
+landmark cloud instead: object clouds are too smooth for it to recover an offset (a 10 cm offset is left at
+5-8 cm), so it mostly returns the landmark as predicted through the current pose, an echo of the estimate
+that hid half of any pose error from the backend (see params.py for the 7-Scenes figures).
 
 Determinism: ids come from counters, iteration is in id / track-id / input order, and every random draw
 comes from a generator seeded by (seed, purpose, id, view count).
