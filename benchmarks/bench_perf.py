@@ -41,9 +41,10 @@ STAGES = [
 ]
 
 
-def run(data: Path, out: Path, mode: str, frames: int, detect_every: int) -> dict:
+def run(data: Path, out: Path, mode: str, frames: int, detect_every: int, precision: str) -> dict:
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--out", str(out), f"--{mode}", "--odometry", "gt",
-           "--max-frames", str(frames), "--quiet", "--set", f"detector.every_n_frames={detect_every}"]
+           "--max-frames", str(frames), "--quiet", "--set", f"detector.every_n_frames={detect_every}",
+           "--set", f"detector.precision={precision}"]
     result = subprocess.run(cmd, cwd=PROJECT, capture_output=True, text=True, env={**os.environ, "CI": "true"})
     if result.returncode != 0:
         raise SystemExit(f"semmap run failed:\n{result.stderr[-3000:]}")
@@ -69,6 +70,7 @@ def main() -> int:
     parser.add_argument("--data", default=None, help="dataset (default: ../shared/data/7scenes-redkitchen)")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--detect-every", type=int, default=3, help="real time: detect every n-th frame")
+    parser.add_argument("--precision", default="int8", choices=("fp32", "int8"), help="detector model")
     parser.add_argument("--json-out", default=None)
     args = parser.parse_args()
     root = find_data_root()
@@ -76,10 +78,10 @@ def main() -> int:
     if data is None or not data.exists():
         raise SystemExit("no dataset: pass --data or provide ../shared/data")
     with tempfile.TemporaryDirectory() as tmp:
-        lock = run(data, Path(tmp) / "lockstep", "lockstep", args.frames, 1)
-        real = run(data, Path(tmp) / "realtime", "realtime", args.frames, args.detect_every)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
-          f"{args.frames} frames of {data.name}")
+        lock = run(data, Path(tmp) / "lockstep", "lockstep", args.frames, 1, args.precision)
+        real = run(data, Path(tmp) / "realtime", "realtime", args.frames, args.detect_every, args.precision)
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.1f}; {args.frames} frames of {data.name}, detector {args.precision}")
     print(f"lockstep (every frame detected): {lock['fps']:.1f} fps sustained")
     print(f"real time 30 fps, detecting every {args.detect_every}rd frame: {real['frames']['dropped']} of "
           f"{real['frames']['published']} frames dropped, {real['frames']['detected']} detected")
