@@ -39,14 +39,17 @@ def square_scene(seed: int, every: int = 1, n: int = 100) -> Scene:
     return scene
 
 
+@pytest.mark.parametrize("kernel", ["huber", "cauchy"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_drift_on_a_square_is_corrected_and_landmarks_recovered(seed: int) -> None:
+def test_drift_on_a_square_is_corrected_and_landmarks_recovered(seed: int, kernel: str) -> None:
     scene = square_scene(seed)
-    graph, _ = run_graph(scene)
+    graph, _ = run_graph(scene, BackendParams(robust_kernel=kernel))
     ate_odometry = ate_rmse(scene.stamped_gt, scene.stamped_odometry)
     ate_optimized = ate_rmse(scene.stamped_gt, optimized(graph))
     assert ate_odometry > 0.05  # the drift is real
-    assert ate_optimized < ate_odometry / 4  # measured 0.082/0.068/0.066 -> 0.012/0.017/0.010 m
+    # measured 0.082/0.068/0.066 -> huber 0.012/0.017/0.010 m, cauchy (the default; it gives up a little
+    # efficiency on purely Gaussian noise like this for heavy tails) 0.013/0.0169/0.010 m
+    assert ate_optimized < ate_odometry / (4.0 if kernel == "huber" else 3.8)
     ids, positions = graph.landmark_positions()
     assert ids.tolist() == list(range(6))
     # anchored at the first (true) pose: no alignment needed
