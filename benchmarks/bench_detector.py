@@ -94,6 +94,20 @@ def bench_oracle(n_frames: int = 1000, n_instances: int = 12) -> dict[str, float
     return {**stats_ms(times), "instances_per_frame": n_instances}
 
 
+def replica_throughput(replicas: int, scene: Path, frames: int = 200) -> float:
+    """Frames detected per second by N replicas sharing a 10x real-time stream (one ORT thread each when N > 1)."""
+    import subprocess
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "semmap.cli", "run", str(scene), "--out", tmp, "--realtime", "--only", "detector",
+               "--detectors", str(replicas), "--max-frames", str(frames), "--set", "run.speed=10", "--no-viz",
+               "--quiet", "--set", f"detector.threads={2 if replicas == 1 else 1}"]
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "CI": "true"})
+        stats = json.loads((Path(tmp) / "stats.json").read_text())
+    # frames still queued when the stream ends are dropped, so this is the rate sustained during the stream
+    return stats["frames"]["detected"] / (frames / (30.0 * 10))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=50, help="timed frames per configuration")
@@ -102,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--int8", action="store_true", help="also build and time an int8 copy of the model")
     ap.add_argument("--threads", default="1,2", help="thread counts to time (default 1,2)")
     ap.add_argument("--spin", action="store_true", help="let ORT threads busy-wait (faster only on an idle CPU)")
+    ap.add_argument("--replicas", default="", help="also measure replica throughput through the bus, e.g. 1,2")
     ap.add_argument("--json-out", type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -149,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"oracle: p50 {r['p50_ms'] * 1e3:.0f} us  p95 {r['p95_ms'] * 1e3:.0f} us per frame "
           f"({r['instances_per_frame']} instances)")  # fmt: skip
     results["load_avg_after"] = [round(v, 2) for v in os.getloadavg()]
+    for n in [int(v) for v in args.replicas.split(",") if v]:
+        fps = replica_throughput(n, scene)
+        results.setdefault("replicas", {})[str(n)] = {"detected_fps": fps}  # type: ignore[union-attr]
+        print(f"{n} replica(s) through Zenoh: {fps:.1f} frames detected per second")
     if args.json_out:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         args.json_out.write_text(json.dumps(results, indent=2) + "\n")
