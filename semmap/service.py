@@ -175,7 +175,18 @@ class Service:
     # -- helpers for subclasses -------------------------------------------------------------------------------
     def listen(self, key: str, kind: type[M], handler: Callable[[M], None], capacity: int = 100_000) -> None:
         stream = f"{key}#{kind.SCHEMA}"
-        self._handlers[stream] = handler
+
+        def checked(message: M) -> None:
+            robot = getattr(message, "robot", self.robot)
+            if robot != self.robot:  # on our key but naming another robot: a misconfigured publisher
+                self.metrics.count("wrong_robot")
+                if self.metrics.counters["wrong_robot"] <= 5:
+                    self.log.warning("skipped a %s for robot %r on %s (this is %r)", kind.SCHEMA, robot, key,
+                                     self.robot)
+                return
+            handler(message)
+
+        self._handlers[stream] = checked
         self.bus.subscribe_to_inbox(key, kind, self.inbox, stream, capacity)
 
     def publisher(self, key: str) -> Publisher:

@@ -79,6 +79,8 @@ def test_round_trip_through_a_service_process(tmp_path: Path) -> None:
         raw.put_bytes(b"this is not msgpack")  # must be rejected and counted, not crash the service
         rgb = np.zeros((24, 32, 3), np.uint8)
         depth = np.full((24, 32), 1000, np.uint16)
+        # a valid frame that names another robot on our key: a counted skip
+        frames.put(Frame.from_arrays("otherbot", 0, 0.0, rgb, depth, 0.001, K, np.eye(4)))
         truth = []
         for i in range(5):
             pose = np.eye(4)
@@ -92,6 +94,7 @@ def test_round_trip_through_a_service_process(tmp_path: Path) -> None:
         bus.publisher(bus.keys.control).put(Control("busrobot", "end_of_stream", 4, 5))
         assert _wait(lambda: "finished" in statuses, 10)
         assert statuses["finished"].counters.get("rejected[frames]") == 1
+        assert statuses["finished"].counters.get("wrong_robot") == 1
         bus.publisher(bus.keys.control).put(Control("busrobot", "stop"))
         assert proc.wait(timeout=15) == 0
         lines = (tmp_path / "trajectory_odometry.tum").read_text().splitlines()
