@@ -30,12 +30,7 @@ def to_intrinsics(k: CameraIntrinsics) -> Intrinsics:
 
 def depth_patch(depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
     """The depth pixels under a box, every `stride`-th in x and y (as the detector service sends them)."""
-    h, w = depth.shape
-    x0 = int(np.clip(np.floor(box[0]), 0, w - 1))
-    y0 = int(np.clip(np.floor(box[1]), 0, h - 1))
-    x1 = int(np.clip(np.ceil(box[2]), x0 + 1, w))
-    y1 = int(np.clip(np.ceil(box[3]), y0 + 1, h))
-    return DepthPatch(x0, y0, stride, np.ascontiguousarray(depth[y0:y1:stride, x0:x1:stride]))
+    return DepthPatch.from_depth(depth, box, stride)
 
 
 def make_detections(
