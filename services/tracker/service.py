@@ -53,9 +53,9 @@ class TrackerService(Service):
     def _process(self, det: Detections) -> None:
         with self.metrics.timer("proposal_ms") as timer:
             if det.skipped:
-                if det.stamp >= 0:
-                    self.tracker.skip(det.frame_id, det.stamp)
-                candidates, ended, boxes = [], [], []
+                # tracklets can end on a skipped frame too: the associator must hear of it
+                ended = self.tracker.skip(det.frame_id, det.stamp).ended if det.stamp >= 0 else []
+                candidates, boxes = [], []
             else:
                 out = self.tracker.update(det.frame_id, det.stamp, det.detections, det.intrinsics, det.depth_scale)
                 candidates, ended, boxes = out.candidates, out.ended, out.boxes
