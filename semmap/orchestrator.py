@@ -199,9 +199,13 @@ class Orchestrator:
         """A restarted service picks up its saved state; the player continues after the last finished frame."""
         if child.name != "player":
             return ["--resume"]
+        return ["--start-at", str(max(self._frames_done(), 0))]
+
+    def _frames_done(self, default: int = 0) -> int:
+        """How many frames every lockstep service has finished (`default` when none gates the stream)."""
         with self.lock:
-            done = min((self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep), default=-1)
-        return ["--start-at", str(max(done + 1, 0))]
+            done = [self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep]
+        return min(done) + 1 if done else default
 
     def _all_finished(self) -> bool:
         if any(c.restart_at is not None for c in self.children):
@@ -240,9 +244,7 @@ class Orchestrator:
     def _progress_line(self, started: float) -> str:
         published = self._counter_sum("frames_published")
         total = self._total_frames
-        done_services = [s.name for s in self.plan.services if s.lockstep]
-        with self.lock:
-            processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        processed = self._frames_done(default=published)
         published = max(published, processed)
         dropped = self._counter_sum("frames_dropped")
         elapsed = max(time.monotonic() - started, 1e-6)
@@ -281,9 +283,7 @@ class Orchestrator:
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
-        with self.lock:
-            done_services = [sp.name for sp in self.plan.services if sp.lockstep]
-            processed = min((self.progress.get(n, -1) for n in done_services), default=published - 1) + 1
+        processed = self._frames_done(default=published)
         with self.lock:
             restarts = dict(self.restarts)
         for instance, n in restarts.items():

@@ -29,6 +29,12 @@ class FrameReorderBuffer(Generic[T]):
         self.pending[frame_id] = item
         return True
 
+    def mark_done(self, frame_id: int) -> None:
+        """Frames up to `frame_id` were handled elsewhere (e.g. replayed from a journal): expect the next one."""
+        self.next_id = max(self.next_id or 0, frame_id + 1)
+        for old in [f for f in self.pending if f <= frame_id]:
+            del self.pending[old]
+
     def pop_ready(self) -> list[T]:
         ready: list[T] = []
         while self.next_id is not None:

@@ -6,7 +6,6 @@ Unknown sections or keys are errors (a typo must not silently fall back to a def
 
 from __future__ import annotations
 
-import copy
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -79,6 +78,3 @@ def validate_sections(config: dict[str, Any]) -> None:
     except (TypeError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
 
-
-def section(config: dict[str, Any], name: str) -> dict[str, Any]:
-    return copy.deepcopy(config.get(name, {}))

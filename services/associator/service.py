@@ -216,17 +216,18 @@ class AssociatorService(Service):
             timing["refine"] = refine_ms
         self.emit(self.map_pub, MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
                                           step.merges, full, step.rejected, timing, frame_sent_at), max(frame_id, 0))
-        known = {lm.id for lm in self.snapshot}
-        self.snapshot = self.mapper.landmarks()
-        self.metrics.counters["landmarks"] = len(self.snapshot)
-        if step.updated or step.removed or step.merges or full:
+        structural = False
+        if step.updated or step.removed or step.merges or full:  # most frames change nothing
+            known = {lm.id for lm in self.snapshot}
+            self.snapshot = self.mapper.landmarks()
             self.dirty = True
+            # a new, removed or merged landmark is saved at once (a crash must not lose it); refinements of
+            # existing ones at most once a second
+            structural = bool(step.removed or step.merges or {lm.id for lm in self.snapshot} - known)
+        self.metrics.counters["landmarks"] = len(self.snapshot)
         self.metrics.count("merges", len(step.merges))
         for absorbed, survivor in step.merges:
             self.log.info("merged landmark %d into %d", absorbed, survivor)
-        # a new, removed or merged landmark is saved at once (a crash must not lose it); refinements of
-        # existing ones at most once a second
-        structural = bool(step.removed or step.merges or {lm.id for lm in self.snapshot} - known)
         if self.dirty and (structural or time.monotonic() - self.last_saved > SAVE_PERIOD_S):
             self._save()
 

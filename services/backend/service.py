@@ -89,8 +89,7 @@ class BackendService(Service):
             self.graph.add_odometry_message(OdometryPose.decode(odometry))
             self.graph.add_observations_message(Observations.decode(observations))
             self.graph.update()
-            self.odometry.push(frame_id, None)  # type: ignore[arg-type] - only marks the frame as handled
-            self.odometry.pop_ready()
+            self.odometry.mark_done(frame_id)
             self.last_frame_id = frame_id
             n += 1
         if n:

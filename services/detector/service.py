@@ -14,6 +14,7 @@ from pathlib import Path
 
 import zenoh
 
+from semmap.keys import Keys
 from semmap.messages import Control, DepthPatch, Detection, Detections, Frame
 from semmap.service import Service, service_main
 from services.detector.onnx_detector import DetectedBox, OnnxDetector, depth_gate
@@ -93,7 +94,7 @@ class DetectorService(Service):
         raise ValueError(f"unknown detector precision {precision!r}: use fp32 or int8")
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = Keys.instance_of(str(sample.key_expr))
         with self._members_lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._members.add(name)

@@ -71,6 +71,7 @@ class PlayerService(Service):
         self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
         self.next_index = max(0, int(self.args.start_at))
         self.last_sent = 0.0
+        self.last_message: Frame | None = None
         if self.next_index:  # the run knows every service finished the frames before this one
             self.progress = dict.fromkeys(self.wait_for, self.next_index - 1)
             self.log.info("resuming at frame %d", self.next_index)
@@ -132,7 +133,7 @@ class PlayerService(Service):
                     self.metrics.count("frames_republished")
                     self.log.warning("no progress for frame %d after %.0f s: republishing it", self.next_index - 1,
                                      waited)
-                    self._send(self.next_index - 1)
+                    self._resend_last()
                 if waited > self.frame_timeout_s:
                     late = [n for n in self.wait_for if self.progress.get(n, -1) < self.next_index - 1]
                     self.fail(f"lockstep: no progress for frame {self.next_index - 1} from {', '.join(late)} "
@@ -159,16 +160,15 @@ class PlayerService(Service):
         self.last_sent = time.monotonic()
         with self.metrics.timer("publish_ms"):
             self.frames_pub.put(message)
+        self.last_message = message
         self.metrics.count("frames_published")
         self.last_frame_id = index
 
-    def _send(self, index: int) -> None:
-        """Publish a frame again (no counters moved but the republish count)."""
+    def _resend_last(self) -> None:
+        """Publish the newest frame again, as it was (no counters moved but the republish count)."""
         self.last_sent = time.monotonic()
-        try:
-            self.frames_pub.put(frame_message(self.robot, self._frame(index), self.depth_png))
-        except DatasetError as exc:
-            self.log.warning("frame %d not republished: %s", index, exc)
+        if self.last_message is not None:
+            self.frames_pub.put(self.last_message)
 
     def _frame(self, index: int) -> FrameData:
         """Frame `index` of the (possibly looped) stream: later loops continue the ids and the clock."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from semmap.geometry import look_at  # noqa: F401 - tests import it from here
 from semmap.messages import DepthPatch, Detection, Intrinsics, Measurement
 from services.associator.candidate import View
 from services.associator.offline import depth_patch
@@ -18,7 +19,6 @@ from services.associator.offline import depth_patch
 K_SMALL = Intrinsics(140.0, 140.0, 79.5, 59.5, 160, 120)
 
 
-from semmap.geometry import look_at  # noqa: E402, F401 - tests import it from here
 
 
 @dataclass

@@ -14,6 +14,7 @@ import numpy as np
 
 from semmap.datasets import find_data_root
 from semmap.datasets.trajectory_io import orthonormalize_pose
+from semmap.geometry import look_at
 from semmap.messages import Observation
 from services.backend.pose_graph import BackendParams, PoseGraph
 from services.odometry.frontends import DriftingOdometry, OdometryInput
@@ -30,7 +31,6 @@ def shared_data(name: str) -> Path:
     return (root if root is not None else Path("/nonexistent/semmap-shared-data")) / name
 
 
-from semmap.geometry import look_at  # noqa: E402
 
 
 def square_path(n: int = 100, side: float = 4.0) -> list[np.ndarray]:
