@@ -44,6 +44,15 @@ class MapStore:
         finally:
             db.close()
 
+    def clear(self) -> None:
+        """Forget the saved state (a new run writing to the same directory)."""
+        db = self._connect()
+        try:
+            with db:
+                db.execute("DELETE FROM state")
+        finally:
+            db.close()
+
     def load(self) -> dict[str, Any] | None:
         db = self._connect()
         try:

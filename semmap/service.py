@@ -150,6 +150,8 @@ class Service:
         self.idle_timeout_s = 0.05
         self.resume = bool(getattr(args, "resume", False))
         self._sent: dict[int, list[tuple[Publisher, Message]]] = {}  # recent outputs by frame, for replays
+        # handling journalled inputs again after a crash: outputs are remembered but not sent (they were sent)
+        self.muted = False
         self.bus: Bus
         self._status_pub: Publisher
         self._progress_pub: Publisher
@@ -194,7 +196,8 @@ class Service:
 
     def emit(self, publisher: Publisher, message: Message, frame_id: int) -> None:
         """Publish an output of frame `frame_id`, remembered for a while so a repeated input can be answered."""
-        publisher.put(message)
+        if not self.muted:
+            publisher.put(message)
         self._sent.setdefault(frame_id, []).append((publisher, message))
         for old in [f for f in self._sent if f < frame_id - REPLAY_FRAMES]:
             del self._sent[old]
@@ -205,6 +208,8 @@ class Service:
         outputs = self._sent.get(frame_id)
         if outputs is None:
             return False
+        if self.muted:
+            return True
         for publisher, message in outputs:
             publisher.put(message)
         self._progress_pub.put(Progress(self.robot, self.name, frame_id))
@@ -214,6 +219,8 @@ class Service:
     def report_progress(self, frame_id: int) -> None:
         """Everything frame `frame_id` caused is done here (lockstep playback waits for it)."""
         self.last_frame_id = max(self.last_frame_id, frame_id)
+        if self.muted:
+            return
         self._progress_pub.put(Progress(self.robot, self.name, frame_id))
         if self.end_of_stream is not None and not self.finished:
             self.on_end_of_stream(self.end_of_stream)

@@ -13,9 +13,11 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from semmap.journal import MessageJournal
 from semmap.map_query import MapQuery, QueryError, reply_document, run_query
 from semmap.map_store import MapStore, write_map_json
 from semmap.messages import (
@@ -34,6 +36,7 @@ from semmap.service import Service, service_main
 from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 
 SAVE_PERIOD_S = 1.0
+POSES_KEPT = 300  # recent frames' poses saved with the map (see PoseBook.to_state)
 # settings of the service around the mapper (the rest of the `associator:` section is MapperParams)
 SERVICE_DEFAULTS = {"refine_every_n_frames": 10}
 
@@ -58,6 +61,33 @@ class PoseBook:
     def set_corrected(self, msg: CorrectedPoses) -> None:
         self.corrected = {int(f): p for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
         self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
+
+    def to_state(self, recent: int = POSES_KEPT) -> dict[str, Any]:
+        """What a restarted associator needs to go on where it stopped: the odometry and corrected poses of the
+        last `recent` frames (measurements still waiting for a pose are recent) and the newest corrected frame
+        with its odometry, the anchor that moves later odometry onto the optimised estimate. Without it a
+        restart would place the next views by the raw drifted odometry until the backend's next correction,
+        and a long-running tracklet would fail its re-validation and take its landmark with it."""
+        frames = sorted(self.odometry)[-recent:]
+        anchor = next((int(k) for k in self._corrected_ids[::-1] if int(k) in self.odometry), None)
+        if anchor is not None and anchor not in frames:
+            frames.append(anchor)
+        return {
+            "odometry": {f: self.odometry[f].tobytes() for f in frames},
+            "corrected": {f: self.corrected[f].tobytes() for f in frames if f in self.corrected},
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any] | None) -> PoseBook:
+        book = cls()
+        if not state:
+            return book
+        def pose(raw: bytes) -> np.ndarray:
+            return np.frombuffer(raw, np.float64).reshape(4, 4).copy()
+        book.odometry = {int(f): pose(b) for f, b in state["odometry"].items()}
+        book.corrected = {int(f): pose(b) for f, b in state["corrected"].items()}
+        book._corrected_ids = np.sort(np.fromiter(book.corrected, np.int64, len(book.corrected)))
+        return book
 
     def __call__(self, frame_id: int) -> np.ndarray | None:
         pose = self.corrected.get(frame_id)
@@ -97,11 +127,13 @@ class AssociatorService(Service):
         self.dirty = False
         db = self.args.map_db or (self.out_dir / "map.sqlite" if self.out_dir is not None else None)
         self.store = MapStore(db) if db is not None else None
+        self.journal = MessageJournal(db.with_name(f"{db.stem}.journal.sqlite")) if db is not None else None
+        self.journal_seq = 0  # the last journalled input the saved map includes
         if self.store is not None and (self.resume or self.args.map_db):
-            state = self.store.load()
-            if state is not None:
-                self.mapper = LandmarkMapper.from_state(state, self.params)
-                self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
+            self._restore()
+        elif self.store is not None and self.journal is not None:  # a new run: nothing of an earlier one
+            self.store.clear()
+            self.journal.clear()
         self.snapshot = self.mapper.landmarks()
         self.obs_pub = self.publisher(self.bus.keys.observations)
         self.tags_pub = self.publisher(self.bus.keys.landmark_tags)
@@ -110,6 +142,7 @@ class AssociatorService(Service):
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
         self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
+        self._replay_journal()
         if self.snapshot:
             self._publish_map(MapperStep(), self.last_frame_id, 0.0, full=True)
 
@@ -124,10 +157,12 @@ class AssociatorService(Service):
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def on_odometry(self, pose: OdometryPose) -> None:
+        self._journal("odometry", pose)
         self.poses.odometry[pose.frame_id] = pose.pose
         self._drain()
 
     def on_tracks(self, tracks: Tracks) -> None:
+        self._journal("tracks", tracks)
         if not self.tracks.push(tracks.frame_id, tracks):
             self.metrics.count("tracks_duplicates")
             if self.awaiting is not None and self.awaiting[0].frame_id == tracks.frame_id:
@@ -169,7 +204,7 @@ class AssociatorService(Service):
                 self.emit(self.tags_pub, TagDetections(self.robot, tracks.frame_id, tracks.stamp,
                                                        [TagDetection.from_observation(o) for o in step.observations]),
                           tracks.frame_id)
-            if self.await_backend:
+            if self.await_backend and not self.muted:  # (replaying the journal: the backend has answered)
                 self.awaiting = (tracks, step)
             else:
                 self._complete(tracks, step)
@@ -232,10 +267,53 @@ class AssociatorService(Service):
             self._save()
 
     # -- persistence ----------------------------------------------------------------------------------------
+    def _journal(self, stream: str, message: Tracks | OdometryPose) -> None:
+        if self.journal is not None and not self.muted:
+            with self.metrics.timer("journal_ms"):
+                self.journal_seq = self.journal.append(stream, message.encode())
+
+    def _restore(self) -> None:
+        """The saved map, its pose book and where in the journal it stopped (inputs after that come next)."""
+        state = self.store.load() if self.store is not None else None
+        if state is None:
+            return
+        self.mapper = LandmarkMapper.from_state(state, self.params)
+        self.poses = PoseBook.from_state(state.get("poses"))
+        self.journal_seq = int(state.get("journal_seq", 0))
+        self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
+
+    def _replay_journal(self) -> None:
+        """Handle the inputs journalled after the saved map again (muted: their outputs went out before the
+        crash), so a restart goes on from the last input handled, not from the last save: losing even a few
+        frames of a tracklet's views can flip its motion test and take an established landmark with it."""
+        if self.journal is None or not (self.resume or self.args.map_db):
+            return
+        kinds = {"odometry": (OdometryPose, self.on_odometry), "tracks": (Tracks, self.on_tracks)}
+        n = 0
+        self.muted = True
+        try:
+            for seq, stream, body in self.journal.entries(self.journal_seq):
+                kind, handler = kinds[stream]
+                self._guarded(handler, kind.decode(body), f"journalled {stream}")
+                self.journal_seq = seq
+                n += 1
+        finally:
+            self.muted = False
+        if n:
+            self.log.info("replayed %d journalled inputs (to frame %d)", n, self.last_frame_id)
+            self.snapshot = self.mapper.landmarks()
+            self._save()
+
     def _save(self) -> None:
+        if self.muted:
+            self.dirty = True
+            return
         with self.metrics.timer("save_ms"):
             if self.store is not None:
-                self.store.save(self.mapper.to_state())
+                self.store.save({**self.mapper.to_state(), "poses": self.poses.to_state(),
+                                 "journal_seq": self.journal_seq})
+                if self.journal is not None:
+                    self.journal.truncate(self.journal_seq)
             if self.out_dir is not None:
                 write_map_json(self.out_dir / "map.json", self.snapshot)
         self.last_saved = time.monotonic()
@@ -251,6 +329,8 @@ class AssociatorService(Service):
 
     def teardown(self) -> None:
         self._queryable.undeclare()
+        if self.journal is not None:
+            self.journal.close()
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
