@@ -802,10 +802,11 @@ class CorrectedPoses(Message):
 
 @dataclass
 class Control(Message):
-    """Run control from the player / CLI: `end_of_stream` after the last frame, `stop` to shut down."""
+    """Run control from the player / CLI: `end_of_stream` after the last frame, `stop` to shut down,
+    `frame_unreadable` for a dataset frame that could not be read (`last_frame_id`: that frame; it never comes)."""
 
     SCHEMA: ClassVar[str] = "semmap.control/1"
-    COMMANDS: ClassVar[tuple[str, ...]] = ("end_of_stream", "stop")
+    COMMANDS: ClassVar[tuple[str, ...]] = ("end_of_stream", "stop", "frame_unreadable")
     robot: str
     command: str
     last_frame_id: int = 0

@@ -283,6 +283,7 @@ class Orchestrator:
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
+        unreadable = sum(s.counters.get("frames_unreadable", 0) for s in statuses.values() if s.service == "player")
         processed = self._frames_done(default=published)
         with self.lock:
             restarts = dict(self.restarts)
@@ -291,7 +292,7 @@ class Orchestrator:
         stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
                  "robot": self.plan.robot, "wall_s": round(wall_s, 2),
                  "frames": {"published": published, "processed": processed, "detected": detected,
-                            "dropped": dropped},
+                            "dropped": dropped, "unreadable": unreadable},
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "services": services}
         path = self.plan.out_dir / "stats.json"

@@ -19,12 +19,13 @@ class FrameReorderBuffer(Generic[T]):
         self.pending: dict[int, T] = {}
         self.max_pending = max_pending
         self.gaps = 0
+        self.skipped: set[int] = set()  # frames that will never come (e.g. unreadable in the dataset)
 
     def push(self, frame_id: int, item: T) -> bool:
         """Queue an item; False for a duplicate or an already released frame."""
         if self.next_id is None:
             self.next_id = frame_id
-        if frame_id < self.next_id or frame_id in self.pending:
+        if frame_id < self.next_id or frame_id in self.pending or frame_id in self.skipped:
             return False
         self.pending[frame_id] = item
         return True
@@ -35,10 +36,20 @@ class FrameReorderBuffer(Generic[T]):
         for old in [f for f in self.pending if f <= frame_id]:
             del self.pending[old]
 
+    def skip(self, frame_id: int) -> None:
+        """Frame `frame_id` will never come: release the later ones without waiting for it (an item of it that
+        comes anyway is dropped)."""
+        self.pending.pop(frame_id, None)
+        if self.next_id is None or frame_id >= self.next_id:
+            self.skipped.add(frame_id)
+
     def pop_ready(self) -> list[T]:
         ready: list[T] = []
         while self.next_id is not None:
-            if self.next_id in self.pending:
+            if self.next_id in self.skipped:
+                self.skipped.discard(self.next_id)
+                self.next_id += 1
+            elif self.next_id in self.pending:
                 ready.append(self.pending.pop(self.next_id))
                 self.next_id += 1
             elif len(self.pending) >= self.max_pending:

@@ -171,6 +171,10 @@ class Service:
     def teardown(self) -> None:
         """Release resources."""
 
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        """The player could not read frame `frame_id`: it never comes. Services that handle frames in order
+        skip it here (lockstep would otherwise wait for it until the run times out)."""
+
     def tick(self) -> None:
         """Called on every loop turn (at least every `idle_timeout_s`): for services that produce on a clock."""
 
@@ -266,6 +270,9 @@ class Service:
     def _on_control(self, control: Control) -> None:
         if control.command == "stop":
             self.stop_event.set()
+        elif control.command == "frame_unreadable":
+            self.metrics.count("unreadable_skipped")
+            self.on_frame_unreadable(control.last_frame_id)
         elif control.command == "end_of_stream":
             self.end_of_stream = control
             self.on_end_of_stream(control)

@@ -173,6 +173,12 @@ class AssociatorService(Service):
         self.ready.extend(self.tracks.pop_ready())
         self._drain()
 
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        # (the tracker may have answered it as a frame the detector never got: nothing in it, drop it too)
+        self.tracks.skip(frame_id)
+        self.ready = [t for t in self.ready if t.frame_id != frame_id] + self.tracks.pop_ready()
+        self._drain()
+
     def on_corrected(self, msg: CorrectedPoses) -> None:
         self.poses.set_corrected(msg)
         self.metrics.count("corrections")

@@ -56,6 +56,12 @@ class BackendService(Service):
         self.observations[obs.frame_id] = obs
         self._drain()
 
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        self.odometry.skip(frame_id)
+        self.observations.pop(frame_id, None)
+        self.ready_odometry.extend(self.odometry.pop_ready())
+        self._drain()
+
     def _drain(self) -> None:
         """Handle frames in order, each once both its odometry and its observations are here."""
         while self.ready_odometry and self.ready_odometry[0].frame_id in self.observations:

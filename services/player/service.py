@@ -74,6 +74,7 @@ class PlayerService(Service):
         self.last_message: Frame | None = None
         if self.next_index:  # the run knows every service finished the frames before this one
             self.progress = dict.fromkeys(self.wait_for, self.next_index - 1)
+            self.last_frame_id = self.next_index - 1
             self.log.info("resuming at frame %d", self.next_index)
         self.started_at: float | None = None
         self.waiting_since = time.monotonic()
@@ -111,8 +112,9 @@ class PlayerService(Service):
         if self.next_index >= self.total:
             # lockstep: end the stream once the last frame is through (a small control message would overtake
             # the big last frame otherwise); real time: right away, services give late frames a grace period
-            if not self.lockstep or self._lockstep_done() >= self.total - 1:
-                self.control_pub.put(Control(self.robot, "end_of_stream", self.total - 1, self.total))
+            if not self.lockstep or self._lockstep_done() >= self.last_frame_id:
+                # (the last frame sent: an unreadable last frame never comes)
+                self.control_pub.put(Control(self.robot, "end_of_stream", self.last_frame_id, self.total))
                 self.log.info("end of stream after %d frames", self.total)
                 self.finish()
             elif time.monotonic() - self.waiting_since > self.frame_timeout_s:
@@ -125,18 +127,18 @@ class PlayerService(Service):
             self.waiting_since = self.started_at
             self.log.info("pipeline ready: %s", ", ".join(f"{n} x{len(i)}" for n, i in self.running.items()) or "-")
         if self.lockstep:
-            if self._lockstep_done() < self.next_index - 1:
+            if self._lockstep_done() < self.last_frame_id:  # (the newest frame read and sent)
                 waited = time.monotonic() - self.waiting_since
                 if time.monotonic() - self.last_sent > RETRY_AFTER_S:
                     # a frame lost in a crashed service (or between two detector replicas while their membership
                     # changes): resend it; services answer a repeated frame with what it produced before
                     self.metrics.count("frames_republished")
-                    self.log.warning("no progress for frame %d after %.0f s: republishing it", self.next_index - 1,
+                    self.log.warning("no progress for frame %d after %.0f s: republishing it", self.last_frame_id,
                                      waited)
                     self._resend_last()
                 if waited > self.frame_timeout_s:
-                    late = [n for n in self.wait_for if self.progress.get(n, -1) < self.next_index - 1]
-                    self.fail(f"lockstep: no progress for frame {self.next_index - 1} from {', '.join(late)} "
+                    late = [n for n in self.wait_for if self.progress.get(n, -1) < self.last_frame_id]
+                    self.fail(f"lockstep: no progress for frame {self.last_frame_id} from {', '.join(late)} "
                               f"within {self.frame_timeout_s:.0f} s")
                 return
         else:
@@ -156,6 +158,7 @@ class PlayerService(Service):
         except DatasetError as exc:
             self.metrics.count("frames_unreadable")
             self.log.warning("frame %d skipped: %s", index, exc)
+            self.control_pub.put(Control(self.robot, "frame_unreadable", index, self.total))
             return
         self.last_sent = time.monotonic()
         with self.metrics.timer("publish_ms"):

@@ -50,6 +50,11 @@ class TrackerService(Service):
         for det in self.reorder.pop_ready():
             self._process(det)
 
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        self.reorder.skip(frame_id)
+        for det in self.reorder.pop_ready():
+            self._process(det)
+
     def _process(self, det: Detections) -> None:
         with self.metrics.timer("proposal_ms") as timer:
             if det.skipped:

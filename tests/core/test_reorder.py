@@ -1,0 +1,49 @@
+"""FrameReorderBuffer: frames out in order, each once; gaps given up when bounded; known-missing frames skipped."""
+
+from __future__ import annotations
+
+from semmap.reorder import FrameReorderBuffer
+
+
+def test_out_of_order_and_duplicate_frames_come_out_once_in_order() -> None:
+    buf: FrameReorderBuffer[str] = FrameReorderBuffer()
+    assert buf.push(3, "c") and buf.pop_ready() == ["c"]
+    assert buf.push(5, "e") and buf.pop_ready() == []
+    assert buf.push(4, "d") and not buf.push(4, "d again") and not buf.push(3, "c again")
+    assert buf.pop_ready() == ["d", "e"]
+
+
+def test_a_bounded_buffer_gives_up_on_a_missing_frame() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer(max_pending=2)
+    buf.push(0, 0)
+    buf.pop_ready()
+    buf.push(2, 2)
+    assert buf.pop_ready() == []
+    buf.push(3, 3)
+    assert buf.pop_ready() == [2, 3] and buf.gaps == 1
+
+
+def test_a_skipped_frame_is_not_waited_for_whether_it_is_announced_before_or_after_later_ones() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer(max_pending=100_000)
+    buf.push(0, 0)
+    assert buf.pop_ready() == [0]
+    buf.skip(1)  # announced before frame 2 arrives
+    buf.push(2, 2)
+    assert buf.pop_ready() == [2]
+    buf.push(4, 4)
+    assert buf.pop_ready() == []
+    buf.skip(3)  # announced after
+    assert buf.pop_ready() == [4]
+    assert not buf.push(3, 3), "a skipped frame that comes anyway is dropped"
+    buf.push(6, 6)
+    buf.skip(5)
+    buf.skip(5)
+    assert buf.pop_ready() == [6] and not buf.skipped and buf.gaps == 0
+
+
+def test_mark_done_moves_past_replayed_frames() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer()
+    buf.push(0, 0)
+    buf.push(2, 2)
+    buf.mark_done(1)
+    assert buf.pop_ready() == [2]
