@@ -98,7 +98,6 @@ def _merged_ids(out: Path) -> set[int]:
     return {int(m) for m in re.findall(r"merged landmark (\d+) into", text)}
 
 
-@pytest.mark.slow  # not yet reliable: 1 run in 4 lost a chair after the associator restart (issue 7 stays open)
 def test_killing_the_stateful_services_loses_nothing(tmp_path: Path) -> None:
     _kill_in_turn(tmp_path, ["associator", "backend"])
 
