@@ -1,4 +1,4 @@
-"""An append-only SQLite journal of the messages a service has handled, per frame, to rebuild after a crash."""
+"""Append-only SQLite journals of the messages a service has handled, to rebuild its state after a crash."""
 
 from __future__ import annotations
 
@@ -7,16 +7,22 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def _open(path: Path, table: str) -> sqlite3.Connection:
+    """An autocommit connection (each statement its own transaction) in WAL mode, with `table` created."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    db = sqlite3.connect(path, timeout=10, isolation_level=None)
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("PRAGMA synchronous=NORMAL")
+    db.execute(f"CREATE TABLE IF NOT EXISTS {table}")
+    return db
+
+
 class FrameJournal:
     """(frame_id, blob, blob) rows; each append is its own transaction (a SIGKILL loses at most that frame)."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.db = sqlite3.connect(self.path, timeout=10, isolation_level=None)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.execute("PRAGMA synchronous=NORMAL")
-        self.db.execute("CREATE TABLE IF NOT EXISTS frames (frame_id INTEGER PRIMARY KEY, a BLOB, b BLOB)")
+        self.db = _open(self.path, "frames (frame_id INTEGER PRIMARY KEY, a BLOB, b BLOB)")
 
     def append(self, frame_id: int, a: bytes, b: bytes) -> None:
         self.db.execute("INSERT OR REPLACE INTO frames VALUES (?, ?, ?)", (frame_id, a, b))
@@ -38,11 +44,7 @@ class MessageJournal:
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.db = sqlite3.connect(self.path, timeout=10, isolation_level=None)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.execute("PRAGMA synchronous=NORMAL")
-        self.db.execute("CREATE TABLE IF NOT EXISTS inputs (seq INTEGER PRIMARY KEY, stream TEXT, body BLOB)")
+        self.db = _open(self.path, "inputs (seq INTEGER PRIMARY KEY, stream TEXT, body BLOB)")
         row = self.db.execute("SELECT MAX(seq) FROM inputs").fetchone()
         self.last_seq = int(row[0]) if row and row[0] is not None else 0
 

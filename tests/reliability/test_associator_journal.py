@@ -65,13 +65,19 @@ class _Feeder:
             self.changed.notify_all()
 
     def feed(self, inputs: list[tuple[OdometryPose, Tracks]]) -> None:
-        """Frame by frame, each once the previous one is through (as lockstep playback does)."""
+        """Frame by frame, each once the previous one is through, resent after 2 s without progress (as lockstep
+        playback does: a restarted associator may not have subscribed yet when the router still lists the
+        killed one's subscription)."""
         assert self.tracks.wait_matching(30), "the associator did not come up"
         for odo, tracks in inputs:
-            self.odometry.put(odo)
-            self.tracks.put(tracks)
-            with self.changed:
-                assert self.changed.wait_for(lambda f=odo.frame_id: self.done >= f, timeout=30), odo.frame_id
+            for _ in range(15):
+                self.odometry.put(odo)
+                self.tracks.put(tracks)
+                with self.changed:
+                    if self.changed.wait_for(lambda f=odo.frame_id: self.done >= f, timeout=2.0):
+                        break
+            else:
+                raise AssertionError(f"no progress for frame {odo.frame_id} in 30 s")
 
     def close(self) -> None:
         self.bus.close()
