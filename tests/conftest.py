@@ -5,8 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import zenoh
 
+from semmap.bus import BusConfig
 from semmap.datasets import find_data_root
+from semmap.orchestrator import free_loopback_port
 
 
 @pytest.fixture(scope="session")
@@ -16,6 +19,33 @@ def data_root() -> Path:
     if root is None:
         pytest.skip("shared real data absent: set SEMMAP_DATA or provide <project root>/../shared/data")
     return root
+
+
+@pytest.fixture(scope="session")
+def kitchen_dir(data_root: Path) -> Path:
+    """The real 7-Scenes redkitchen frames."""
+    path = data_root / "7scenes-redkitchen"
+    if not path.is_dir():
+        pytest.skip(f"no 7scenes-redkitchen/ in {data_root}")
+    return path
+
+
+class Router:
+    """A router-mode Zenoh session in this process (what `eclipse/zenoh` is in compose)."""
+
+    def __init__(self) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.session = zenoh.open(BusConfig(mode="router", listen=[self.endpoint]).to_zenoh())
+
+    def close(self) -> None:
+        self.session.close()
+
+
+@pytest.fixture
+def router():
+    r = Router()
+    yield r
+    r.close()
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

@@ -63,11 +63,10 @@ class PoseBook:
         self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
 
     def to_state(self, recent: int = POSES_KEPT) -> dict[str, Any]:
-        """What a restarted associator needs to go on where it stopped: the odometry and corrected poses of the
-        last `recent` frames (measurements still waiting for a pose are recent) and the newest corrected frame
-        with its odometry, the anchor that moves later odometry onto the optimised estimate. Without it a
-        restart would place the next views by the raw drifted odometry until the backend's next correction,
-        and a long-running tracklet would fail its re-validation and take its landmark with it."""
+        """What a restarted associator needs to place views as before the crash (replaying its journal, then
+        until the backend's next correction): the odometry and corrected poses of the last `recent` frames
+        (measurements still waiting for a pose are recent) and the newest corrected frame with its odometry,
+        the anchor that moves later odometry onto the optimised estimate."""
         frames = sorted(self.odometry)[-recent:]
         anchor = next((int(k) for k in self._corrected_ids[::-1] if int(k) in self.odometry), None)
         if anchor is not None and anchor not in frames:
@@ -129,7 +128,8 @@ class AssociatorService(Service):
         self.store = MapStore(db) if db is not None else None
         self.journal = MessageJournal(db.with_name(f"{db.stem}.journal.sqlite")) if db is not None else None
         self.journal_seq = 0  # the last journalled input the saved map includes
-        if self.store is not None and (self.resume or self.args.map_db):
+        self.restoring = self.store is not None and bool(self.resume or self.args.map_db)
+        if self.restoring:
             self._restore()
         elif self.store is not None and self.journal is not None:  # a new run: nothing of an earlier one
             self.store.clear()
@@ -170,13 +170,16 @@ class AssociatorService(Service):
             elif not any(t.frame_id == tracks.frame_id for t in self.ready):
                 self.replay(tracks.frame_id)
             return
-        self.ready.extend(self.tracks.pop_ready())
-        self._drain()
+        self._release()
 
     def on_frame_unreadable(self, frame_id: int) -> None:
         # (the tracker may have answered it as a frame the detector never got: nothing in it, drop it too)
         self.tracks.skip(frame_id)
-        self.ready = [t for t in self.ready if t.frame_id != frame_id] + self.tracks.pop_ready()
+        self.ready = [t for t in self.ready if t.frame_id != frame_id]
+        self._release()
+
+    def _release(self) -> None:
+        self.ready.extend(self.tracks.pop_ready())
         self._drain()
 
     def on_corrected(self, msg: CorrectedPoses) -> None:
@@ -280,7 +283,8 @@ class AssociatorService(Service):
 
     def _restore(self) -> None:
         """The saved map, its pose book and where in the journal it stopped (inputs after that come next)."""
-        state = self.store.load() if self.store is not None else None
+        assert self.store is not None
+        state = self.store.load()
         if state is None:
             return
         self.mapper = LandmarkMapper.from_state(state, self.params)
@@ -292,7 +296,7 @@ class AssociatorService(Service):
         """Handle the inputs journalled after the saved map again (muted: their outputs went out before the
         crash), so a restart goes on from the last input handled, not from the last save: losing even a few
         frames of a tracklet's views can flip its motion test and take an established landmark with it."""
-        if self.journal is None or not (self.resume or self.args.map_db):
+        if self.journal is None or not self.restoring:
             return
         kinds = {"odometry": (OdometryPose, self.on_odometry), "tracks": (Tracks, self.on_tracks)}
         n = 0

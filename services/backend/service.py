@@ -45,8 +45,7 @@ class BackendService(Service):
         if not self.odometry.push(pose.frame_id, pose):
             self.metrics.count("odometry_duplicates")
             return
-        self.ready_odometry.extend(self.odometry.pop_ready())
-        self._drain()
+        self._release()
 
     def on_observations(self, obs: Observations) -> None:
         if obs.frame_id <= self.last_frame_id:
@@ -59,6 +58,9 @@ class BackendService(Service):
     def on_frame_unreadable(self, frame_id: int) -> None:
         self.odometry.skip(frame_id)
         self.observations.pop(frame_id, None)
+        self._release()
+
+    def _release(self) -> None:
         self.ready_odometry.extend(self.odometry.pop_ready())
         self._drain()
 

@@ -47,11 +47,13 @@ class TrackerService(Service):
             self.metrics.count("duplicates_dropped")
             self.replay(message.frame_id)  # a resent frame: answer it again (a consumer may have lost it)
             return
-        for det in self.reorder.pop_ready():
-            self._process(det)
+        self._release()
 
     def on_frame_unreadable(self, frame_id: int) -> None:
         self.reorder.skip(frame_id)
+        self._release()
+
+    def _release(self) -> None:
         for det in self.reorder.pop_ready():
             self._process(det)
 

@@ -14,14 +14,6 @@ from semmap.datasets.sevenscenes import SevenScenesDataset
 
 
 @pytest.fixture(scope="module")
-def kitchen_dir(data_root: Path) -> Path:
-    path = data_root / "7scenes-redkitchen"
-    if not path.is_dir():
-        pytest.skip(f"no 7scenes-redkitchen/ in {data_root}")
-    return path
-
-
-@pytest.fixture(scope="module")
 def kitchen(kitchen_dir: Path) -> SevenScenesDataset:
     return SevenScenesDataset(kitchen_dir)
 

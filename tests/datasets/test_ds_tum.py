@@ -18,14 +18,6 @@ N_FRAMES = 12
 
 
 @pytest.fixture(scope="module")
-def kitchen_dir(data_root: Path) -> Path:
-    path = data_root / "7scenes-redkitchen"
-    if not path.is_dir():
-        pytest.skip(f"no 7scenes-redkitchen/ in {data_root}")
-    return path
-
-
-@pytest.fixture(scope="module")
 def tum_dir(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """rgbd_dataset_freiburg1_kitchen/: rgb at ~30 Hz with jitter, depth offset by a few ms, mocap at 100 Hz.
 

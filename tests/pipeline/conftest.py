@@ -11,25 +11,12 @@ from pathlib import Path
 from typing import TypeVar
 
 import pytest
-import zenoh
 
 from semmap.bus import Bus, BusConfig
 from semmap.messages import Message
-from semmap.orchestrator import free_loopback_port
 
 M = TypeVar("M", bound=Message)
 PROJECT = Path(__file__).resolve().parents[2]
-
-
-class Router:
-    """A router-mode Zenoh session in this process (what `eclipse/zenoh` is in compose)."""
-
-    def __init__(self) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-        self.session = zenoh.open(BusConfig(mode="router", listen=[self.endpoint]).to_zenoh())
-
-    def close(self) -> None:
-        self.session.close()
 
 
 class Collector:
@@ -48,13 +35,6 @@ class Collector:
     def close(self) -> None:
         if not self.bus.session.is_closed():
             self.bus.close()
-
-
-@pytest.fixture
-def router():
-    r = Router()
-    yield r
-    r.close()
 
 
 def _semmap_run(args: list[str], timeout: float = 300, env: dict | None = None) -> subprocess.CompletedProcess:

@@ -17,12 +17,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
-import zenoh
 
 from semmap.bus import Bus, BusConfig
 from semmap.messages import Control, OdometryPose, Progress, Tracks
-from semmap.orchestrator import free_loopback_port
 from services.tracker.iou_tracker import IouTracker
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 
@@ -100,15 +97,8 @@ def _finish(feeder: _Feeder, proc: subprocess.Popen, out: Path) -> list[dict]:
     return json.loads((out / "map.json").read_text())["landmarks"]
 
 
-@pytest.fixture
-def endpoint():
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    router = zenoh.open(BusConfig(mode="router", listen=[endpoint]).to_zenoh())
-    yield endpoint
-    router.close()
-
-
-def test_a_killed_associator_resumes_from_its_journal(tmp_path: Path, endpoint: str) -> None:
+def test_a_killed_associator_resumes_from_its_journal(tmp_path: Path, router) -> None:  # noqa: ANN001
+    endpoint = router.endpoint
     inputs = _inputs()
     clean, crashed = tmp_path / "clean", tmp_path / "crashed"
     clean.mkdir()

@@ -20,8 +20,8 @@ FRAMES = 40
 
 
 @pytest.mark.needs_data
-def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, data_root: Path) -> None:
-    src, seq = data_root / "7scenes-redkitchen", tmp_path / "seq"
+def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, kitchen_dir: Path) -> None:
+    src, seq = kitchen_dir, tmp_path / "seq"
     seq.mkdir()
     shutil.copy(src / "camera-intrinsics.txt", seq)
     for i in range(FRAMES):
