@@ -56,6 +56,7 @@ from semmap.messages import (  # noqa: E402
 )
 from services.associator.mapper import LandmarkMapper, MapperParams  # noqa: E402
 from services.associator.service import SERVICE_DEFAULTS, PoseBook  # noqa: E402
+from services.backend.loop_closure import LoopCloser, LoopClosureParams  # noqa: E402
 from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
 from services.odometry.frontends import OdometryInput, make_frontend  # noqa: E402
 from services.tracker.iou_tracker import IouTracker, TrackerParams  # noqa: E402
@@ -226,6 +227,8 @@ class LoopResult:
     per_landmark: dict[int, int]
     classes: dict[str, int]
     mapper_ms_p50: float = 0.0  # mapper.process (+ refine) per frame
+    loop_closures: dict[str, int] = field(default_factory=dict)  # the backend's loop closer's counters
+    closure_log: list = field(default_factory=list)  # the accepted `LoopClosure`s
     backend_ms_p50: float = 0.0  # odometry + observations + iSAM2 update per frame
     observation_log: list[tuple[int, object]] = field(default_factory=list)  # (frame id, Observation)
     merge_log: list[tuple[int, int, int]] = field(default_factory=list)  # (frame id, absorbed, surviving)
@@ -244,12 +247,13 @@ class LoopResult:
                 "observations": self.observations, "observation_factors": self.observation_factors,
                 "graph_landmarks": self.graph_landmarks, "merges": self.merges, "frames": self.frames,
                 "wall_s": self.wall_s, "mapper_ms_p50": self.mapper_ms_p50, "backend_ms_p50": self.backend_ms_p50,
-                "classes": self.classes}
+                "classes": self.classes, "loop_closures": self.loop_closures}
 
 
 def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[np.ndarray] | None = None,
-             verbose: bool = False) -> LoopResult:
-    """The services' lockstep loop (see module docstring) over a recording."""
+             verbose: bool = False, depth_frames=None) -> LoopResult:  # noqa: ANN001 - a semmap Dataset
+    """The services' lockstep loop (see module docstring) over a recording. `depth_frames` (the dataset)
+    feeds the backend's loop closer with keyframe depth, as the frames key does in the services."""
     t_start = time.perf_counter()
     odo_cfg = dict(config["odometry"])
     front = None if odometry_poses is not None else make_frontend(odometry, odo_cfg)
@@ -261,12 +265,14 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
     mapper = LandmarkMapper(MapperParams.from_dict(section))
     tracker = IouTracker(TrackerParams(**config["tracker"]))
     graph = PoseGraph(BackendParams.from_config(config.get("backend")))
+    closer = LoopCloser(LoopClosureParams.from_config(config.get("loop_closure")))
     poses = PoseBook()
     pending_merges: list[tuple[int, int]] = []
     n_obs = n_merges = 0
     per_landmark: Counter[int] = Counter()
     obs_log: list = []
     merge_log: list = []
+    closure_log: list = []
     odo_traj = []
     mapper_ms, backend_ms = [], []
     for seq, det in enumerate(rec.detections, start=1):
@@ -306,6 +312,13 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
         graph.add_odometry_message(odo)
         graph.add_observations_message(obs_msg)
         graph.update()
+        if depth_frames is not None and closer.wants(i):
+            frame = depth_frames[i]
+            k = frame.intrinsics
+            closure = closer.close(graph, closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx,
+                                                                  k.fy, k.cx, k.cy))
+            if closure is not None:
+                closure_log.append(closure)
         backend_ms.append((time.perf_counter() - t0) * 1e3)
         ids, stamps, corrected = graph.corrected_poses()
         lids, lpos = graph.landmark_positions()
@@ -330,7 +343,8 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
         wall_s=time.perf_counter() - t_start, per_landmark=dict(per_landmark),
         classes=dict(Counter(lm.class_name for lm in landmarks)), mapper=mapper, graph=graph, odometry=odo_traj,
         optimized=optimized, observation_log=obs_log, merge_log=merge_log,
-        mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
+        mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0, loop_closures=dict(closer.counters),
+        closure_log=closure_log,
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0)
 
 
@@ -350,7 +364,7 @@ def closed_loop(data: str, odometry: str = "gt+drift", seed: int = 0, frames: in
     validate_sections(config)
     rec = detect_recording(data, frames, config, cache_dir, refresh, verbose)
     odo_poses = rgbd_poses(data, frames, config, cache_dir, refresh, verbose) if odometry == "rgbd" else None
-    return run_loop(rec, config, odometry, odo_poses, verbose), rec
+    return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=_open(data)), rec
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -387,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.odometry:9s} seed {seed}: ATE odometry {res.ate_odometry:.4f} m, optimised "
               f"{res.ate_optimized:.4f} m ({res.improvement_pct:+.1f} %), landmarks {res.landmarks}, observations "
               f"{res.observations} ({res.observation_factors} factors, {res.graph_landmarks} in graph), merges "
-              f"{res.merges}, {res.wall_s:.0f} s{extra}", flush=True)
+              f"{res.merges}, loop closures {res.loop_closures.get('accepted', 0)}/"
+              f"{res.loop_closures.get('registered', 0)}, {res.wall_s:.0f} s{extra}", flush=True)
     if args.json_out is not None:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         args.json_out.write_text(json.dumps(rows, indent=1) + "\n")

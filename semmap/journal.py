@@ -18,20 +18,29 @@ def _open(path: Path, table: str) -> sqlite3.Connection:
 
 
 class FrameJournal:
-    """(frame_id, blob, blob) rows; each append is its own transaction (a SIGKILL loses at most that frame)."""
+    """(frame_id, blob, blob) rows, plus an optional extra blob per frame (what a frame added after it was
+    handled, e.g. the backend's loop closure); each append is its own transaction (a SIGKILL loses at most
+    that frame)."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self.db = _open(self.path, "frames (frame_id INTEGER PRIMARY KEY, a BLOB, b BLOB)")
+        self.db.execute("CREATE TABLE IF NOT EXISTS extras (frame_id INTEGER PRIMARY KEY, body BLOB)")
 
     def append(self, frame_id: int, a: bytes, b: bytes) -> None:
         self.db.execute("INSERT OR REPLACE INTO frames VALUES (?, ?, ?)", (frame_id, a, b))
 
-    def frames(self) -> Iterator[tuple[int, bytes, bytes]]:
-        yield from self.db.execute("SELECT frame_id, a, b FROM frames ORDER BY frame_id")
+    def append_extra(self, frame_id: int, body: bytes) -> None:
+        self.db.execute("INSERT OR REPLACE INTO extras VALUES (?, ?)", (frame_id, body))
+
+    def frames(self) -> Iterator[tuple[int, bytes, bytes, bytes | None]]:
+        """(frame_id, a, b, extra or None) in frame order."""
+        yield from self.db.execute("SELECT f.frame_id, f.a, f.b, e.body FROM frames f "
+                                   "LEFT JOIN extras e ON e.frame_id = f.frame_id ORDER BY f.frame_id")
 
     def clear(self) -> None:
         self.db.execute("DELETE FROM frames")
+        self.db.execute("DELETE FROM extras")
 
 
 class MessageJournal:

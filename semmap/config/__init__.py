@@ -70,11 +70,13 @@ def validate_sections(config: dict[str, Any]) -> None:
     """Check the sections owned by parameter dataclasses now, before any process starts."""
     from services.associator.params import MapperParams
     from services.associator.service import SERVICE_DEFAULTS
+    from services.backend.loop_closure import LoopClosureParams
     from services.backend.pose_graph import BackendParams
 
     try:
         MapperParams.from_dict({k: v for k, v in config["associator"].items() if k not in SERVICE_DEFAULTS})
         BackendParams.from_config(config["backend"])
+        LoopClosureParams.from_config(config["loop_closure"])
     except (TypeError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
 

@@ -376,6 +376,17 @@ class PoseGraph:
             return corrected
         return corrected @ _inv_rigid(self._odom[node].pose) @ self._odom[frame_id].pose
 
+    def odometry_sigmas_between(self, a: int, b: int) -> tuple[float, float]:
+        """(m, rad) sigmas the front end declares for the motion from frame a to frame b (a < b, both with
+        odometry): per-frame variances add up; frames without odometry count with b's sigmas."""
+        i0, i1 = bisect.bisect_right(self._frames, a), bisect.bisect_right(self._frames, b)
+        between = [self._odom[f] for f in self._frames[i0:i1]]
+        missing = (b - a) - len(between)
+        last = self._odom[b]
+        var_t = sum(o.sigma_translation**2 for o in between) + missing * last.sigma_translation**2
+        var_r = sum(o.sigma_rotation**2 for o in between) + missing * last.sigma_rotation**2
+        return math.sqrt(var_t), math.sqrt(var_r)
+
     def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids int64 (M,), positions (M,3)) of landmarks in the graph, by surviving id (absorbed ids omitted)."""
         items = sorted((lid, var) for lid, var in self._var.items() if var in self._isam_vars)
@@ -471,15 +482,10 @@ class PoseGraph:
             self._add_chain(node, self._nodes[i + 1])
 
     def _add_chain(self, a: int, b: int) -> None:
-        """Odometry between consecutive nodes: variances add up over the frames between (per-frame sigmas)."""
-        i0, i1 = bisect.bisect_right(self._frames, a), bisect.bisect_right(self._frames, b)
-        between = [self._odom[f] for f in self._frames[i0:i1]]
-        missing = (b - a) - len(between)  # frames without odometry count with b's sigmas
-        last = self._odom[b]
-        var_t = sum(o.sigma_translation**2 for o in between) + missing * last.sigma_translation**2
-        var_r = sum(o.sigma_rotation**2 for o in between) + missing * last.sigma_rotation**2
-        relative = _inv_rigid(self._odom[a].pose) @ last.pose
-        self._push(("odo", a, b), factors.between_factor(X(a), X(b), relative, math.sqrt(var_t), math.sqrt(var_r)))
+        """Odometry between consecutive nodes, with the sigmas of `odometry_sigmas_between`."""
+        sigma_t, sigma_r = self.odometry_sigmas_between(a, b)
+        relative = _inv_rigid(self._odom[a].pose) @ self._odom[b].pose
+        self._push(("odo", a, b), factors.between_factor(X(a), X(b), relative, sigma_t, sigma_r))
 
     def _observation_sigma(self, obs: Observation) -> float:
         p = self.params

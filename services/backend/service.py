@@ -4,18 +4,31 @@ Per frame it joins the front end's odometry with the associator's observations f
 every frame), runs one iSAM2 update and publishes the whole corrected trajectory on `poses/corrected`, which
 the associator uses to associate against the current optimised estimate (closed loop). An external SLAM can
 consume the same key.
+
+Loop closures (`loop_closure:` config, on by default): the depth image of every n-th frame comes from the
+frames key; at a revisit the keyframe is registered to an earlier one by ICP (services/backend/loop_closure.py)
+and the relative pose joins the graph before that frame's poses go out. In lockstep a keyframe waits for its
+depth too, so a replay closes the same loops.
 """
 
 from __future__ import annotations
 
 from semmap.datasets.trajectory_io import write_tum
 from semmap.journal import FrameJournal
-from semmap.messages import Control, CorrectedPoses, Observations, OdometryPose
+from semmap.messages import Control, CorrectedPoses, Frame, MessageError, Observations, OdometryPose
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
+from services.backend.loop_closure import (
+    KeyframeCloud,
+    LoopCloser,
+    LoopClosureParams,
+    decode_keyframe,
+    encode_keyframe,
+)
 from services.backend.pose_graph import BackendParams, PoseGraph
 
 REALTIME_MAX_PENDING = 8
+REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
 
 
 class BackendService(Service):
@@ -25,6 +38,9 @@ class BackendService(Service):
 
     def setup(self) -> None:
         self.graph = PoseGraph(BackendParams.from_config(self.config.get("backend")))
+        self.closer = LoopCloser(LoopClosureParams.from_config(self.config.get("loop_closure")))
+        # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
+        self.clouds: dict[int, KeyframeCloud | None] = {}
         self.pub = self.publisher(self.bus.keys.corrected_poses)
         # real time: odometry of a dropped frame never comes; give up on it after a few later ones
         self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(
@@ -40,6 +56,27 @@ class BackendService(Service):
                 self.journal.clear()
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
+        if self.closer.params.enabled:
+            self.listen(self.bus.keys.frames, Frame, self.on_frame,
+                        capacity=100_000 if self.lockstep else REALTIME_FRAME_QUEUE)
+
+    def on_frame(self, frame: Frame) -> None:
+        """Keep a keyframe's depth cloud until its frame is handled (other frames are not looked at)."""
+        fid = frame.frame_id
+        if not self.closer.wants(fid) or fid <= self.last_frame_id or fid in self.clouds:
+            return
+        try:
+            depth = frame.depth()
+        except MessageError as exc:
+            self.metrics.count("keyframe_depth_unreadable")
+            self.log.warning("frame %d: no loop closure from it (%s)", fid, exc)
+            self.clouds[fid] = None
+        else:
+            k = frame.intrinsics
+            with self.metrics.timer("keyframe_cloud_ms"):
+                self.clouds[fid] = self.closer.cloud_from_depth(fid, frame.stamp, depth, frame.depth_scale, k.fx,
+                                                                k.fy, k.cx, k.cy)
+        self._drain()
 
     def on_odometry(self, pose: OdometryPose) -> None:
         if not self.odometry.push(pose.frame_id, pose):
@@ -58,6 +95,7 @@ class BackendService(Service):
     def on_frame_unreadable(self, frame_id: int) -> None:
         self.odometry.skip(frame_id)
         self.observations.pop(frame_id, None)
+        self.clouds.pop(frame_id, None)
         self._release()
 
     def _release(self) -> None:
@@ -65,16 +103,20 @@ class BackendService(Service):
         self._drain()
 
     def _drain(self) -> None:
-        """Handle frames in order, each once both its odometry and its observations are here."""
-        while self.ready_odometry and self.ready_odometry[0].frame_id in self.observations:
+        """Handle frames in order, each once its odometry and its observations (and, in lockstep, a keyframe's
+        depth) are here."""
+        while self.ready_odometry and self._ready(self.ready_odometry[0].frame_id):
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
+            cloud = self.clouds.pop(pose.frame_id, None)
             if self.journal is not None:
                 self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             with self.metrics.timer("update_ms") as timer:
                 self.graph.add_odometry_message(pose)
                 self.graph.add_observations_message(obs)
                 self.graph.update()
+            if cloud is not None:
+                self._close_loop(cloud)
             with self.metrics.timer("publish_ms"):
                 ids, stamps, poses = self.graph.corrected_poses()
                 lids, lpos = self.graph.landmark_positions()
@@ -89,14 +131,39 @@ class BackendService(Service):
         for stale in [f for f in self.observations if first is not None and f < first - 1]:
             del self.observations[stale]
             self.metrics.count("observations_unjoined")
+        for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
+            del self.clouds[stale]
+
+    def _ready(self, frame_id: int) -> bool:
+        if frame_id not in self.observations:
+            return False
+        # lockstep: a keyframe waits for its depth so that a replay closes the same loops; in real time the
+        # depth arrives long before the observations, and a dropped one only means no closure from that frame
+        return not (self.lockstep and self.closer.wants(frame_id)) or frame_id in self.clouds
+
+    def _close_loop(self, cloud: KeyframeCloud) -> None:
+        with self.metrics.timer("loop_closure_ms"):
+            closure = self.closer.close(self.graph, cloud)
+        if self.journal is not None:
+            self.journal.append_extra(cloud.frame_id, encode_keyframe(cloud, closure))
+        if closure is not None:
+            self.metrics.count("loop_closures")
+            self.log.info("loop closure: frame %d to frame %d (fitness %.2f, rmse %.1f cm, moved %.1f cm)",
+                          closure.frame_b, closure.frame_a, closure.fitness, 100 * closure.rmse_m,
+                          100 * closure.correction_m)
+        for name in ("registered", "rejected_fitness", "rejected_rmse", "rejected_degenerate",
+                     "rejected_correction", "evicted"):
+            self.metrics.counters[f"loop_{name}"] = self.closer.counters[name]
 
     def _restore(self) -> None:
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
         n = 0
-        for frame_id, odometry, observations in self.journal.frames():
+        for frame_id, odometry, observations, keyframe in self.journal.frames():
             self.graph.add_odometry_message(OdometryPose.decode(odometry))
             self.graph.add_observations_message(Observations.decode(observations))
             self.graph.update()
+            if keyframe is not None:
+                self.closer.restore(self.graph, *decode_keyframe(keyframe, self.closer.params))
             self.odometry.mark_done(frame_id)
             self.last_frame_id = frame_id
             n += 1

@@ -61,7 +61,7 @@ class OdometryService(Service):
     def _restore(self) -> None:
         """Continue the trajectory after a crash: earlier poses from the journal, the front end's state."""
         state = None
-        for frame_id, pose_bytes, state_bytes in self.journal.frames():
+        for frame_id, pose_bytes, state_bytes, _ in self.journal.frames():
             pose = OdometryPose.decode(pose_bytes)
             self.trajectory.append((pose.stamp, pose.pose))
             self.last_frame_id, state = frame_id, state_bytes
