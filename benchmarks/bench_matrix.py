@@ -1,7 +1,7 @@
 """Trajectory accuracy with and without semantic landmarks, in the form of the paper's Table 1.
 
     python benchmarks/bench_matrix.py [--quick] [--json-out FILE] [--out-root DIR] [--only NAMES]
-        [--offline] [--keep] [--set section.key=value]...
+        [--offline] [--ablation] [--keep] [--set section.key=value]...
 
 Runs the real pipeline (`semmap run DATA --out DIR --odometry MODE --seed N --quiet --no-viz`, lockstep, every
 service its own process over Zenoh) and `semmap eval` on each case:
@@ -12,8 +12,11 @@ service its own process over Zenoh) and `semmap eval` on each case:
   7scenes-rgbd          Open3D RGB-D odometry
   synthetic-drift       the synthetic room with two walking people (oracle detector), `gt+drift`
 
-and prints sequence, odometry, baseline ATE (the odometry's), ATE with semantic mapping, improvement,
-landmarks, observations sent to the backend (and, on synthetic data, landmarks on a person). `--quick` plays
+and prints sequence, odometry, baseline ATE (the odometry's), ATE with landmark constraints only (loop
+closures off: the "centroid floor"), ATE of the whole system (landmarks + depth loop closures), its
+improvement, landmarks, observations sent to the backend, loop closures (and, on synthetic data, landmarks on
+a person). `--ablation` adds the loop closures without landmark constraints (`backend.landmark_constraints:
+false`), which shows what the landmarks do for the closures. `--quick` plays
 300 frames of each (synthetic: 300 frames); `--offline` runs benchmarks/closed_loop.py instead of the
 pipeline (same loop, same numbers, seconds instead of minutes, cached detections). 7-Scenes cases are skipped
 with a note when ../shared/data (or $SEMMAP_DATA) has no redkitchen.
@@ -34,6 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 PROJECT = Path(__file__).resolve().parents[1]
 WEAK = ["odometry.drift_yaw_bias_deg=0.005", "odometry.drift_translation_sigma_m=0.001"]
+# each case runs once per variant: the whole system, and without one of its two kinds of constraints
+VARIANTS = {"full": [], "semantic_only": ["loop_closure.enabled=false"],
+            "loops_only": ["backend.landmark_constraints=false"]}
 
 
 @dataclass
@@ -97,9 +103,11 @@ def run_pipeline(case: Case, out_dir: Path, max_frames: int | None, extra: list[
     stats = json.loads((out_dir / "stats.json").read_text())["services"]
     counters = {name: s.get("counters", {}) for name, s in stats.items()}
     landmarks = json.loads((out_dir / "map.json").read_text())["landmarks"]
+    backend = counters.get("backend", {})
     row = {"ate_odometry_m": ev["ate_odometry_m"], "ate_optimized_m": ev["ate_optimized_m"],
-           "landmarks": len(landmarks), "observations": int(counters.get("backend", {}).get("observations", 0)),
-           "merges": int(counters.get("associator", {}).get("merges", 0)), "poses": ev["poses"], "wall_s": wall}
+           "landmarks": len(landmarks), "observations": int(backend.get("observations", 0)),
+           "merges": int(counters.get("associator", {}).get("merges", 0)), "poses": ev["poses"], "wall_s": wall,
+           "loop_closures": int(backend.get("loop_closures", 0))}
     if case.data.startswith("synthetic"):
         from types import SimpleNamespace
 
@@ -115,7 +123,7 @@ def run_offline(case: Case, max_frames: int | None, extra: list[str]) -> dict:
     res, rec = closed_loop(case.data, case.odometry, case.seed, max_frames or 0, [*case.overrides, *extra])
     row = {"ate_odometry_m": res.ate_odometry, "ate_optimized_m": res.ate_optimized, "landmarks": res.landmarks,
            "observations": res.observations, "merges": res.merges, "poses": res.frames,
-           "wall_s": time.monotonic() - t0}
+           "wall_s": time.monotonic() - t0, "loop_closures": res.loop_closures.get("accepted", 0)}
     if rec.objects:
         row["person_landmarks"], row["objects_mapped"] = person_landmarks(res.mapper.landmarks(), case.data)
     return row
@@ -128,18 +136,25 @@ def improvement(row: dict) -> float | None:
     return 100.0 * (row["ate_odometry_m"] - row["ate_optimized_m"]) / row["ate_odometry_m"]
 
 
+def _cm(value: float | None, width: int) -> str:
+    return f"{'-':>{width}s}" if value is None else f"{value * 100:{width - 3}.2f} cm"
+
+
 def print_table(rows: list[dict]) -> None:
-    head = (f"{'case':18s} {'sequence':32s} {'odometry':9s} {'baseline ATE':>12s} {'ATE w/ sem. map':>15s} "
-            f"{'improvement':>11s} {'landmarks':>9s} {'observations':>12s} {'persons':>7s}")
+    ablation = any("ate_loops_only_m" in r for r in rows)
+    head = (f"{'case':18s} {'sequence':32s} {'odometry':9s} {'baseline ATE':>12s} {'landmarks only':>14s} "
+            f"{'+ loop closures':>15s} {'improvement':>11s} " + (f"{'loops only':>11s} " if ablation else "")
+            + f"{'landmarks':>9s} {'observations':>12s} {'closures':>8s} {'persons':>7s}")
     print(head)
     print("-" * len(head))
     for r in rows:
         imp = r.get("improvement_pct")
         imp_s = "n/a" if imp is None else f"{imp:+.1f} %"
         persons = str(r["person_landmarks"]) if "person_landmarks" in r else "-"
-        print(f"{r['case']:18s} {r['sequence']:32s} {r['odometry']:9s} {r['ate_odometry_m'] * 100:9.2f} cm "
-              f"{r['ate_optimized_m'] * 100:12.2f} cm {imp_s:>11s} {r['landmarks']:9d} {r['observations']:12d} "
-              f"{persons:>7s}")
+        print(f"{r['case']:18s} {r['sequence']:32s} {r['odometry']:9s} {_cm(r['ate_odometry_m'], 12)} "
+              f"{_cm(r.get('ate_semantic_only_m'), 14)} {_cm(r['ate_optimized_m'], 15)} {imp_s:>11s} "
+              + (f"{_cm(r.get('ate_loops_only_m'), 11)} " if ablation else "")
+              + f"{r['landmarks']:9d} {r['observations']:12d} {r['loop_closures']:8d} {persons:>7s}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out-root", type=Path, default=Path("/tmp/semmap-bench-matrix"),
                     help="run folders (one per case)")
     ap.add_argument("--keep", action="store_true", help="keep the run folders")
+    ap.add_argument("--ablation", action="store_true", help="also run loop closures without landmark constraints")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="extra settings for every case")
     ap.add_argument("--json-out", type=Path, default=None)
@@ -163,30 +179,38 @@ def main(argv: list[str] | None = None) -> int:
         wanted = [w.strip() for w in args.only.split(",") if w.strip()]
         chosen = [c for c in chosen if any(c.name.startswith(w) for w in wanted)]
     max_frames = 300 if args.quick else None
+    variants = ["full", "semantic_only"] + (["loops_only"] if args.ablation else [])
     rows = []
     for case in chosen:
-        out_dir = args.out_root / case.name
-        if out_dir.exists():
-            import shutil
-
-            shutil.rmtree(out_dir)
-        print(f"running {case.name} ...", file=sys.stderr, flush=True)
-        if args.offline:
-            row = run_offline(case, max_frames, args.overrides)
-        else:
-            out_dir.mkdir(parents=True, exist_ok=True)
-            row = run_pipeline(case, out_dir, max_frames, args.overrides)
-            if not args.keep:
+        results = {}
+        for variant in variants:
+            out_dir = args.out_root / case.name / variant
+            if out_dir.exists():
                 import shutil
 
-                shutil.rmtree(out_dir, ignore_errors=True)
+                shutil.rmtree(out_dir)
+            print(f"running {case.name} ({variant}) ...", file=sys.stderr, flush=True)
+            extra = [*VARIANTS[variant], *args.overrides]
+            if args.offline:
+                results[variant] = run_offline(case, max_frames, extra)
+            else:
+                out_dir.mkdir(parents=True, exist_ok=True)
+                results[variant] = run_pipeline(case, out_dir, max_frames, extra)
+                if not args.keep:
+                    import shutil
+
+                    shutil.rmtree(out_dir, ignore_errors=True)
         row = {"case": case.name, "sequence": case.label, "data": case.data, "odometry": case.odometry,
-               "seed": case.seed, "overrides": case.overrides + args.overrides, **row}
+               "seed": case.seed, "overrides": case.overrides + args.overrides, **results["full"]}
+        for variant in variants[1:]:
+            row[f"ate_{variant}_m"] = results[variant]["ate_optimized_m"]
         row["improvement_pct"] = improvement(row)
         rows.append(row)
         imp = row["improvement_pct"]
-        print(f"  {case.name}: {row['ate_odometry_m'] * 100:.2f} -> {row['ate_optimized_m'] * 100:.2f} cm"
-              f"{'' if imp is None else f' ({imp:+.1f} %)'}, {row['wall_s']:.0f} s", file=sys.stderr, flush=True)
+        print(f"  {case.name}: {row['ate_odometry_m'] * 100:.2f} -> {row['ate_semantic_only_m'] * 100:.2f} "
+              f"(landmarks only) -> {row['ate_optimized_m'] * 100:.2f} cm"
+              f"{'' if imp is None else f' ({imp:+.1f} %)'}, {sum(r['wall_s'] for r in results.values()):.0f} s",
+              file=sys.stderr, flush=True)
     print()
     print(f"engine: {'offline closed loop (benchmarks/closed_loop.py)' if args.offline else 'pipeline (semmap run)'}"
           f", {'300 frames' if args.quick else 'all frames'}")

@@ -60,6 +60,8 @@ class BackendParams:
     relative_pose_kernel: str = "huber"  # relative-pose constraints (robust=True): a loop closure arrives with a
     # large residual, which cauchy would all but ignore (square test: 0.29 m end error left at 0.19 m, huber 0.03)
     min_observations_per_landmark: int = 3
+    landmark_constraints: bool = True  # false: observations are counted, not added (odometry and loop closures
+    # only: the ablation of benchmarks/bench_matrix.py --ablation)
     merge_sigma_m: float = 0.001
     relinearize_threshold: float = 0.001
     relinearize_skip: int = 1
@@ -73,6 +75,8 @@ class BackendParams:
                 setattr(self, f.name, float(value))
             elif f.type == "int" and (isinstance(value, bool) or not isinstance(value, int)):
                 raise ValueError(f"backend.{f.name} must be an integer, got {value!r}")
+            elif f.type == "bool" and not isinstance(value, bool):
+                raise ValueError(f"backend.{f.name} must be true or false, got {value!r}")
         positive = ("prior_sigma_translation_m", "prior_sigma_rotation_deg", "merge_sigma_m", "robust_k",
                     "relinearize_threshold")
         for name in positive:
@@ -192,7 +196,7 @@ class PoseGraph:
         self.counters: dict[str, int] = {
             "odometry": 0, "observations": 0, "observation_factors": 0, "observations_dropped": 0,
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
-            "factors_replaced": 0,
+            "factors_replaced": 0, "observations_ignored": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -235,6 +239,9 @@ class PoseGraph:
             self.counters["observations_waiting_for_odometry"] += len(observations)
             while len(self._unposed) > MAX_FRAMES_WAITING_FOR_ODOMETRY:  # odometry that never comes
                 self.counters["observations_dropped"] += len(self._unposed.pop(min(self._unposed)))
+            return
+        if not self.params.landmark_constraints:
+            self.counters["observations_ignored"] += len(observations)
             return
         for obs in observations:
             point = np.asarray(obs.point_camera, dtype=np.float64)

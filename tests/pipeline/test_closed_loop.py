@@ -30,13 +30,17 @@ def _landmarks(out: Path) -> list[dict]:
 
 
 def test_the_harness_reproduces_the_pipeline(tmp_path: Path, semmap_run) -> None:
-    """Same detections (oracle), same loop, same order: the same trajectory and map (TUM files hold 4-6 digits)."""
-    data = "synthetic:frames=120"
-    ev = _run(semmap_run, data, tmp_path, "--odometry", "gt+drift", "--seed", "2")
-    offline, _ = closed_loop(data, "gt+drift", 2, cache_dir=tmp_path / "cache")
+    """Same detections (oracle), same loop, same order: the same trajectory and map (TUM files hold 4-6 digits),
+    and the same depth loop closures (the synthetic camera's last frames revisit its first ones)."""
+    data, settings = "synthetic:frames=240", ["loop_closure.min_gap_s=4"]
+    ev = _run(semmap_run, data, tmp_path, "--odometry", "gt+drift", "--seed", "2",
+              *[arg for s in settings for arg in ("--set", s)])
+    offline, _ = closed_loop(data, "gt+drift", 2, overrides=settings, cache_dir=tmp_path / "cache")
     assert offline.ate_odometry == pytest.approx(ev["ate_odometry_m"], abs=2e-4)
     assert offline.ate_optimized == pytest.approx(ev["ate_optimized_m"], abs=2e-4)
     assert offline.landmarks == len(_landmarks(tmp_path))
+    backend = json.loads((tmp_path / "stats.json").read_text())["services"]["backend"]["counters"]
+    assert offline.loop_closures["accepted"] == backend["loop_closures"] >= 1
 
 
 @pytest.mark.slow
