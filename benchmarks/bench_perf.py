@@ -36,6 +36,8 @@ STAGES = [
     ("associator", "refine_ms", "refinement after pose-graph update", "-", "-"),
     ("associator", "process_ms", "associator, all steps per frame", "-", "<= 2 p50, <= 20 p99"),
     ("backend", "update_ms", "backend update (iSAM2)", "-", "<= 10 p50"),
+    ("backend", "keyframe_cloud_ms", "keyframe depth cloud (every 10th frame)", "-", "-"),
+    ("backend", "loop_closure_ms", "loop-closure search + ICP (per keyframe)", "-", "-"),
     ("viz", "log_frame_ms", "Rerun sink, per frame", "-", "-"),
     ("associator", "end_to_end_ms", "end to end: frame -> map update", "65 per cycle", "<= 100 p95"),
 ]

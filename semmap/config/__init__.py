@@ -6,15 +6,45 @@ Unknown sections or keys are errors (a typo must not silently fall back to a def
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
+
+P = TypeVar("P")
 
 
 class ConfigError(ValueError):
     """A configuration file or override that does not fit the known settings."""
+
+
+def params_from_section(cls: type[P], section: dict | None, name: str) -> P:
+    """A parameter dataclass from its YAML section; unknown keys are errors (a typo must not fall back to a
+    default). The dataclass checks the values."""
+    section = dict(section or {})
+    known = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(section) - known)
+    if unknown:
+        raise ValueError(f"unknown {name} setting(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    return cls(**section)
+
+
+def check_field_types(params: Any, name: str) -> None:
+    """In a parameter dataclass's `__post_init__`: floats finite (ints become floats), ints and bools what they
+    say (YAML `yes` or `1.5` must not pass as either); ranges are the dataclass's own business."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if f.type == "float":
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"{name}.{f.name} must be a finite number, got {value!r}")
+            setattr(params, f.name, float(value))
+        elif f.type == "int" and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ValueError(f"{name}.{f.name} must be an integer, got {value!r}")
+        elif f.type == "bool" and not isinstance(value, bool):
+            raise ValueError(f"{name}.{f.name} must be true or false, got {value!r}")
 
 
 def default_config() -> dict[str, Any]:

@@ -16,12 +16,14 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
 import msgpack
 import numpy as np
 from scipy.spatial import cKDTree
+
+from semmap.config import check_field_types, params_from_section
 
 if TYPE_CHECKING:
     from services.backend.pose_graph import PoseGraph
@@ -56,19 +58,10 @@ class LoopClosureParams:
     max_keyframes: int = 1000
 
     def __post_init__(self) -> None:
+        check_field_types(self, "loop_closure")
         for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "bool":
-                if not isinstance(value, bool):
-                    raise ValueError(f"loop_closure.{f.name} must be true or false, got {value!r}")
-            elif f.type == "int":
-                if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                    raise ValueError(f"loop_closure.{f.name} must be an integer >= 1, got {value!r}")
-            elif isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
-                    or value < 0:
-                raise ValueError(f"loop_closure.{f.name} must be a finite number >= 0, got {value!r}")
-            else:
-                setattr(self, f.name, float(value))
+            if f.type in ("int", "float") and getattr(self, f.name) < (1 if f.type == "int" else 0):
+                raise ValueError(f"loop_closure.{f.name} must be >= {1 if f.type == 'int' else 0}")
         for name in ("max_distance_m", "max_angle_deg", "max_correction_m", "voxel_m", "normal_radius_m",
                      "coarse_distance_m", "fine_distance_m", "max_rmse_m", "sigma_translation_m", "sigma_rotation_deg"):
             if getattr(self, name) <= 0:
@@ -80,17 +73,7 @@ class LoopClosureParams:
 
     @classmethod
     def from_config(cls, section: dict | None) -> LoopClosureParams:
-        """From the YAML section; unknown keys are errors (a typo must not fall back to a default)."""
-        section = dict(section or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(section) - known)
-        if unknown:
-            raise ValueError(f"unknown loop_closure setting(s) {', '.join(unknown)} "
-                             f"(known: {', '.join(sorted(known))})")
-        return cls(**section)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+        return params_from_section(cls, section, "loop_closure")
 
 
 # ------------------------------------------------------------------------------------------------ clouds

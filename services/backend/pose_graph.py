@@ -24,12 +24,13 @@ import bisect
 import math
 import time
 from collections.abc import Hashable, Iterable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from semmap.config import check_field_types, params_from_section
 from semmap.messages import Observation, Observations, OdometryPose
 
 from . import factors
@@ -67,16 +68,7 @@ class BackendParams:
     relinearize_skip: int = 1
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "float":
-                if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                    raise ValueError(f"backend.{f.name} must be a finite number, got {value!r}")
-                setattr(self, f.name, float(value))
-            elif f.type == "int" and (isinstance(value, bool) or not isinstance(value, int)):
-                raise ValueError(f"backend.{f.name} must be an integer, got {value!r}")
-            elif f.type == "bool" and not isinstance(value, bool):
-                raise ValueError(f"backend.{f.name} must be true or false, got {value!r}")
+        check_field_types(self, "backend")
         positive = ("prior_sigma_translation_m", "prior_sigma_rotation_deg", "merge_sigma_m", "robust_k",
                     "relinearize_threshold")
         for name in positive:
@@ -95,13 +87,7 @@ class BackendParams:
 
     @classmethod
     def from_config(cls, section: dict | None) -> BackendParams:
-        """From the YAML section; unknown keys are errors (a typo must not fall back to a default)."""
-        section = dict(section or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(section) - known)
-        if unknown:
-            raise ValueError(f"unknown backend setting(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-        return cls(**section)
+        return params_from_section(cls, section, "backend")
 
     def to_dict(self) -> dict:
         return asdict(self)

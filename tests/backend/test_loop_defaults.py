@@ -13,6 +13,7 @@ import pytest
 
 from semmap.config import load_config
 from services.associator.params import MapperParams
+from services.backend.loop_closure import LoopClosureParams
 from services.backend.pose_graph import BackendParams
 from services.odometry.frontends import DriftingOdometry, OdometryInput, make_frontend
 
@@ -22,6 +23,7 @@ def test_the_config_file_and_the_dataclasses_agree() -> None:
     section = {k: v for k, v in cfg["associator"].items() if k != "refine_every_n_frames"}
     assert MapperParams.from_dict(section) == MapperParams()
     assert BackendParams.from_config(cfg["backend"]) == BackendParams()
+    assert LoopClosureParams.from_config(cfg["loop_closure"]) == LoopClosureParams()
 
 
 def test_defaults() -> None:
@@ -32,6 +34,10 @@ def test_defaults() -> None:
     assert MapperParams().observation_period_s == 1.0
     assert MapperParams().observation_register is False
     assert BackendParams().min_observations_per_landmark == 3
+    assert BackendParams().landmark_constraints is True
+    assert LoopClosureParams().enabled is True  # breaks the centroid floor (README, Table 1)
+    with pytest.raises(ValueError, match="landmark_constraints"):
+        BackendParams.from_config({"landmark_constraints": "no"})
 
 
 def test_a_bias_is_declared_over_its_horizon() -> None:

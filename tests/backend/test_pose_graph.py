@@ -98,6 +98,15 @@ def test_landmarks_enter_the_graph_only_after_enough_observations() -> None:
     assert graph.num_nodes == 3  # the waiting observations made their frames nodes once the landmark counted
 
 
+def test_landmark_constraints_can_be_switched_off() -> None:
+    """`backend.landmark_constraints: false` (the ablation): observations are counted, the graph is odometry."""
+    graph = PoseGraph(BackendParams(min_observations_per_landmark=1, landmark_constraints=False))
+    graph.add_odometry(0, 0.0, np.eye(4), 0.003, 0.005)
+    graph.add_observations(0, [Observation(1, "cup", (0.0, 0.0, 2.0), 0.03, 0.1)])
+    graph.update()
+    assert graph.counters["observations_ignored"] == 1 and graph.num_landmarks == 0
+
+
 def test_degenerate_observations_are_dropped() -> None:
     graph = PoseGraph(BackendParams(min_observations_per_landmark=1))
     graph.add_odometry(0, 0.0, np.eye(4), 0.003, 0.005)

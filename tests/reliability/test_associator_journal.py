@@ -8,22 +8,17 @@ tracked by the real IOU tracker in this process, published frame by frame as the
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Control, OdometryPose, Progress, Tracks
+from semmap.keys import Keys
+from semmap.messages import OdometryPose, Tracks
 from services.tracker.iou_tracker import IouTracker
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
+from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service
 
-PROJECT = Path(__file__).resolve().parents[2]
 ROBOT = "journal"
 FRAMES = 150
 KILL_AFTER = 80
@@ -44,81 +39,30 @@ def _inputs() -> list[tuple[OdometryPose, Tracks]]:
     return out
 
 
-class _Feeder:
-    """The test's side of the bus: publishes odometry and tracks, follows the associator's progress."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.bus = Bus(BusConfig(mode="client", connect=[endpoint], listen=[]), ROBOT)
-        self.odometry = self.bus.publisher(self.bus.keys.odometry)
-        self.tracks = self.bus.publisher(self.bus.keys.tracks)
-        self.control = self.bus.publisher(self.bus.keys.control)
-        self.done = -1
-        self.changed = threading.Condition()
-        self.bus.subscribe(self.bus.keys.progress("associator"), Progress, self._on_progress)
-
-    def _on_progress(self, p: Progress) -> None:
-        with self.changed:
-            self.done = max(self.done, p.frame_id)
-            self.changed.notify_all()
-
-    def feed(self, inputs: list[tuple[OdometryPose, Tracks]]) -> None:
-        """Frame by frame, each once the previous one is through, resent after 2 s without progress (as lockstep
-        playback does: a restarted associator may not have subscribed yet when the router still lists the
-        killed one's subscription)."""
-        assert self.tracks.wait_matching(30), "the associator did not come up"
-        for odo, tracks in inputs:
-            for _ in range(15):
-                self.odometry.put(odo)
-                self.tracks.put(tracks)
-                with self.changed:
-                    if self.changed.wait_for(lambda f=odo.frame_id: self.done >= f, timeout=2.0):
-                        break
-            else:
-                raise AssertionError(f"no progress for frame {odo.frame_id} in 30 s")
-
-    def close(self) -> None:
-        self.bus.close()
+def _frames(inputs: list[tuple[OdometryPose, Tracks]], keys: Keys) -> list:
+    return [(odo.frame_id, [(keys.odometry, odo), (keys.tracks, tracks)]) for odo, tracks in inputs]
 
 
-def _associator(endpoint: str, out: Path, *extra: str) -> subprocess.Popen:
-    log = open(out / "associator.log", "ab")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", "services.associator", "--connect", endpoint, "--zenoh-mode",
-                             "client", "--robot", ROBOT, "--out", str(out), "--mode", "lockstep", *extra],
-                            cwd=PROJECT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "CI": "true"})
-
-
-def _finish(feeder: _Feeder, proc: subprocess.Popen, out: Path) -> list[dict]:
-    feeder.control.put(Control(ROBOT, "end_of_stream", FRAMES - 1, FRAMES))
-    deadline = time.monotonic() + 30
-    while "finished (last frame" not in (out / "associator.log").read_text() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    feeder.control.put(Control(ROBOT, "stop"))
-    assert proc.wait(timeout=30) == 0, (out / "associator.log").read_text()[-3000:]
+def _finish(feeder: LockstepFeeder, proc: subprocess.Popen, out: Path) -> list[dict]:
+    feeder.finish(proc, out / "associator.log", FRAMES)
     return json.loads((out / "map.json").read_text())["landmarks"]
 
 
 def test_a_killed_associator_resumes_from_its_journal(tmp_path: Path, router) -> None:  # noqa: ANN001
-    endpoint = router.endpoint
-    inputs = _inputs()
+    endpoint, keys = router.endpoint, Keys(ROBOT)
+    frames = _frames(_inputs(), keys)
     clean, crashed = tmp_path / "clean", tmp_path / "crashed"
     clean.mkdir()
     crashed.mkdir()
-    feeder = _Feeder(endpoint)
+    feeder = LockstepFeeder(endpoint, ROBOT, "associator", [keys.tracks, keys.odometry])
     procs = []
     try:
-        procs.append(_associator(endpoint, clean))
-        feeder.feed(inputs)
+        procs.append(start_service("associator", endpoint, ROBOT, clean))
+        feeder.feed(frames)
         reference = _finish(feeder, procs[-1], clean)
         assert {lm["class"] for lm in reference} == {"cup", "bowl", "chair"}
 
-        feeder.done = -1
-        procs.append(_associator(endpoint, crashed))
-        feeder.feed(inputs[:KILL_AFTER])
-        procs[-1].send_signal(signal.SIGKILL)
-        procs[-1].wait(timeout=10)
-        feeder.done = -1
-        procs.append(_associator(endpoint, crashed, "--resume"))
-        feeder.feed(inputs[KILL_AFTER:])
+        run_killed_and_resumed(feeder, "associator", endpoint, ROBOT, crashed, frames, KILL_AFTER, procs)
         final = _finish(feeder, procs[-1], crashed)
     finally:
         feeder.close()

@@ -10,22 +10,17 @@ last quarter revisits the first) with drifting odometry, fed frame by frame as p
 from __future__ import annotations
 
 import math
-import os
-import signal
 import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 
-from semmap.bus import Bus, BusConfig
 from semmap.datasets.synthetic import SyntheticDataset
-from semmap.messages import Control, Frame, Observations, OdometryPose, Progress
+from semmap.keys import Keys
+from semmap.messages import Frame, Observations, OdometryPose
 from services.player.service import frame_message
+from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service
 
-PROJECT = Path(__file__).resolve().parents[2]
 ROBOT = "backendjournal"
 FRAMES = 241  # 8 s; frame 240 is back at frame 0's pose
 KILL_AFTER = 235  # frame 230 has closed a loop by then, frame 240 closes one after the restart
@@ -50,57 +45,15 @@ def _inputs() -> list[tuple[Frame, OdometryPose]]:
     return out
 
 
-class _Feeder:
-    """Publishes frames, odometry and (empty) observations; follows the backend's progress."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.bus = Bus(BusConfig(mode="client", connect=[endpoint], listen=[]), ROBOT)
-        self.frames = self.bus.publisher(self.bus.keys.frames)
-        self.odometry = self.bus.publisher(self.bus.keys.odometry)
-        self.observations = self.bus.publisher(self.bus.keys.observations)
-        self.control = self.bus.publisher(self.bus.keys.control)
-        self.done = -1
-        self.changed = threading.Condition()
-        self.bus.subscribe(self.bus.keys.progress("backend"), Progress, self._on_progress)
-
-    def _on_progress(self, p: Progress) -> None:
-        with self.changed:
-            self.done = max(self.done, p.frame_id)
-            self.changed.notify_all()
-
-    def feed(self, inputs: list[tuple[Frame | None, OdometryPose]]) -> None:
-        assert self.frames.wait_matching(30), "the backend did not come up"
-        for frame, odo in inputs:
-            for _ in range(15):  # resent after 2 s without progress, as lockstep playback does
-                if frame is not None:
-                    self.frames.put(frame)
-                self.odometry.put(odo)
-                self.observations.put(Observations(ROBOT, odo.frame_id, odo.stamp))
-                with self.changed:
-                    if self.changed.wait_for(lambda f=odo.frame_id: self.done >= f, timeout=2.0):
-                        break
-            else:
-                raise AssertionError(f"no progress for frame {odo.frame_id} in 30 s")
-
-    def close(self) -> None:
-        self.bus.close()
+def _frames(inputs: list[tuple[Frame | None, OdometryPose]], keys: Keys) -> list:
+    """Each frame's messages: the frame (keyframes only), its odometry and its (empty) observations."""
+    return [(odo.frame_id, ([(keys.frames, frame)] if frame is not None else [])
+             + [(keys.odometry, odo), (keys.observations, Observations(ROBOT, odo.frame_id, odo.stamp))])
+            for frame, odo in inputs]
 
 
-def _backend(endpoint: str, out: Path, *extra: str) -> subprocess.Popen:
-    log = open(out / "backend.log", "ab")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", "services.backend", "--connect", endpoint, "--zenoh-mode",
-                             "client", "--robot", ROBOT, "--out", str(out), "--mode", "lockstep", *SETTINGS,
-                             *extra], cwd=PROJECT, stdout=log, stderr=subprocess.STDOUT,
-                            env={**os.environ, "CI": "true"})
-
-
-def _finish(feeder: _Feeder, proc: subprocess.Popen, out: Path) -> np.ndarray:
-    feeder.control.put(Control(ROBOT, "end_of_stream", FRAMES - 1, FRAMES))
-    deadline = time.monotonic() + 30
-    while "finished (last frame" not in (out / "backend.log").read_text() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    feeder.control.put(Control(ROBOT, "stop"))
-    assert proc.wait(timeout=30) == 0, (out / "backend.log").read_text()[-3000:]
+def _finish(feeder: LockstepFeeder, proc: subprocess.Popen, out: Path) -> np.ndarray:
+    feeder.finish(proc, out / "backend.log", FRAMES)
     return np.loadtxt(out / "trajectory_optimized.tum")
 
 
@@ -111,26 +64,19 @@ def _closures(log: str) -> list[int]:
 
 
 def test_a_killed_backend_resumes_with_its_loop_closures(tmp_path: Path, router) -> None:  # noqa: ANN001
-    endpoint = router.endpoint
-    inputs = _inputs()
+    endpoint, keys = router.endpoint, Keys(ROBOT)
+    frames = _frames(_inputs(), keys)
     clean, crashed = tmp_path / "clean", tmp_path / "crashed"
     clean.mkdir()
     crashed.mkdir()
-    feeder = _Feeder(endpoint)
+    feeder = LockstepFeeder(endpoint, ROBOT, "backend", [keys.frames, keys.odometry, keys.observations])
     procs = []
     try:
-        procs.append(_backend(endpoint, clean))
-        feeder.feed(inputs)
+        procs.append(start_service("backend", endpoint, ROBOT, clean, *SETTINGS))
+        feeder.feed(frames)
         reference = _finish(feeder, procs[-1], clean)
 
-        feeder.done = -1
-        procs.append(_backend(endpoint, crashed))
-        feeder.feed(inputs[:KILL_AFTER])
-        procs[-1].send_signal(signal.SIGKILL)
-        procs[-1].wait(timeout=10)
-        feeder.done = -1
-        procs.append(_backend(endpoint, crashed, "--resume"))
-        feeder.feed(inputs[KILL_AFTER:])
+        run_killed_and_resumed(feeder, "backend", endpoint, ROBOT, crashed, frames, KILL_AFTER, procs, *SETTINGS)
         final = _finish(feeder, procs[-1], crashed)
     finally:
         feeder.close()
