@@ -29,6 +29,7 @@ from services.backend.pose_graph import BackendParams, PoseGraph
 
 REALTIME_MAX_PENDING = 8
 REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
+MAX_PENDING_CLOUDS = 64  # keyframe clouds waiting for their odometry and observations (~80 KB each)
 
 
 class BackendService(Service):
@@ -76,6 +77,9 @@ class BackendService(Service):
             with self.metrics.timer("keyframe_cloud_ms"):
                 self.clouds[fid] = self.closer.cloud_from_depth(fid, frame.stamp, depth, frame.depth_scale, k.fx,
                                                                 k.fy, k.cx, k.cy)
+        while len(self.clouds) > MAX_PENDING_CLOUDS:  # frames without odometry: bounded, the oldest go
+            del self.clouds[min(self.clouds)]
+            self.metrics.count("keyframe_clouds_dropped")
         self._drain()
 
     def on_odometry(self, pose: OdometryPose) -> None:
