@@ -243,9 +243,10 @@ class LoopCloser:
 
     A keyframe (every `every_n_frames`-th frame) is registered against the nearest earlier keyframe (at least
     `min_gap_s` older, within `max_distance_m` and `max_angle_deg` in the current corrected poses), coarse then
-    fine. A closure is accepted with enough overlap (`min_fitness`), a small residual (`max_rmse_m`) and
-    geometry that pins all three translations (`min_constraint`). A keyframe that closed a loop is not kept
-    (its place already is); at most `max_keyframes` are kept, the oldest go first.
+    fine. A closure is accepted with enough overlap (`min_fitness`), a small residual (`max_rmse_m`), geometry
+    that pins all three translations (`min_constraint`) and a plausible correction of the estimate
+    (`max_correction_m`: a symmetric room can fit well in the wrong place). A keyframe that closed a loop is not
+    kept (its place already is); at most `max_keyframes` are kept, the oldest go first.
     """
 
     def __init__(self, params: LoopClosureParams | None = None) -> None:

@@ -158,6 +158,8 @@ class BackendService(Service):
         for name in ("registered", "rejected_fitness", "rejected_rmse", "rejected_degenerate",
                      "rejected_correction", "evicted"):
             self.metrics.counters[f"loop_{name}"] = self.closer.counters[name]
+        self.metrics.counters["loop_kept_keyframes"] = len(self.closer.keyframes)
+        self.metrics.counters["loop_kept_kb"] = self.closer.nbytes // 1024
 
     def _restore(self) -> None:
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
