@@ -114,9 +114,9 @@ def detect_recording(data: str, frames: int, config: dict, cache_dir: Path = CAC
     n = _frame_count(ds, frames)
     model = None
     if kind == "onnx":
-        from services.detector.service import DetectorService
+        from services.detector.model_store import packaged_model
 
-        model = Path(det_cfg["model"] or DetectorService._packaged_model(det_cfg.get("precision", "fp32")))
+        model = Path(det_cfg["model"] or packaged_model(det_cfg["precision"]))
     model_id = None if model is None else (str(model), model.stat().st_size, int(model.stat().st_mtime))
     # the model file stands for `precision`; threads and queueing do not change detections
     key = _cache_key(CACHE_VERSION, str(Path(data).resolve()) if not synthetic else data, n, kind, model_id,

@@ -286,6 +286,13 @@ class Frame(Message):
             raise MessageError("JPEG encoding failed")
         return buf.tobytes()
 
+    def depth_as_png(self) -> None:
+        """Carry the depth as a 16-bit PNG from now on (~3.5x smaller, ~10 ms to encode: for slow links);
+        left raw if encoding fails."""
+        ok, png = cv2.imencode(".png", self.depth())
+        if ok:
+            self.depth_raw = png.tobytes()
+
     def rgb(self) -> np.ndarray:
         """The HxWx3 uint8 RGB image (decoded once)."""
         if self._rgb is None:

@@ -19,8 +19,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
+from statistics import fmean
 
 from semmap.bus import Bus, BusConfig
 from semmap.messages import Control, Progress, ServiceStatus
@@ -199,7 +198,7 @@ class Orchestrator:
         """A restarted service picks up its saved state; the player continues after the last finished frame."""
         if child.name != "player":
             return ["--resume"]
-        return ["--start-at", str(max(self._frames_done(), 0))]
+        return ["--start-at", str(self._frames_done())]
 
     def _frames_done(self, default: int = 0) -> int:
         """How many frames every lockstep service has finished (`default` when none gates the stream)."""
@@ -271,19 +270,19 @@ class Orchestrator:
         for instance, s in sorted(statuses.items()):
             timings = {k: v for k, v in s.timings.items() if k != "peak_rss_mb"}
             peak = s.timings.get("peak_rss_mb", {}).get("max", s.rss_mb)
-            series = self.rss.get(instance, [])
+            series = self.rss[instance]  # filled with statuses
             quarter = max(1, len(series) // 4)
             services[instance] = {"service": s.service, "state": s.state, "last_frame_id": s.last_frame_id,
                                   "counters": s.counters, "timings_ms": timings, "rss_mb": round(s.rss_mb, 1),
                                   "peak_rss_mb": round(max(peak, s.rss_mb), 1), "cpu_s": round(s.cpu_s, 2),
                                   # memory over the run: mean of the second quarter vs the last quarter
-                                  "rss_early_mb": round(float(np.mean(series[quarter:2 * quarter] or series)), 1),
-                                  "rss_late_mb": round(float(np.mean(series[-quarter:])), 1) if series else 0.0}
+                                  "rss_early_mb": round(fmean(series[quarter:2 * quarter] or series), 1),
+                                  "rss_late_mb": round(fmean(series[-quarter:]), 1)}
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
-        unreadable = sum(s.counters.get("frames_unreadable", 0) for s in statuses.values() if s.service == "player")
+        unreadable = sum(s.counters.get("frames_unreadable", 0) for s in statuses.values())  # (the player's)
         processed = self._frames_done(default=published)
         with self.lock:
             restarts = dict(self.restarts)

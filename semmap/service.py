@@ -32,8 +32,9 @@ from semmap.messages import Control, Message, MessageError, Progress, ServiceSta
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
-REPLAY_FRAMES = 8
-MAX_ERRORS_IN_A_ROW = 10  # how many recent frames' outputs a service can send again
+QUEUE_CAPACITY = 100_000  # messages a stream may queue (real time: unless it asks for fewer)
+REPLAY_FRAMES = 8  # how many recent frames' outputs a service can send again
+MAX_ERRORS_IN_A_ROW = 10  # handler failures in a row that make a service give up (a bug, not bad luck)
 HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched with every status (see semmap.health)
 
 
@@ -179,8 +180,12 @@ class Service:
         """Called on every loop turn (at least every `idle_timeout_s`): for services that produce on a clock."""
 
     # -- helpers for subclasses -------------------------------------------------------------------------------
-    def listen(self, key: str, kind: type[M], handler: Callable[[M], None], capacity: int = 100_000) -> None:
+    def listen(self, key: str, kind: type[M], handler: Callable[[M], None],
+               realtime_capacity: int | None = None) -> None:
+        """Handle `kind` messages from `key`. Lockstep queues everything (the player paces the run); in real time
+        a stream with `realtime_capacity` keeps only that many waiting, dropping the oldest (frames: stay live)."""
         stream = f"{key}#{kind.SCHEMA}"
+        capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
         def checked(message: M) -> None:
             robot = getattr(message, "robot", self.robot)

@@ -28,11 +28,6 @@ def to_intrinsics(k: CameraIntrinsics) -> Intrinsics:
     return Intrinsics(float(k.fx), float(k.fy), float(k.cx), float(k.cy), int(k.width), int(k.height))
 
 
-def depth_patch(depth: np.ndarray, box: tuple[float, float, float, float], stride: int) -> DepthPatch:
-    """The depth pixels under a box, every `stride`-th in x and y (as the detector service sends them)."""
-    return DepthPatch.from_depth(depth, box, stride)
-
-
 def make_detections(
     frame: FrameData,
     boxes: Iterable[DetectedBox],
@@ -45,7 +40,7 @@ def make_detections(
     for b, d in depth_gate(boxes, frame.depth, frame.depth_scale, depth_min_m, depth_max_m):
         box = (b.x1, b.y1, b.x2, b.y2)
         out.append(
-            Detection(box, b.class_name, float(b.score), float(d), depth_patch(frame.depth, box, stride))
+            Detection(box, b.class_name, float(b.score), float(d), DepthPatch.from_depth(frame.depth, box, stride))
         )
     return out
 

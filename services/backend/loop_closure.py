@@ -131,25 +131,17 @@ class KeyframeCloud:
     stamp: float
     points: np.ndarray
     normals: np.ndarray | None = None
-    normal_radius_m: float = 0.08
 
-    def with_normals(self) -> tuple[np.ndarray, np.ndarray]:
+    def with_normals(self, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """(points that have a normal, their normals), estimated on first use and kept."""
         if self.normals is None:
-            points, normals = estimate_normals(self.points.astype(np.float64), self.normal_radius_m)
+            points, normals = estimate_normals(self.points.astype(np.float64), radius)
             self.points, self.normals = points.astype(np.float32), normals.astype(np.float32)
         return self.points, self.normals
 
     @property
     def nbytes(self) -> int:
         return int(self.points.nbytes + (0 if self.normals is None else self.normals.nbytes))
-
-
-def keyframe_cloud(frame_id: int, stamp: float, points: np.ndarray, params: LoopClosureParams) -> KeyframeCloud:
-    """Voxel-downsample camera-frame points (`depth_to_points`) into a keyframe cloud."""
-    sampled = voxel_downsample(np.asarray(points, dtype=np.float64), params.voxel_m)
-    return KeyframeCloud(int(frame_id), float(stamp), sampled.astype(np.float32),
-                         normal_radius_m=params.normal_radius_m)
 
 
 # ------------------------------------------------------------------------------------------------ ICP
@@ -161,7 +153,6 @@ class IcpResult:
     fitness: float  # share of source points with a correspondence within the distance
     rmse_m: float  # RMS point-to-point distance of those correspondences
     constraint: float  # smallest eigenvalue of the normals' scatter (0: sliding along a plane or a corridor)
-    iterations: int
 
 
 def _exp_se3(x: np.ndarray) -> np.ndarray:
@@ -186,8 +177,8 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
     tgt = np.asarray(target, dtype=np.float64)
     nrm = np.asarray(target_normals, dtype=np.float64)
     transform = np.array(init, dtype=np.float64)
-    iterations, previous = 0, (-1.0, math.inf)
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported
+    previous = (-1.0, math.inf)
+    for _ in range(max_iterations):
         moved = src @ transform[:3, :3].T + transform[:3, 3]
         dist, idx = tree.query(moved, distance_upper_bound=max_distance)
         ok = np.isfinite(dist)
@@ -210,10 +201,10 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
     ok = np.isfinite(dist)
     count = int(ok.sum())
     if count < 6:
-        return IcpResult(transform, count / max(len(src), 1), math.inf, 0.0, iterations)
+        return IcpResult(transform, count / max(len(src), 1), math.inf, 0.0)
     n = nrm[idx[ok]]
     constraint = float(np.linalg.eigvalsh(n.T @ n / count)[0])
-    return IcpResult(transform, count / len(src), float(np.sqrt(np.mean(dist[ok] ** 2))), constraint, iterations)
+    return IcpResult(transform, count / len(src), float(np.sqrt(np.mean(dist[ok] ** 2))), constraint)
 
 
 # ------------------------------------------------------------------------------------------------ the closer
@@ -263,9 +254,10 @@ class LoopCloser:
 
     def cloud_from_depth(self, frame_id: int, stamp: float, depth: np.ndarray, depth_scale: float, fx: float,
                          fy: float, cx: float, cy: float) -> KeyframeCloud:
+        """The keyframe's depth as a voxel-downsampled camera-frame cloud."""
         p = self.params
         points = depth_to_points(depth, depth_scale, fx, fy, cx, cy, p.depth_stride, p.depth_min_m, p.depth_max_m)
-        return keyframe_cloud(frame_id, stamp, points, p)
+        return KeyframeCloud(int(frame_id), float(stamp), voxel_downsample(points, p.voxel_m).astype(np.float32))
 
     def process(self, cloud: KeyframeCloud, frame_ids: np.ndarray, poses: np.ndarray,
                 odometry_sigmas: Callable[[int, int], tuple[float, float]] | None = None) -> LoopClosure | None:
@@ -303,14 +295,17 @@ class LoopCloser:
                odometry_sigmas: Callable[[int, int], tuple[float, float]] | None) -> LoopClosure | None:
         p = self.params
         me = self._lookup(frame_ids, cloud.frame_id)
-        old = [kf for kf in self.keyframes.values() if kf.stamp <= cloud.stamp - p.min_gap_s]
-        if me is None or not old:
+        if me is None:
             return None
-        rows = [self._lookup(frame_ids, kf.frame_id) for kf in old]
-        old = [kf for kf, r in zip(old, rows, strict=True) if r is not None]
+        old, rows = [], []  # earlier keyframes with a pose, and its row
+        for kf in self.keyframes.values():
+            row = self._lookup(frame_ids, kf.frame_id) if kf.stamp <= cloud.stamp - p.min_gap_s else None
+            if row is not None:
+                old.append(kf)
+                rows.append(row)
         if not old:
             return None
-        their = poses[[r for r in rows if r is not None]]
+        their = poses[rows]
         mine = poses[me]
         dist = np.linalg.norm(their[:, :3, 3] - mine[:3, 3], axis=1)
         angle = _angle_deg(their[:, :3, :3], mine[:3, :3][None])
@@ -329,7 +324,7 @@ class LoopCloser:
         best = int(np.argmin(score))
         target = old[best]
         init = np.linalg.inv(their[best]) @ mine
-        points, normals = target.with_normals()
+        points, normals = target.with_normals(p.normal_radius_m)
         tree = cKDTree(points)
         # the coarse pass only needs to get into the fine pass's basin: a quarter of the points do
         coarse = icp_point_to_plane(cloud.points[::COARSE_SUBSAMPLE], points, normals, init, p.coarse_distance_m,
@@ -396,11 +391,10 @@ def encode_keyframe(cloud: KeyframeCloud, closure: LoopClosure | None) -> bytes:
     return msgpack.packb(record, use_bin_type=True)
 
 
-def decode_keyframe(body: bytes, params: LoopClosureParams) -> tuple[KeyframeCloud, LoopClosure | None]:
+def decode_keyframe(body: bytes) -> tuple[KeyframeCloud, LoopClosure | None]:
     record = msgpack.unpackb(body, raw=False)
     points = np.frombuffer(record["points"], dtype="<f4").reshape(-1, 3).copy()
-    cloud = KeyframeCloud(int(record["frame_id"]), float(record["stamp"]), points,
-                          normal_radius_m=params.normal_radius_m)
+    cloud = KeyframeCloud(int(record["frame_id"]), float(record["stamp"]), points)
     c = record["closure"]
     if c is None:
         return cloud, None

@@ -58,8 +58,7 @@ class BackendService(Service):
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
         if self.closer.params.enabled:
-            self.listen(self.bus.keys.frames, Frame, self.on_frame,
-                        capacity=100_000 if self.lockstep else REALTIME_FRAME_QUEUE)
+            self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
 
     def on_frame(self, frame: Frame) -> None:
         """Keep a keyframe's depth cloud until its frame is handled (other frames are not looked at)."""
@@ -169,7 +168,7 @@ class BackendService(Service):
             self.graph.add_observations_message(Observations.decode(observations))
             self.graph.update()
             if keyframe is not None:
-                self.closer.restore(self.graph, *decode_keyframe(keyframe, self.closer.params))
+                self.closer.restore(self.graph, *decode_keyframe(keyframe))
             self.odometry.mark_done(frame_id)
             self.last_frame_id = frame_id
             n += 1

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import threading
 import time
-from pathlib import Path
 
 import zenoh
 
 from semmap.keys import Keys
 from semmap.messages import Control, DepthPatch, Detection, Detections, Frame
 from semmap.service import Service, service_main
+from services.detector.model_store import packaged_model
 from services.detector.onnx_detector import DetectedBox, OnnxDetector, depth_gate
 from services.detector.oracle import OracleDetector
 
@@ -43,7 +43,7 @@ class DetectorService(Service):
                 confusion_rate=cfg["oracle_confusion_rate"],
             )
         elif self.kind == "onnx":
-            model = cfg["model"] or self._packaged_model(cfg.get("precision", "fp32"))
+            model = cfg["model"] or packaged_model(cfg["precision"])
             self.onnx = OnnxDetector(
                 model,
                 conf=cfg["confidence"],
@@ -71,27 +71,11 @@ class DetectorService(Service):
         self.last_mine = -1
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
-        capacity = 100_000 if self.lockstep else max(1, int(cfg["queue"]))
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=capacity)
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg["queue"])))
         deadline = time.monotonic() + 5.0
         while time.monotonic() - self._members_changed < MEMBERSHIP_SETTLE_S and time.monotonic() < deadline:
             time.sleep(0.05)
         self.log.info("replica %d of %d", *self._rank())
-
-    @staticmethod
-    def _packaged_model(precision: str) -> Path:
-        """The converted YOLOv5s (fp32), or its int8 copy (~2x faster on CPU, `semmap models quantize`)."""
-        from services.detector.model_store import INT8_FILENAME, default_model_path, get_model_dir, require_model
-
-        if precision == "fp32":
-            return require_model(default_model_path())
-        if precision == "int8":
-            path = get_model_dir() / INT8_FILENAME
-            if not path.is_file():
-                raise FileNotFoundError(f"no int8 model at {path}: run `semmap models quantize IMAGES_OR_DATASET` "
-                                        "(calibrates on a few dozen frames of your scene), or use precision fp32")
-            return path
-        raise ValueError(f"unknown detector precision {precision!r}: use fp32 or int8")
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name = Keys.instance_of(str(sample.key_expr))

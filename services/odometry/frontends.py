@@ -207,7 +207,7 @@ def make_frontend(mode: str, config: dict) -> FrontEnd:
     if mode == "gt+drift":
         return DriftingOdometry(int(config["seed"]), config["drift_translation_sigma_m"],
                                 config["drift_yaw_sigma_deg"], config["drift_yaw_bias_deg"],
-                                bias_horizon_frames=float(config.get("drift_bias_horizon_frames", 1.0)))
+                                bias_horizon_frames=float(config["drift_bias_horizon_frames"]))
     if mode == "rgbd":
         return RgbdOdometry(config["rgbd_sigma_translation_m"], config["rgbd_sigma_rotation_deg"])
     if mode.startswith("file:"):

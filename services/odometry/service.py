@@ -33,7 +33,7 @@ class OdometryService(Service):
                 self.journal.clear()
         self.pose_pub = self.publisher(self.bus.keys.odometry)
         # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=100_000 if self.lockstep else 4)
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=4)
 
     def on_frame(self, frame: Frame) -> None:
         if frame.frame_id <= self.last_frame_id:

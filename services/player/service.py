@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import cv2
-
 from semmap.datasets import DatasetError, open_dataset
 from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.trajectory_io import write_tum
@@ -29,9 +27,7 @@ def frame_message(robot: str, data: FrameData, depth_png: bool = False) -> Frame
          for i in data.instances],
     )
     if depth_png:
-        ok, png = cv2.imencode(".png", frame.depth())
-        if ok:
-            frame.depth_raw = png.tobytes()
+        frame.depth_as_png()
     return frame
 
 
@@ -56,7 +52,7 @@ class PlayerService(Service):
         run = self.config["run"]
         self.dataset: Dataset = open_dataset(self.args.data)
         limit = int(run.get("max_frames") or 0)
-        self.loops = max(1, int(run.get("loops", 1)))
+        self.loops = max(1, int(run["loops"]))
         self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops
         played = len(self.dataset) * self.loops
         self.total = min(played, limit) if limit > 0 else played
@@ -64,7 +60,7 @@ class PlayerService(Service):
         self.wait_for = parse_wait_for(self.args.wait_for or "")
         self.start_after = {**parse_wait_for(self.args.start_after or ""), **self.wait_for}
         self.speed = float(run.get("speed", 1.0))
-        self.depth_png = run.get("depth_encoding", "raw") == "png"
+        self.depth_png = run["depth_encoding"] == "png"
         self.frame_timeout_s = float(run["frame_timeout_s"])
         self.start_timeout_s = float(run["start_timeout_s"])
         self.progress: dict[str, int] = {}

@@ -30,16 +30,16 @@ class TrackerService(Service):
     def _first_track_id(self) -> int:
         """Track ids must never repeat within a run: the associator keys candidates by them. A restarted tracker
         starts a new block of ids (one per restart, counted in DIR/tracker.epoch)."""
+        path = self.out_dir / "tracker.epoch" if self.out_dir is not None else None
         if not self.resume:
             epoch = 0
-        elif self.out_dir is not None:
-            path = self.out_dir / "tracker.epoch"
+        elif path is not None:
             epoch = (int(path.read_text()) if path.is_file() else 0) + 1
         else:
             epoch = int(time.time())  # no run directory: a clock-based block
-        if self.out_dir is not None:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            (self.out_dir / "tracker.epoch").write_text(str(epoch))
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(str(epoch))
         return epoch * TRACK_ID_BLOCK
 
     def on_detections(self, message: Detections) -> None:

@@ -90,7 +90,7 @@ class VizService(Service):
         self.correction: np.ndarray | None = None
         self.map_frame = -1
         self.rejected: set[int] = set()  # track ids of rejected candidates
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, capacity=8 if not self.lockstep else 100_000)
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=8)
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
         self.listen(self.bus.keys.detections, Detections, self.on_detections)
         self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)

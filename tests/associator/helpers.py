@@ -14,7 +14,6 @@ import numpy as np
 from semmap.geometry import look_at  # noqa: F401 - tests import it from here
 from semmap.messages import DepthPatch, Detection, Intrinsics, Measurement
 from services.associator.candidate import View
-from services.associator.offline import depth_patch
 
 K_SMALL = Intrinsics(140.0, 140.0, 79.5, 59.5, 160, 120)
 
@@ -88,7 +87,7 @@ def detections(
             continue
         box = (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))
         d = float(np.median(depth[label == i])) / 1000.0
-        out.append(Detection(box, s.class_name, 0.9, d, depth_patch(depth, box, stride)))
+        out.append(Detection(box, s.class_name, 0.9, d, DepthPatch.from_depth(depth, box, stride)))
     return out
 
 
@@ -106,7 +105,7 @@ def box_measurement(
     """A measurement whose depth image (metres) is depth_fn(u, v) over the whole image."""
     u, v = np.meshgrid(np.arange(k.width, dtype=float), np.arange(k.height, dtype=float))
     depth = np.rint(np.asarray(depth_fn(u, v), dtype=float) * 1000.0).astype(np.uint16)
-    return Measurement(0, 0.0, Detection(box, cls, 0.9, 1.0, depth_patch(depth, box, stride)), k, 0.001)
+    return Measurement(0, 0.0, Detection(box, cls, 0.9, 1.0, DepthPatch.from_depth(depth, box, stride)), k, 0.001)
 
 
 def patch_measurement(

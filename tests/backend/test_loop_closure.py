@@ -27,6 +27,7 @@ from services.backend.loop_closure import (
 from services.backend.pose_graph import BackendParams, PoseGraph
 
 FRAMES = 121  # 4 s at 30 Hz; frame 120 is back at frame 0's pose
+RADIUS = LoopClosureParams().normal_radius_m
 
 
 def _pose(yaw_deg: float = 0.0, t: tuple[float, float, float] = (0.0, 0.0, 0.0), axis: int = 1) -> np.ndarray:
@@ -88,7 +89,7 @@ def test_normals_of_a_plane_are_its_normal_facing_the_camera() -> None:
 def test_icp_recovers_a_known_motion_of_a_real_room(room: SyntheticDataset) -> None:
     closer = LoopCloser()
     cloud = _cloud(closer, room, 0)
-    target, normals = KeyframeCloud(0, 0.0, cloud.points.copy()).with_normals()
+    target, normals = KeyframeCloud(0, 0.0, cloud.points.copy()).with_normals(RADIUS)
     truth = _pose(3.0, (0.04, -0.02, 0.03))  # the source frame seen from the target frame
     source = (cloud.points.astype(np.float64) - truth[:3, 3]) @ truth[:3, :3]  # inv(truth) applied
     coarse = icp_point_to_plane(source[::4], target, normals, np.eye(4), 0.1)
@@ -102,7 +103,7 @@ def test_icp_is_deterministic(room: SyntheticDataset) -> None:
     """Replay must give the same map: the same clouds give the same transform, to the last bit."""
     closer = LoopCloser()
     a, b = _cloud(closer, room, 0), _cloud(closer, room, 3)
-    target, normals = a.with_normals()
+    target, normals = a.with_normals(RADIUS)
     runs = [icp_point_to_plane(b.points, target, normals, np.eye(4), 0.1).transform for _ in range(3)]
     assert all(np.array_equal(runs[0], r) for r in runs[1:])
 
@@ -251,10 +252,11 @@ def test_a_journalled_keyframe_restores_the_same_graph(room: SyntheticDataset) -
     replayed, _ = _drifting_loop(room)
     restored = LoopCloser(params)
     for body in records:
-        restored.restore(replayed, *decode_keyframe(body, params))
+        restored.restore(replayed, *decode_keyframe(body))
     assert np.array_equal(live.corrected_poses()[2], replayed.corrected_poses()[2])
     assert list(restored.keyframes) == list(closer.keyframes) == [0]
-    np.testing.assert_array_equal(restored.keyframes[0].with_normals()[0], closer.keyframes[0].with_normals()[0])
+    np.testing.assert_array_equal(restored.keyframes[0].with_normals(RADIUS)[0],
+                                  closer.keyframes[0].with_normals(RADIUS)[0])
 
 
 # ------------------------------------------------------------------------------------------------ real revisits
