@@ -287,11 +287,10 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
                            sigma_rotation=sigma_r, source=odometry)
         odo_traj.append((stamp, pose.copy()))
         poses.odometry[i] = odo.pose
-        # tracker (as services/tracker/service.py: a skipped frame only ages tracklets and reports nothing)
+        # tracker (as services/tracker/service.py: a skipped frame only ages tracklets, which may end them)
         if det.skipped:
-            if det.stamp >= 0:
-                tracker.skip(i, stamp)
-            candidates, ended, boxes = [], [], None
+            ended = tracker.skip(i, stamp).ended if det.stamp >= 0 else []
+            candidates, boxes = [], []
         else:
             out = tracker.update(i, stamp, det.detections, det.intrinsics, det.depth_scale)
             candidates, ended, boxes = out.candidates, out.ended, out.boxes
