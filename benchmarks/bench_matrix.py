@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -74,12 +75,10 @@ def seven_scenes() -> Path | None:
     return path if path is not None and path.is_dir() else None
 
 
-def person_landmarks(landmarks: list, data: str) -> tuple[int, int]:
-    """(landmarks of a moving class, static objects mapped) on synthetic data."""
-    from semmap.datasets import open_dataset
+def person_landmarks(landmarks: list, objects: list) -> tuple[int, int]:
+    """(landmarks of a moving class, static objects mapped) on synthetic data (`objects`: its ground truth)."""
     from services.associator.offline import score_map
 
-    objects = open_dataset(data).objects()
     moving = {o.class_name for o in objects if o.moving}
     score = score_map(landmarks, objects)
     return sum(1 for lm in landmarks if lm.class_name in moving), score.mapped
@@ -111,8 +110,10 @@ def run_pipeline(case: Case, out_dir: Path, max_frames: int | None, extra: list[
     if case.data.startswith("synthetic"):
         from types import SimpleNamespace
 
+        from semmap.datasets import open_dataset
+
         lms = [SimpleNamespace(id=d["id"], class_name=d["class"], centroid=d["centroid"]) for d in landmarks]
-        row["person_landmarks"], row["objects_mapped"] = person_landmarks(lms, case.data)
+        row["person_landmarks"], row["objects_mapped"] = person_landmarks(lms, open_dataset(case.data).objects())
     return row
 
 
@@ -125,7 +126,7 @@ def run_offline(case: Case, max_frames: int | None, extra: list[str]) -> dict:
            "observations": res.observations, "merges": res.merges, "poses": res.frames,
            "wall_s": time.monotonic() - t0, "loop_closures": res.loop_closures.get("accepted", 0)}
     if rec.objects:
-        row["person_landmarks"], row["objects_mapped"] = person_landmarks(res.mapper.landmarks(), case.data)
+        row["person_landmarks"], row["objects_mapped"] = person_landmarks(res.mapper.landmarks(), rec.objects)
     return row
 
 
@@ -186,8 +187,6 @@ def main(argv: list[str] | None = None) -> int:
         for variant in variants:
             out_dir = args.out_root / case.name / variant
             if out_dir.exists():
-                import shutil
-
                 shutil.rmtree(out_dir)
             print(f"running {case.name} ({variant}) ...", file=sys.stderr, flush=True)
             extra = [*VARIANTS[variant], *args.overrides]
@@ -197,8 +196,6 @@ def main(argv: list[str] | None = None) -> int:
                 out_dir.mkdir(parents=True, exist_ok=True)
                 results[variant] = run_pipeline(case, out_dir, max_frames, extra)
                 if not args.keep:
-                    import shutil
-
                     shutil.rmtree(out_dir, ignore_errors=True)
         row = {"case": case.name, "sequence": case.label, "data": case.data, "odometry": case.odometry,
                "seed": case.seed, "overrides": case.overrides + args.overrides, **results["full"]}

@@ -29,9 +29,9 @@ observations sent and used, merges, and run times. Seconds instead of the pipeli
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
-import math
 import sys
 import time
 from collections import Counter
@@ -49,7 +49,6 @@ from semmap.datasets.base import ObjectTruth  # noqa: E402
 from semmap.evaluation import ate_rmse  # noqa: E402
 from semmap.messages import (  # noqa: E402
     CorrectedPoses,
-    Detection,
     Detections,
     Observations,
     OdometryPose,
@@ -92,7 +91,9 @@ def _cache_key(*parts: object) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+@functools.lru_cache(maxsize=2)
 def _open(data: str):  # noqa: ANN202 - a semmap Dataset
+    """Opened once per run (the synthetic scene builds its meshes on opening)."""
     return open_dataset(data)
 
 
@@ -103,8 +104,7 @@ def _frame_count(ds, frames: int) -> int:  # noqa: ANN001
 def detect_recording(data: str, frames: int, config: dict, cache_dir: Path = CACHE_DIR, refresh: bool = False,
                      verbose: bool = True) -> Recording:
     """Every frame's `Detections` as the detector service makes them (cached; see module docstring)."""
-    from semmap.messages import DepthPatch
-    from services.detector.onnx_detector import depth_gate
+    from services.associator.offline import make_detections
     from services.player.service import frame_message
 
     det_cfg = dict(config["detector"])
@@ -148,8 +148,8 @@ def detect_recording(data: str, frames: int, config: dict, cache_dir: Path = CAC
     dets, gt = [], []
     t0 = time.perf_counter()
     for i in range(n):
-        frame = frame_message(ROBOT, ds[i])
-        frame = on_the_wire(frame)
+        data_i = ds[i]
+        frame = on_the_wire(frame_message(ROBOT, data_i))
         gt.append(frame.gt_pose)
         if i % every:
             dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, [], "stride"))
@@ -159,17 +159,16 @@ def detect_recording(data: str, frames: int, config: dict, cache_dir: Path = CAC
             boxes = [b for b in boxes if (not allow or b.class_name in allow) and b.class_name not in deny]
         else:
             boxes = onnx.detect(frame.rgb())
-        depth = frame.depth()
-        kept = depth_gate(boxes, depth, frame.depth_scale, det_cfg["depth_min_m"], det_cfg["depth_max_m"])
-        detections = [Detection((b.x1, b.y1, b.x2, b.y2), b.class_name, float(b.score), d,
-                                DepthPatch.from_depth(depth, (b.x1, b.y1, b.x2, b.y2), stride)) for b, d in kept]
+        # depth travels raw: the dataset's array is what the subscriber decodes
+        detections = make_detections(data_i, boxes, stride, det_cfg["depth_min_m"], det_cfg["depth_max_m"])
         dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, detections))
         if verbose and (i + 1) % 100 == 0:
             print(f"  detected {i + 1}/{n} frames ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-    dets = [Detections.decode(d.encode()) for d in dets]  # exactly what a subscriber decodes
+    encoded = [d.encode() for d in dets]
+    dets = [Detections.decode(b) for b in encoded]  # exactly what a subscriber decodes
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(msgpack.packb({"name": ds.name, "detections": [d.encode() for d in dets],
+    tmp.write_bytes(msgpack.packb({"name": ds.name, "detections": encoded,
                                    "gt": [None if g is None else np.asarray(g).reshape(16).tolist() for g in gt]},
                                   use_bin_type=True))
     tmp.replace(path)
@@ -224,17 +223,11 @@ class LoopResult:
     merges: int
     frames: int
     wall_s: float
-    per_landmark: dict[int, int]
     classes: dict[str, int]
     mapper_ms_p50: float = 0.0  # mapper.process (+ refine) per frame
     loop_closures: dict[str, int] = field(default_factory=dict)  # the backend's loop closer's counters
-    closure_log: list = field(default_factory=list)  # the accepted `LoopClosure`s
     backend_ms_p50: float = 0.0  # odometry + observations + iSAM2 update per frame
-    observation_log: list[tuple[int, object]] = field(default_factory=list)  # (frame id, Observation)
-    merge_log: list[tuple[int, int, int]] = field(default_factory=list)  # (frame id, absorbed, surviving)
     mapper: LandmarkMapper | None = None
-    graph: PoseGraph | None = None
-    odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
     optimized: list[tuple[float, np.ndarray]] = field(default_factory=list)
 
     @property
@@ -256,8 +249,8 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
     feeds the backend's loop closer with keyframe depth, as the frames key does in the services."""
     t_start = time.perf_counter()
     odo_cfg = dict(config["odometry"])
-    front = None if odometry_poses is not None else make_frontend(odometry, odo_cfg)
-    sigma_t, sigma_r = front.sigmas if front is not None else declared_sigmas(odometry, odo_cfg)
+    front = make_frontend(odometry, odo_cfg)  # with cached poses only for what it declares
+    sigma_t, sigma_r = front.sigmas
     keyframe_every = max(1, int(odo_cfg["keyframe_every"]))
     section = dict(config.get("associator") or {})
     service_cfg = {k: section.pop(k, v) for k, v in SERVICE_DEFAULTS.items()}
@@ -269,10 +262,6 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
     poses = PoseBook()
     pending_merges: list[tuple[int, int]] = []
     n_obs = n_merges = 0
-    per_landmark: Counter[int] = Counter()
-    obs_log: list = []
-    merge_log: list = []
-    closure_log: list = []
     odo_traj = []
     mapper_ms, backend_ms = [], []
     for seq, det in enumerate(rec.detections, start=1):
@@ -302,9 +291,6 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
         pending_merges = []
         n_obs += len(step.observations)
         n_merges += len(merges)
-        per_landmark.update(o.landmark_id for o in step.observations)
-        obs_log.extend((i, o) for o in step.observations)
-        merge_log.extend((i, a, b) for a, b in merges)
         obs_msg = Observations(ROBOT, i, stamp, step.observations, merges)
         # backend
         t0 = time.perf_counter()
@@ -314,10 +300,8 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
         if depth_frames is not None and closer.wants(i):
             frame = depth_frames[i]
             k = frame.intrinsics
-            closure = closer.close(graph, closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx,
-                                                                  k.fy, k.cx, k.cy))
-            if closure is not None:
-                closure_log.append(closure)
+            closer.close(graph, closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx,
+                                                        k.cy))
         backend_ms.append((time.perf_counter() - t0) * 1e3)
         ids, stamps, corrected = graph.corrected_poses()
         lids, lpos = graph.landmark_positions()
@@ -339,19 +323,9 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
         ate_odometry=ate_rmse(gt, odo_traj), ate_optimized=ate_rmse(gt, optimized), landmarks=len(landmarks),
         observations=n_obs, observation_factors=graph.counters["observation_factors"],
         graph_landmarks=graph.num_landmarks, merges=n_merges, frames=len(rec.detections),
-        wall_s=time.perf_counter() - t_start, per_landmark=dict(per_landmark),
-        classes=dict(Counter(lm.class_name for lm in landmarks)), mapper=mapper, graph=graph, odometry=odo_traj,
-        optimized=optimized, observation_log=obs_log, merge_log=merge_log,
-        mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0, loop_closures=dict(closer.counters),
-        closure_log=closure_log,
-        backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0)
-
-
-def declared_sigmas(mode: str, cfg: dict) -> tuple[float, float]:
-    """What the `rgbd` front end declares (its poses come from the cache, the front end is not built)."""
-    if mode == "rgbd":
-        return cfg["rgbd_sigma_translation_m"], math.radians(cfg["rgbd_sigma_rotation_deg"])
-    raise ValueError(f"no cached poses for odometry {mode!r}")
+        wall_s=time.perf_counter() - t_start, classes=dict(Counter(lm.class_name for lm in landmarks)),
+        mapper=mapper, optimized=optimized, mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
+        loop_closures=dict(closer.counters), backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0)
 
 
 def closed_loop(data: str, odometry: str = "gt+drift", seed: int = 0, frames: int = 0,

@@ -121,18 +121,6 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_view)
 
 
-def _loopback_port(port: int) -> int | None:
-    """`port` (or any free port for 0) if it is free on 127.0.0.1, else None."""
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except (OSError, OverflowError):  # in use, or not a port number
-            return None
-        return int(s.getsockname()[1])
-
-
 def _listening(port: int) -> bool:
     import socket
 
@@ -189,10 +177,15 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
     import threading
     import time
 
+    from semmap.orchestrator import free_loopback_port
+
     ports = {}
     for name, wanted, flag in (("web", args.port, "--port"), ("grpc", args.grpc_port, "--grpc-port")):
-        port = _loopback_port(wanted)
-        if port is None or port in ports.values():
+        try:
+            port = free_loopback_port(wanted)
+        except OSError:
+            port = None
+        if port is None or (wanted and port != wanted) or port in ports.values():
             print(f"error: cannot listen on 127.0.0.1:{wanted} (in use, or not a port): choose another with {flag}",
                   file=sys.stderr)
             return 2

@@ -66,7 +66,7 @@ def free_loopback_port(preferred: int = 0) -> int:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             try:
                 s.bind(("127.0.0.1", port))
-            except OSError:
+            except (OSError, OverflowError):  # in use, or not a port number
                 continue
             return int(s.getsockname()[1])
     raise OSError("no free loopback port")
