@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -10,6 +14,8 @@ import zenoh
 from semmap.bus import BusConfig
 from semmap.datasets import find_data_root
 from semmap.orchestrator import free_loopback_port
+
+PROJECT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session")
@@ -57,3 +63,24 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
         if not default_model_path().is_file():
             pytest.skip("detector model absent: run `semmap models fetch` (./dev.sh does)")
+
+
+def _semmap_run(args: list[str], timeout: float = 300, env: dict | None = None) -> subprocess.CompletedProcess:
+    """`semmap run ...` as a user would type it (its own process), output captured."""
+    full_env = {**os.environ, "CI": "true", **(env or {})}
+    return subprocess.run([sys.executable, "-m", "semmap.cli", "run", *args, "--quiet"], cwd=PROJECT,
+                          capture_output=True, text=True, timeout=timeout, env=full_env)
+
+
+def _read_stats(out: Path) -> dict:
+    return json.loads((out / "stats.json").read_text())
+
+
+@pytest.fixture
+def semmap_run():
+    return _semmap_run
+
+
+@pytest.fixture
+def read_stats():
+    return _read_stats

@@ -54,9 +54,6 @@ def test_observations_show_the_pose_error_instead_of_echoing_the_estimate() -> N
     assert np.median(err) > 0.04  # the old default: measured 4.5-4.9 cm, half the pose error hidden
 
 
-def test_registration_is_off_by_default() -> None:
-    assert MapperParams().observation_register is False
-
 
 def test_truncated_views_observe_with_a_larger_sigma() -> None:
     mapper, tracker = LandmarkMapper(), IouTracker()

@@ -7,11 +7,13 @@ its last frame is back at the first frame's pose, with the two walking people el
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 import pytest
 
+from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.synthetic import SyntheticDataset
 from services.backend.loop_closure import (
     KeyframeCloud,
@@ -49,11 +51,16 @@ def room() -> SyntheticDataset:
     return SyntheticDataset(frames=FRAMES)
 
 
-def _cloud(closer: LoopCloser, ds: SyntheticDataset, index: int, stamp: float | None = None) -> KeyframeCloud:
-    frame = ds[index]
+@functools.lru_cache(maxsize=16)
+def _frame(ds: Dataset, index: int) -> FrameData:
+    """Frames are read (ray cast) once: the tests keep asking for the same few."""
+    return ds[index]
+
+
+def _cloud(closer: LoopCloser, ds: Dataset, index: int) -> KeyframeCloud:
+    frame = _frame(ds, index)
     k = frame.intrinsics
-    return closer.cloud_from_depth(index, frame.stamp if stamp is None else stamp, frame.depth, frame.depth_scale,
-                                   k.fx, k.fy, k.cx, k.cy)
+    return closer.cloud_from_depth(index, frame.stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx, k.cy)
 
 
 # ------------------------------------------------------------------------------------------------ clouds
@@ -272,17 +279,11 @@ def test_real_7scenes_revisits_register_from_a_drifted_estimate(kitchen_dir, ear
 
     ds = open_dataset(str(kitchen_dir))
     closer = LoopCloser(LoopClosureParams(max_distance_m=0.6, max_angle_deg=30.0))  # the pairs are 0.35 m apart
-
-    def cloud(i: int) -> KeyframeCloud:
-        f = ds[i]
-        k = f.intrinsics
-        return closer.cloud_from_depth(i, f.stamp, f.depth, f.depth_scale, k.fx, k.fy, k.cx, k.cy)
-
     gt_a, gt_b = ds[earlier].gt_pose, ds[later].gt_pose
     ids = np.array([earlier, later])
     poses = np.stack([gt_a, _drifted(gt_b)])
-    closer.process(cloud(earlier), ids, poses)
-    closure = closer.process(cloud(later), ids, poses)
+    closer.process(_cloud(closer, ds, earlier), ids, poses)
+    closure = closer.process(_cloud(closer, ds, later), ids, poses)
     assert closure is not None, closer.counters
     truth = np.linalg.inv(gt_a) @ gt_b
     assert np.linalg.norm(closure.T_ab[:3, 3] - truth[:3, 3]) < 0.02
@@ -298,8 +299,5 @@ def test_real_7scenes_frames_of_different_places_are_not_closed(kitchen_dir) -> 
     closer = LoopCloser()
     ids, poses = np.array([0, 500]), np.stack([ds[0].gt_pose, ds[0].gt_pose])
     for i in (0, 500):
-        f = ds[i]
-        k = f.intrinsics
-        result = closer.process(closer.cloud_from_depth(i, f.stamp, f.depth, f.depth_scale, k.fx, k.fy, k.cx, k.cy),
-                                ids, poses)
+        result = closer.process(_cloud(closer, ds, i), ids, poses)
     assert result is None and closer.counters["registered"] == 1, closer.counters

@@ -1,30 +1,15 @@
-"""Fixtures for the detector tests: the 7-Scenes frames, the fetched model, a shared detector instance."""
+"""Fixtures for the detector tests: the fetched model and a shared detector instance (7-Scenes frames come from
+tests/conftest.py's `kitchen_dir`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 from services.detector.model_store import default_model_path
 
 FETCH_REASON = "detector model absent: run `semmap models fetch`"
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    assert bgr is not None, f"cannot read {path}"
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)  # OpenCV decodes to BGR; the detector takes RGB
-
-
-@pytest.fixture(scope="session")
-def shared_data(data_root: Path) -> Path:
-    """The shared data root (tests/conftest.py's `data_root`), with the 7-Scenes frames in it."""
-    if not (data_root / "7scenes-redkitchen").is_dir():
-        pytest.skip(f"7-Scenes frames absent under {data_root}")
-    return data_root
 
 
 @pytest.fixture(scope="session")

@@ -49,8 +49,8 @@ def test_fetch_bad_source_exits_1(tmp_path, capsys):
 
 @pytest.mark.needs_model
 @pytest.mark.needs_data
-def test_detect_text_output_and_unreadable_image(model_path, shared_data, tmp_path, capsys):
-    frame = shared_data / "7scenes-redkitchen" / "frame-000750.color.jpg"
+def test_detect_text_output_and_unreadable_image(model_path, kitchen_dir, tmp_path, capsys):
+    frame = kitchen_dir / "frame-000750.color.jpg"
     junk = tmp_path / "junk.jpg"
     junk.write_text("not an image")
     rc = _run(["detect", "--model", str(model_path), str(junk), str(frame), str(tmp_path / "missing.png")])
@@ -66,8 +66,8 @@ def test_detect_text_output_and_unreadable_image(model_path, shared_data, tmp_pa
 
 @pytest.mark.needs_model
 @pytest.mark.needs_data
-def test_detect_json(model_path, shared_data, capsys):
-    frame = shared_data / "7scenes-redkitchen" / "frame-000000.color.jpg"
+def test_detect_json(model_path, kitchen_dir, capsys):
+    frame = kitchen_dir / "frame-000000.color.jpg"
     assert _run(["detect", "--json", "--classes", "cup", "--model", str(model_path), str(frame)]) == 0
     doc = json.loads(capsys.readouterr().out)
     (img,) = doc["images"]

@@ -10,6 +10,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from semmap.datasets.images import read_depth_u16, read_rgb
 from services.detector.onnx_detector import (
     DetectedBox,
     OnnxDetector,
@@ -22,8 +23,6 @@ from services.detector.onnx_detector import (
     unletterbox,
     xywh_to_xyxy,
 )
-
-from .conftest import read_rgb
 
 # --- synthetic models --------------------------------------------------------------------------------------
 
@@ -292,8 +291,8 @@ SEVEN_SCENES_FRAMES = {
 @pytest.mark.needs_model
 @pytest.mark.needs_data
 @pytest.mark.parametrize("frame", sorted(SEVEN_SCENES_FRAMES))
-def test_real_7scenes_detections(yolo, shared_data, frame):
-    rgb = read_rgb(shared_data / "7scenes-redkitchen" / f"frame-{frame:06d}.color.jpg")
+def test_real_7scenes_detections(yolo, kitchen_dir, frame):
+    rgb = read_rgb(kitchen_dir / f"frame-{frame:06d}.color.jpg")
     boxes = yolo.detect(rgb)
     found = {b.class_name for b in boxes}
     assert SEVEN_SCENES_FRAMES[frame] <= found, found
@@ -304,8 +303,8 @@ def test_real_7scenes_detections(yolo, shared_data, frame):
 
 @pytest.mark.needs_model
 @pytest.mark.needs_data
-def test_real_kitti_cars(yolo, shared_data):
-    path = shared_data / "images" / "kitti06" / "kitti06-12-color.png"
+def test_real_kitti_cars(yolo, data_root):
+    path = data_root / "images" / "kitti06" / "kitti06-12-color.png"
     if not path.is_file():
         pytest.skip(f"{path} absent")
     rgb = read_rgb(path)
@@ -317,10 +316,10 @@ def test_real_kitti_cars(yolo, shared_data):
 
 @pytest.mark.needs_model
 @pytest.mark.needs_data
-def test_real_depth_gate_on_cup(yolo, shared_data):
-    scene = shared_data / "7scenes-redkitchen"
+def test_real_depth_gate_on_cup(yolo, kitchen_dir):
+    scene = kitchen_dir
     boxes = yolo.detect(read_rgb(scene / "frame-000000.color.jpg"))
-    depth = cv2.imread(str(scene / "frame-000000.depth.png"), cv2.IMREAD_UNCHANGED)
+    depth = read_depth_u16(scene / "frame-000000.depth.png")
     assert depth.dtype == np.uint16
     kept = dict((b.class_name, d) for b, d in depth_gate(boxes, depth, 0.001))
     assert 0.3 < kept["cup"] < 3.0  # a mug on the table, seen from standing height
@@ -328,10 +327,10 @@ def test_real_depth_gate_on_cup(yolo, shared_data):
 
 @pytest.mark.needs_model
 @pytest.mark.needs_data
-def test_int8_copy_keeps_detections(model_path, shared_data, tmp_path):
+def test_int8_copy_keeps_detections(model_path, kitchen_dir, tmp_path):
     from services.detector.model_store import quantize_int8
 
-    scene = shared_data / "7scenes-redkitchen"
+    scene = kitchen_dir
     calib = [scene / f"frame-{i:06d}.color.jpg" for i in (100, 300, 450, 600, 850, 950)]
     q = quantize_int8(model_path, calib, tmp_path / "int8.onnx")
     assert q.stat().st_size < model_path.stat().st_size / 3

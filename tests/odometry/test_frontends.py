@@ -15,8 +15,8 @@ from services.odometry.frontends import OdometryError, OdometryInput, make_front
 
 
 @pytest.fixture(scope="module")
-def kitchen(data_root: Path):  # noqa: ANN201
-    return open_dataset(str(data_root / "7scenes-redkitchen"))
+def kitchen(kitchen_dir: Path):  # noqa: ANN201
+    return open_dataset(str(kitchen_dir))
 
 
 def _drifted(seed: int, gt: list) -> list:

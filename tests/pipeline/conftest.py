@@ -1,13 +1,9 @@
-"""Helpers for tests that run the real pipeline: processes, a Zenoh router, collectors."""
+"""Helpers for tests that run the real pipeline: collectors (`semmap_run` and `read_stats` are in
+tests/conftest.py)."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 import threading
-from pathlib import Path
 from typing import TypeVar
 
 import pytest
@@ -16,7 +12,6 @@ from semmap.bus import Bus, BusConfig
 from semmap.messages import Message
 
 M = TypeVar("M", bound=Message)
-PROJECT = Path(__file__).resolve().parents[2]
 
 
 class Collector:
@@ -35,27 +30,6 @@ class Collector:
     def close(self) -> None:
         if not self.bus.session.is_closed():
             self.bus.close()
-
-
-def _semmap_run(args: list[str], timeout: float = 300, env: dict | None = None) -> subprocess.CompletedProcess:
-    """`semmap run ...` as a user would type it (its own process), output captured."""
-    full_env = {**os.environ, "CI": "true", **(env or {})}
-    return subprocess.run([sys.executable, "-m", "semmap.cli", "run", *args, "--quiet"], cwd=PROJECT,
-                          capture_output=True, text=True, timeout=timeout, env=full_env)
-
-
-def _read_stats(out: Path) -> dict:
-    return json.loads((out / "stats.json").read_text())
-
-
-@pytest.fixture
-def semmap_run():
-    return _semmap_run
-
-
-@pytest.fixture
-def read_stats():
-    return _read_stats
 
 
 @pytest.fixture

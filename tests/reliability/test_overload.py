@@ -4,9 +4,6 @@ oldest-first and counted in stats.json, every frame still gets through the pipel
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,12 +12,9 @@ PROJECT = Path(__file__).resolve().parents[2]
 RSS_CEILING_MB = 1500  # every service, whatever the load
 
 
-def _soak(out: Path, data: Path, frames: int, loops: int) -> dict:
-    result = subprocess.run([sys.executable, "-m", "semmap.cli", "run", str(data), "--out", str(out), "--realtime",
-                             "--odometry", "gt", "--set", "run.speed=3", "--set", f"run.loops={loops}",
-                             "--max-frames", str(frames), "--quiet", "--no-viz"],
-                            cwd=PROJECT, capture_output=True, text=True, timeout=1800,
-                            env={**os.environ, "CI": "true"})
+def _soak(semmap_run, out: Path, data: Path, frames: int, loops: int) -> dict:  # noqa: ANN001
+    result = semmap_run([str(data), "--out", str(out), "--realtime", "--odometry", "gt", "--set", "run.speed=3",
+                         "--set", f"run.loops={loops}", "--max-frames", str(frames), "--no-viz"], timeout=1800)
     assert result.returncode == 0, result.stderr[-3000:]
     return json.loads((out / "stats.json").read_text())
 
@@ -38,17 +32,17 @@ def _check(stats: dict, frames: int) -> None:
 
 @pytest.mark.needs_data
 @pytest.mark.needs_model
-def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path) -> None:
-    stats = _soak(tmp_path, data_root / "7scenes-redkitchen", 300, 1)
+def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path, semmap_run) -> None:  # noqa: ANN001
+    stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 300, 1)
     _check(stats, 300)
 
 
 @pytest.mark.slow
 @pytest.mark.needs_data
 @pytest.mark.needs_model
-def test_soak_memory_stays_flat(tmp_path: Path, data_root: Path) -> None:
+def test_soak_memory_stays_flat(tmp_path: Path, data_root: Path, semmap_run) -> None:  # noqa: ANN001
     """Three passes over 7-Scenes at 3x speed (~35 s of 90 Hz input each): no service grows."""
-    stats = _soak(tmp_path, data_root / "7scenes-redkitchen", 3000, 3)
+    stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 3000, 3)
     _check(stats, 3000)
     for name, service in stats["services"].items():
         assert service["rss_late_mb"] - service["rss_early_mb"] < 60, (name, service)

@@ -49,7 +49,10 @@ def test_reverse_start_order_and_a_router_restart(tmp_path: Path) -> None:
         odometry_log = tmp_path / "trajectory_odometry.tum"
         while "pipeline ready" not in (tmp_path / "player.log").read_text() and time.monotonic() < deadline:
             time.sleep(0.2)
+        assert "pipeline ready" in (tmp_path / "player.log").read_text(), "the pipeline never came up"
         time.sleep(3)  # some frames through
+        assert "end of stream after" not in (tmp_path / "player.log").read_text(), \
+            "the stream ended before the router restart: the test proved nothing"
         router.kill()
         router.wait()
         time.sleep(2)

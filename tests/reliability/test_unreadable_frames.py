@@ -4,11 +4,7 @@ waiting for a frame that never comes."""
 
 from __future__ import annotations
 
-import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -20,7 +16,8 @@ FRAMES = 40
 
 
 @pytest.mark.needs_data
-def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, kitchen_dir: Path) -> None:
+def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, kitchen_dir: Path, semmap_run,  # noqa: ANN001
+                                                   read_stats) -> None:  # noqa: ANN001
     src, seq = kitchen_dir, tmp_path / "seq"
     seq.mkdir()
     shutil.copy(src / "camera-intrinsics.txt", seq)
@@ -31,11 +28,9 @@ def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, kitchen_dir: 
     png = (seq / f"frame-{FRAMES - 1:06d}.depth.png").read_bytes()
     (seq / f"frame-{FRAMES - 1:06d}.depth.png").write_bytes(png[: len(png) // 2])
     out = tmp_path / "out"
-    result = subprocess.run([sys.executable, "-m", "semmap.cli", "run", str(seq), "--out", str(out), "--odometry",
-                             "gt", "--lockstep", "--no-viz", "--quiet"], cwd=PROJECT, capture_output=True, text=True,
-                            timeout=300, env={**os.environ, "CI": "true"})
+    result = semmap_run([str(seq), "--out", str(out), "--odometry", "gt", "--lockstep", "--no-viz"])
     assert result.returncode == 0, result.stderr[-3000:]
-    stats = json.loads((out / "stats.json").read_text())
+    stats = read_stats(out)
     assert stats["outcome"] == "completed" and stats["frames"]["unreadable"] == 2
     assert stats["frames"]["published"] == FRAMES - 2
     assert stats["services"]["player"]["counters"]["frames_unreadable"] == 2

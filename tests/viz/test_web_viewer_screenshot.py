@@ -144,16 +144,14 @@ def _page_state(browser: HeadlessChromium) -> str:
 
 @pytest.mark.skipif(chromium_executable() is None,
                     reason="chromium is not installed (Debian package `chromium`; ./dev.sh setup installs it)")
-def test_web_viewer_screenshot_shows_the_landmark_spheres(tmp_path: Path) -> None:
+def test_web_viewer_screenshot_shows_the_landmark_spheres(tmp_path: Path, semmap_run) -> None:  # noqa: ANN001
     env = {**os.environ, "CI": "true", "RERUN_ANALYTICS": "0"}
     started = time.monotonic()
     out = tmp_path / "run"
     # the pipeline as a user runs it, minus what the spheres do not need: no pose-graph backend, no camera images
-    run = subprocess.run(
-        [sys.executable, "-m", "semmap.cli", "run", "synthetic:frames=90", "--out", str(out), "--quiet",
-         "--odometry", "gt", "--only", "odometry,detector,tracker,associator,viz",
-         "--set", "viz.images=false", "--set", "viz.depth_every=0"],
-        cwd=PROJECT, env=env, capture_output=True, text=True, timeout=240)
+    run = semmap_run(["synthetic:frames=90", "--out", str(out), "--odometry", "gt", "--only",
+                      "odometry,detector,tracker,associator,viz", "--set", "viz.images=false", "--set",
+                      "viz.depth_every=0"], timeout=240, env={"RERUN_ANALYTICS": "0"})
     assert run.returncode == 0, run.stderr[-3000:]
     landmarks = json.loads((out / "map.json").read_text())["landmarks"]
     assert len(landmarks) >= 2, "the synthetic run mapped too few landmarks for this test to mean anything"
