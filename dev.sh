@@ -3,6 +3,7 @@
 #   ./dev.sh demo   set everything up, then run the pipeline on the built-in synthetic scene (out/demo)
 #   ./dev.sh test   set everything up, then run the test suite (what CI runs)
 #   ./dev.sh setup  only set up: system libraries, .venv/ with pinned packages, the detector model
+#   ./dev.sh container-base  the local Debian base image of the container test (podman; made once, then kept)
 # Set-up is idempotent and reuses .venv/ and the model cache (~/.cache/semmap/models or $SEMMAP_MODEL_DIR).
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -21,6 +22,14 @@ system_packages() {
   # headless Chromium (software WebGL2 through its bundled SwiftShader) for the web-viewer screenshot test;
   # fonts-liberation is only a Recommends of chromium, so ask for it with it
   command -v chromium >/dev/null 2>&1 || missing+=(chromium fonts-liberation)
+  # compose.yaml in containers (tests/deploy/test_containers.py, docs/DEPLOY.md): podman with runc, podman-compose,
+  # debootstrap for the local base image, catatonit for `init: true`, dnsname so services find `zenoh` by name
+  command -v podman >/dev/null 2>&1 || missing+=(podman)
+  command -v runc >/dev/null 2>&1 || missing+=(runc)
+  command -v podman-compose >/dev/null 2>&1 || missing+=(podman-compose)
+  command -v debootstrap >/dev/null 2>&1 || [ -x /usr/sbin/debootstrap ] || missing+=(debootstrap)
+  [ -x /usr/libexec/podman/catatonit ] || missing+=(catatonit)
+  [ -x /usr/lib/cni/dnsname ] || missing+=(golang-github-containernetworking-plugin-dnsname)
   [ ${#missing[@]} -eq 0 ] && return 0
   echo "dev.sh: installing system packages: ${missing[*]}"
   local sudo=""
@@ -75,6 +84,32 @@ PY
   rm -rf "$tmp"
 }
 
+apt_mirror() {
+  # the Debian mirror apt already uses (deb822 .sources or one-line .list), else deb.debian.org
+  local uri
+  uri=$(grep -hs '^URIs:' /etc/apt/sources.list.d/*.sources | awk '{print $2}' | grep -v security | head -n1 || true)
+  [ -n "$uri" ] || uri=$(grep -hsE '^deb ' /etc/apt/sources.list /etc/apt/sources.list.d/*.list \
+    | awk '{print $2}' | grep -v security | head -n1 || true)
+  echo "${uri:-http://deb.debian.org/debian}"
+}
+
+container_base() {
+  # The base of the container test's image (Docker Hub may be out of reach): a minimal Debian 12 from the Debian
+  # mirror, imported into podman's store once and reused. Only the container test asks for it.
+  local image=localhost/debian:bookworm
+  export CONTAINERS_CONF=${CONTAINERS_CONF:-$PWD/tests/deploy/containers.conf}
+  podman image exists "$image" && return 0
+  local sudo="" rootfs mirror started=$SECONDS
+  [ "$(id -u)" -eq 0 ] || sudo="sudo"
+  mirror=$(apt_mirror)
+  rootfs=$(mktemp -d)
+  echo "dev.sh: making $image with debootstrap from $mirror"
+  $sudo debootstrap --variant=minbase bookworm "$rootfs" "$mirror" >/dev/null
+  $sudo tar -C "$rootfs" -c . | podman import -q - "$image" >/dev/null
+  $sudo rm -rf "$rootfs"
+  echo "dev.sh: $image made in $((SECONDS - started)) s"
+}
+
 setup() {
   system_packages
   python_env
@@ -88,5 +123,6 @@ case "$cmd" in
   setup) setup ;;
   demo) setup; exec .venv/bin/semmap run synthetic --out out/demo "$@" ;;
   test) setup; exec .venv/bin/python -m pytest "$@" ;;
-  *) sed -n '2,6p' "$0"; exit 2 ;;
+  container-base) container_base ;;
+  *) sed -n '2,7p' "$0"; exit 2 ;;
 esac

@@ -1,0 +1,52 @@
+"""`python -m semmap.router`: the router compose runs from semmap's own image where eclipse/zenoh is out of reach."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from semmap.bus import Bus, BusConfig
+from semmap.messages import Control
+from semmap.orchestrator import free_loopback_port
+
+PROJECT = Path(__file__).resolve().parents[2]
+
+
+def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    health = tmp_path / "health"
+    router = subprocess.Popen([sys.executable, "-m", "semmap.router", "--listen", endpoint, "--health-file",
+                               str(health)], cwd=PROJECT, stderr=subprocess.PIPE, text=True)
+    try:
+        client = BusConfig(mode="client", connect=[endpoint], listen=[])
+        a, b = Bus(client, "robot1"), Bus(client, "robot1")  # clients only meet through the router
+        got = threading.Event()
+        b.subscribe(b.keys.control, Control, lambda c: got.set() if c.command == "stop" else None)
+        pub = a.publisher(a.keys.control)
+        assert pub.wait_matching(10)
+        pub.put(Control("robot1", "stop"))
+        assert got.wait(10)
+        a.close()
+        b.close()
+        deadline = time.monotonic() + 10
+        while not health.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        first = health.stat().st_mtime
+        time.sleep(1.5)
+        assert health.stat().st_mtime > first, "the heartbeat file is touched while routing"
+        router.send_signal(signal.SIGTERM)
+        assert router.wait(timeout=15) == 0
+    finally:
+        if router.poll() is None:
+            router.kill()
+            router.wait()
+
+
+def test_router_without_an_endpoint_is_a_usage_error() -> None:
+    result = subprocess.run([sys.executable, "-m", "semmap.router", "--listen", " , "], cwd=PROJECT,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "names no endpoint" in result.stderr
