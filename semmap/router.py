@@ -23,12 +23,19 @@ HEARTBEAT_S = 1.0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="semmap.router", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--listen", default=os.environ.get(ENV_LISTEN) or DEFAULT_LISTEN,
-                        help=f"endpoints to listen on, comma-separated (env {ENV_LISTEN}; default {DEFAULT_LISTEN})")
-    parser.add_argument("--health-file", default=HEALTH_FILE,
-                        help="file touched once a second while routing (env SEMMAP_HEALTH_FILE; default: none)")
+    parser = argparse.ArgumentParser(
+        prog="semmap.router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--listen",
+        default=os.environ.get(ENV_LISTEN) or DEFAULT_LISTEN,
+        help=f"endpoints to listen on, comma-separated (env {ENV_LISTEN}; default {DEFAULT_LISTEN})",
+    )
+    parser.add_argument(
+        "--health-file",
+        default=HEALTH_FILE,
+        help="file touched once a second while routing (env SEMMAP_HEALTH_FILE; default: none)",
+    )
     args = parser.parse_args(argv)
     configure_logging(False, "router")
     log = logging.getLogger("router")

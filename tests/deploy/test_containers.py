@@ -44,8 +44,9 @@ def podman_env() -> dict[str, str]:
     if missing:
         pytest.skip(f"{', '.join(missing)} absent: ./dev.sh setup installs them")
     env = {**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)}
-    made = subprocess.run([str(PROJECT / "dev.sh"), "container-base"], cwd=PROJECT, env=env, capture_output=True,
-                          text=True, timeout=900)
+    made = subprocess.run(
+        [str(PROJECT / "dev.sh"), "container-base"], cwd=PROJECT, env=env, capture_output=True, text=True, timeout=900
+    )
     assert made.returncode == 0, made.stdout[-2000:] + made.stderr[-3000:]
     return env
 
@@ -65,8 +66,9 @@ def _logs(env: dict[str, str], project: str, lines: int = 25) -> str:
     text = []
     for c in _containers(env, project):
         name = c["Names"][0]
-        log = subprocess.run(["podman", "logs", "--tail", str(lines), name], env=env, capture_output=True, text=True,
-                             timeout=60)
+        log = subprocess.run(
+            ["podman", "logs", "--tail", str(lines), name], env=env, capture_output=True, text=True, timeout=60
+        )
         text.append(f"--- {name} ({c['State']}) ---\n{log.stdout}{log.stderr}")
     return "\n".join(text)
 
@@ -120,8 +122,10 @@ def _wait_finished(watch: StatusWatch, env: dict[str, str], project: str) -> dic
         failed = {i: s.message for i, s in statuses.items() if s.state == "failed"}
         assert not failed, f"failed: {failed}\n{_logs(env, project)}"
         per_service = {name: [s for s in statuses.values() if s.service == name] for name in PIPELINE}
-        if all(len(per_service[n]) == count and all(s.state == "finished" for s in per_service[n])
-               for n, count in PIPELINE.items()):
+        if all(
+            len(per_service[n]) == count and all(s.state == "finished" for s in per_service[n])
+            for n, count in PIPELINE.items()
+        ):
             return statuses
         time.sleep(1)
     states = {i: (s.state, s.last_frame_id) for i, s in watch.snapshot().items()}
@@ -149,18 +153,40 @@ def _down(compose: list[str], env: dict[str, str], project: str) -> None:
         _podman(env, "volume", "rm", "-f", vol, check=False)
 
 
-def test_compose_stack_in_containers_maps_like_the_embedded_run(tmp_path: Path, kitchen_dir: Path, podman_env,
-                                                                semmap_run) -> None:  # noqa: ANN001
+def test_compose_stack_in_containers_maps_like_the_embedded_run(
+    tmp_path: Path, kitchen_dir: Path, podman_env, semmap_run
+) -> None:  # noqa: ANN001
     embedded = tmp_path / "embedded"
-    result = semmap_run([str(kitchen_dir), "--out", str(embedded), "--lockstep", "--no-viz", "--odometry", "gt+drift",
-                         "--max-frames", str(FRAMES), "--detectors", str(DETECTORS)], timeout=600)
+    result = semmap_run(
+        [
+            str(kitchen_dir),
+            "--out",
+            str(embedded),
+            "--lockstep",
+            "--no-viz",
+            "--odometry",
+            "gt+drift",
+            "--max-frames",
+            str(FRAMES),
+            "--detectors",
+            str(DETECTORS),
+        ],
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
 
     project = f"semmaptest{os.getpid()}"
     port = free_loopback_port()
-    env = {**podman_env, "SEMMAP_MODE": "lockstep", "SEMMAP_DETECTORS": str(DETECTORS),
-           "SEMMAP_MAX_FRAMES": str(FRAMES), "SEMMAP_ODOMETRY": "gt+drift", "SEMMAP_DATA": str(kitchen_dir.parent),
-           "SEMMAP_DATASET": kitchen_dir.name, "SEMMAP_ROUTER_PORT": str(port)}
+    env = {
+        **podman_env,
+        "SEMMAP_MODE": "lockstep",
+        "SEMMAP_DETECTORS": str(DETECTORS),
+        "SEMMAP_MAX_FRAMES": str(FRAMES),
+        "SEMMAP_ODOMETRY": "gt+drift",
+        "SEMMAP_DATA": str(kitchen_dir.parent),
+        "SEMMAP_DATASET": kitchen_dir.name,
+        "SEMMAP_ROUTER_PORT": str(port),
+    }
     build_args = "--network host --format docker"
     if HOST_CA.is_file():
         build_args += f" --secret id=ca,src={HOST_CA}"
@@ -169,15 +195,22 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(tmp_path: Path, 
     watch: StatusWatch | None = None
     try:
         t0 = time.monotonic()
-        built = subprocess.run([*compose, "build", "zenoh"], cwd=PROJECT, env=env, capture_output=True, text=True,
-                               timeout=1800)
+        built = subprocess.run(
+            [*compose, "build", "zenoh"], cwd=PROJECT, env=env, capture_output=True, text=True, timeout=1800
+        )
         assert built.returncode == 0, built.stdout[-3000:] + built.stderr[-3000:]
         timings["build_s"] = time.monotonic() - t0
 
         t0 = time.monotonic()
         # `docker compose --profile player up --scale detector=2` (podman-compose 1.0.3: no profiles, no --scale)
-        up = subprocess.run([*compose, "up", "-d", "--no-build", *SERVICES], cwd=PROJECT, env=env,
-                            capture_output=True, text=True, timeout=600)
+        up = subprocess.run(
+            [*compose, "up", "-d", "--no-build", *SERVICES],
+            cwd=PROJECT,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert up.returncode == 0, up.stdout[-3000:] + up.stderr[-3000:]
         health = _wait_healthy(env, project, expected=len(SERVICES) + DETECTORS - 1)
         timings["healthy_s"] = time.monotonic() - t0

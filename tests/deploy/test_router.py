@@ -19,8 +19,12 @@ PROJECT = Path(__file__).resolve().parents[2]
 def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     health = tmp_path / "health"
-    router = subprocess.Popen([sys.executable, "-m", "semmap.router", "--listen", endpoint, "--health-file",
-                               str(health)], cwd=PROJECT, stderr=subprocess.PIPE, text=True)
+    router = subprocess.Popen(
+        [sys.executable, "-m", "semmap.router", "--listen", endpoint, "--health-file", str(health)],
+        cwd=PROJECT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         client = BusConfig(mode="client", connect=[endpoint], listen=[])
         a, b = Bus(client, "robot1"), Bus(client, "robot1")  # clients only meet through the router
@@ -47,6 +51,11 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
 
 
 def test_router_without_an_endpoint_is_a_usage_error() -> None:
-    result = subprocess.run([sys.executable, "-m", "semmap.router", "--listen", " , "], cwd=PROJECT,
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "semmap.router", "--listen", " , "],
+        cwd=PROJECT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2 and "names no endpoint" in result.stderr
