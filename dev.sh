@@ -96,7 +96,7 @@ apt_mirror() {
 container_base() {
   # The base of the container test's image (Docker Hub may be out of reach): a minimal Debian 12 from the Debian
   # mirror, imported into podman's store once and reused. Only the container test asks for it.
-  local image=localhost/debian:bookworm
+  local image=${SEMMAP_BASE_IMAGE:-localhost/debian:bookworm}
   export CONTAINERS_CONF=${CONTAINERS_CONF:-$PWD/tests/deploy/containers.conf}
   podman image exists "$image" && return 0
   local sudo="" rootfs mirror started=$SECONDS
