@@ -250,11 +250,30 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
             signal.signal(signal.SIGTERM, previous)
 
 
+def _add_ros2(sub: argparse._SubParsersAction) -> None:
+    from semmap.ros2.bridge import add_arguments
+
+    p = sub.add_parser("ros2", help="ROS 2 bridge: camera + SLAM topics in, landmarks and trajectory out "
+                       "(needs the ros2 extra; see docs/ROS2.md)",
+                       description="Feed a running `semmap run external` from ROS 2 topics and publish the map "
+                       "back. ROS arguments follow --ros-args (remap topics with -r FROM:=TO, parameters with "
+                       "-p NAME:=VALUE).")
+    add_arguments(p)
+    p.set_defaults(func=_ros2)
+
+
+def _ros2(args: argparse.Namespace) -> int:
+    from semmap.ros2.bridge import run
+
+    return run(args, args.ros_args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="semmap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_run(sub)
     _add_view(sub)
+    _add_ros2(sub)
     from semmap.eval_cli import register as register_eval
     from semmap.map_cli import register as register_map
 
@@ -271,7 +290,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = argv[argv.index("--ros-args"):] if argv[:1] == ["ros2"] and "--ros-args" in argv else []
+    args = parser.parse_args(argv[: len(argv) - len(ros_args)])
+    args.ros_args = ros_args
     configure_logging(getattr(args, "verbose", False), "semmap")
     logging.getLogger("semmap.run").setLevel(logging.INFO)
     try:

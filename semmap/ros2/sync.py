@@ -53,8 +53,13 @@ class FrameSync:
     """Colour + depth + pose -> `MatchedFrame`s in stamp order (see module docstring). Not thread-safe: call it
     from one thread (the ROS executor's)."""
 
-    def __init__(self, tolerance_s: float = 0.02, pose_max_gap_s: float = 0.5, max_wait_s: float = 2.0,
-                 pose_to_optical: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        tolerance_s: float = 0.02,
+        pose_max_gap_s: float = 0.5,
+        max_wait_s: float = 2.0,
+        pose_to_optical: np.ndarray | None = None,
+    ) -> None:
         self.tolerance_s = float(tolerance_s)
         self.pose_max_gap_s = float(pose_max_gap_s)
         self.max_wait_s = float(max_wait_s)
@@ -94,8 +99,9 @@ class FrameSync:
     def add_depth(self, msg: Any) -> list[MatchedFrame]:
         try:
             stamp = stamp_seconds(msg.header.stamp)
-            mm = depth_to_mm(str(msg.encoding), int(msg.height), int(msg.width), int(msg.step), msg.data,
-                             bool(msg.is_bigendian))
+            mm = depth_to_mm(
+                str(msg.encoding), int(msg.height), int(msg.width), int(msg.step), msg.data, bool(msg.is_bigendian)
+            )
         except (ConversionError, AttributeError, TypeError, ValueError):
             self.counters["bad_depth"] += 1
             return []
@@ -143,8 +149,12 @@ class FrameSync:
                     self._drop("colour_without_depth")
                     continue
                 break
-            if (self._depths[depth_index].stamp < colour.stamp - 1e-6 and self._depths[-1].stamp < colour.stamp
-                    and self._newest <= colour.stamp + tol and not stale):
+            if (
+                self._depths[depth_index].stamp < colour.stamp - 1e-6
+                and self._depths[-1].stamp < colour.stamp
+                and self._newest <= colour.stamp + tol
+                and not stale
+            ):
                 break  # a depth image closer in time may still come
             pose = pose_at(self._pose_stamps, self._poses, colour.stamp, self.pose_max_gap_s)
             if pose is None:
@@ -164,8 +174,11 @@ class FrameSync:
             del self._depths[: depth_index + 1]
             self._prune_poses(colour.stamp)
             self.counters["matched"] += 1
-            out.append(MatchedFrame(colour.stamp, colour.array, depth.array, pose, self.intrinsics, colour.frame_id,
-                                    self.world_frame))
+            out.append(
+                MatchedFrame(
+                    colour.stamp, colour.array, depth.array, pose, self.intrinsics, colour.frame_id, self.world_frame
+                )
+            )
         self._prune_depths()
         return out
 
