@@ -273,12 +273,14 @@ def run_bridge(robot: str, connect: str | None, zenoh_mode: str | None, ros_args
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        if client is not None:
-            client.close()
-        rclpy.try_shutdown()
+        try:
+            if node is not None:
+                node.stop()
+                node.destroy_node()
+        finally:
+            if client is not None:
+                client.close()
+            rclpy.try_shutdown()
     return 0
 
 
@@ -394,9 +396,10 @@ def _make_node_class() -> type:
             self.link.start()
 
         def stop(self) -> None:
+            """After rclpy's shutdown (SIGINT / SIGTERM): nothing can be published any more; the counters go to
+            the log."""
             self.link.stop()
-            self._tick()
-            self.get_logger().info(f"stopped: {json.dumps(self._status())}")
+            log.info("stopped: %s", json.dumps(self._status()))
 
         # -- inputs ------------------------------------------------------------------------------------------
         def _forward(self, frames: list[MatchedFrame]) -> None:

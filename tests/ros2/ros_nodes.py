@@ -25,6 +25,7 @@ import rclpy
 from geometry_msgs.msg import Point, Quaternion
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
+from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
@@ -122,7 +123,10 @@ def publish(dataset: str, frames: int, bad: bool, rate_hz: float = 15.0) -> int:
         pubs["depth"].publish(_image(t, "16UC1", first.depth))
         pubs["pose"].publish(_odometry(t, np.full((4, 4), math.nan)))
         time.sleep(0.5)
-    time.sleep(2.0)  # let reliable delivery finish before the publishers go
+    for pub in pubs.values():  # reliable: everything delivered before the publishers go
+        if not pub.wait_for_all_acked(Duration(seconds=120)):
+            print(f"{pub.topic_name}: not all messages acknowledged within 120 s", file=sys.stderr)
+            return 1
     node.destroy_node()
     rclpy.shutdown()
     return 0

@@ -131,6 +131,8 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
                 "input_depth:=200",
                 "-p",
                 "end_after_idle_s:=4.0",
+                "-p",
+                "max_wait_s:=60.0",
             ],
         )
         start("listener", [sys.executable, str(NODES), "listen", str(listened), str(FRAMES)])
