@@ -78,6 +78,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "queue_size": (2, "real time: frames waiting for semmap before the oldest is dropped"),
     "map_frame": ("", "frame of the outputs (\"\" = the pose messages' header.frame_id, else 'map')"),
     "corrected_frame": ("semmap_map", "parent frame of /semmap/correction (the corrected world)"),
+    "output_period_s": (1.0, "publish the map and the trajectory at most this often (the latest state)"),
+    "path_max_poses": (500, "the Path holds at most this many poses, evenly spread, the newest always"),
     "topic_timeout_s": (5.0, "report an input topic by name when nothing arrived on it for this long"),
     "end_after_idle_s": (
         0.0,
@@ -299,6 +301,7 @@ def _make_node_class() -> type:
     from nav_msgs.msg import Odometry, Path
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from scipy.spatial.transform import Rotation
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image
     from std_msgs.msg import ColorRGBA, String
     from visualization_msgs.msg import Marker, MarkerArray
@@ -345,7 +348,7 @@ def _make_node_class() -> type:
                 float(p["end_after_idle_s"]),
                 self.counters,
             )
-            self.lock = threading.Lock()  # outputs are published from Zenoh threads
+            self.lock = threading.Lock()  # the map and trajectory state is updated from Zenoh threads
             self.landmarks: dict[int, Landmark] = {}
             qos = QoSProfile(
                 depth=int(p["input_depth"]),
@@ -378,6 +381,10 @@ def _make_node_class() -> type:
             self.status_pub = self.create_publisher(String, STATUS_TOPIC, 10)
             self.started = time.monotonic()
             self.create_timer(1.0, self._tick)
+            self.deleted: set[int] = set()
+            self.map_dirty = False
+            self.corrected: CorrectedPoses | None = None
+            self.create_timer(float(p["output_period_s"]), self._publish_outputs)
             client.on_map_update(self._on_map_update)
             client.on_corrected_poses(self._on_corrected)
             client.on_observations(self._on_observations)
@@ -455,6 +462,7 @@ def _make_node_class() -> type:
             return str(self.params["map_frame"]) or self.sync.world_frame or "map"
 
         def _on_map_update(self, update: MapUpdate) -> None:
+            """(Zenoh thread) Keep the map; the timer publishes it (at most every `output_period_s`)."""
             with self.lock:
                 before = set(self.landmarks)
                 if update.full:
@@ -464,8 +472,25 @@ def _make_node_class() -> type:
                         self.landmarks[lm.id] = lm
                     for gone in [*update.removed, *(absorbed for absorbed, _ in update.merges)]:
                         self.landmarks.pop(gone, None)
-                deleted = sorted(before - set(self.landmarks))
-                self.markers_pub.publish(self._markers(deleted))
+                self.deleted |= before - set(self.landmarks)
+                self.map_dirty = True
+
+        def _on_corrected(self, corrected: CorrectedPoses) -> None:
+            """(Zenoh thread) Keep the newest estimate; the timer publishes it (a 1000-pose Path takes ~20 ms to
+            build: not for every frame)."""
+            with self.lock:
+                self.corrected = corrected
+
+        def _publish_outputs(self) -> None:
+            """(ROS timer) The latest map and trajectory, if they changed."""
+            with self.lock:
+                markers = self._markers(sorted(self.deleted)) if self.map_dirty else None
+                self.deleted, self.map_dirty = set(), False
+                corrected, self.corrected = self.corrected, None
+            if markers is not None:
+                self.markers_pub.publish(markers)
+            if corrected is not None:
+                self._publish_trajectory(corrected)
 
         def _markers(self, deleted: list[int]) -> MarkerArray:
             frame = self._frame_id()
@@ -508,32 +533,40 @@ def _make_node_class() -> type:
                     out.markers.append(marker)
             return out
 
-        def _on_corrected(self, corrected: CorrectedPoses) -> None:
+        def _publish_trajectory(self, corrected: CorrectedPoses) -> None:
             frame = self._frame_id()
             path = Path()
             path.header.frame_id = frame
-            for stamp, pose in zip(corrected.stamps, corrected.poses, strict=True):
-                item = PoseStamped(pose=ros_pose(pose))
+            quats = (
+                Rotation.from_matrix(np.asarray(corrected.poses)[:, :3, :3]).as_quat() if len(corrected.poses) else []
+            )
+            items = []
+            for stamp, pose, q in zip(corrected.stamps, corrected.poses, quats, strict=True):
+                item = PoseStamped()
                 item.header.frame_id = frame
                 item.header.stamp = ros_time(float(stamp))
-                path.poses.append(item)
+                position, orientation = item.pose.position, item.pose.orientation
+                position.x, position.y, position.z = float(pose[0, 3]), float(pose[1, 3]), float(pose[2, 3])
+                orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
+                items.append(item)
+            path.poses = items
             if len(corrected.stamps):
                 path.header.stamp = ros_time(float(corrected.stamps[-1]))
-            with self.lock:
-                self.path_pub.publish(path)
-                sent = self.link.sent
-                for fid, pose in zip(corrected.frame_ids[::-1], corrected.poses[::-1], strict=True):
-                    if int(fid) in sent:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
-                        correction = pose @ np.linalg.inv(sent[int(fid)].pose)
-                        msg = TransformStamped()
-                        msg.header.frame_id = str(self.params["corrected_frame"])
-                        msg.header.stamp = ros_time(sent[int(fid)].stamp)
-                        msg.child_frame_id = frame
-                        q = ros_pose(correction)
-                        msg.transform.translation = Vector3(x=q.position.x, y=q.position.y, z=q.position.z)
-                        msg.transform.rotation = q.orientation
-                        self.correction_pub.publish(msg)
-                        break
+            self.path_pub.publish(path)
+            sent = self.link.sent
+            for fid, pose in zip(corrected.frame_ids[::-1], corrected.poses[::-1], strict=True):
+                frame_sent = sent.get(int(fid))
+                if frame_sent is not None:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
+                    correction = pose @ np.linalg.inv(frame_sent.pose)
+                    msg = TransformStamped()
+                    msg.header.frame_id = str(self.params["corrected_frame"])
+                    msg.header.stamp = ros_time(frame_sent.stamp)
+                    msg.child_frame_id = frame
+                    q = ros_pose(correction)
+                    msg.transform.translation = Vector3(x=q.position.x, y=q.position.y, z=q.position.z)
+                    msg.transform.rotation = q.orientation
+                    self.correction_pub.publish(msg)
+                    break
 
         def _on_observations(self, observations: Observations) -> None:
             sent = self.link.sent.get(observations.frame_id)
