@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -173,3 +174,48 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
     assert path is not None and len(path["poses"]) == FRAMES and path["frame"] == "world"
     assert np.allclose([p[0] for p in path["poses"]], [dataset[i].stamp for i in range(FRAMES)], atol=1e-6)
     assert [lm["id"] for lm in _map(external)] == [lm["id"] for lm in want]
+
+
+def test_a_topic_that_never_arrives_is_reported_by_name_and_ctrl_c_stops_cleanly(tmp_path: Path, ros_env: dict) -> None:
+    """No camera, no semmap: after topic_timeout_s the bridge names each silent input (as remapped); SIGINT ends it
+    with exit code 0."""
+    log = tmp_path / "bridge.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "semmap.cli",
+                "ros2",
+                "--connect",
+                "tcp/127.0.0.1:9",
+                "--ros-args",
+                "-r",
+                "/odom:=/robot/odom",
+                "-p",
+                "topic_timeout_s:=1.0",
+            ],
+            cwd=PROJECT,
+            env=ros_env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while "no message on /robot/odom" not in log.read_text(errors="replace"):
+                assert proc.poll() is None and time.monotonic() < deadline, log.read_text(errors="replace")[-3000:]
+                time.sleep(0.2)
+        finally:
+            os.killpg(proc.pid, signal.SIGINT)
+            code = proc.wait(timeout=60)
+    text = log.read_text(errors="replace")
+    assert code == 0, text[-3000:]
+    for topic in (
+        "/camera/camera/color/image_raw",
+        "/camera/camera/aligned_depth_to_color/image_raw",
+        "/camera/camera/color/camera_info",
+        "/robot/odom",
+    ):
+        assert f"no message on {topic}" in text
+    assert '"missing_topics": ["/camera/camera/color/image_raw"' in text  # the final counters in the log
