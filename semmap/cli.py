@@ -56,6 +56,9 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.add_argument("--robot", default=None, help="robot name used in the key expressions")
     p.add_argument("--max-frames", type=int, default=None, help="play at most N frames")
+    p.add_argument("--topics", default=None, metavar="ROLE=TOPIC,...",
+                   help="ROS bags: topics to use (color, depth, camera_info, pose, groundtruth; default: found by "
+                   "message type), e.g. color=/camera/color/image_raw,pose=/odom")
     p.add_argument("--detectors", type=int, default=1, help="detector replicas")
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
@@ -80,6 +83,8 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f"odometry.seed={args.seed}")
     if args.max_frames is not None:
         overrides.append(f"run.max_frames={args.max_frames}")
+    if args.topics is not None:
+        overrides.append(f"rosbag.topics={args.topics}")
     try:
         config = load_config(args.config, overrides)
         validate_sections(config)
@@ -89,6 +94,9 @@ def _run(args: argparse.Namespace) -> int:
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
+        return 2
+    if not special and (error := _check_bag(args.data, config)):
+        print(f"error: {error}", file=sys.stderr)
         return 2
     if args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
@@ -104,6 +112,21 @@ def _run(args: argparse.Namespace) -> int:
                    overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,
                    quiet=args.quiet)
     return Orchestrator(plan).run()
+
+
+def _check_bag(data: str, config: dict) -> str | None:
+    """A ROS bag is opened once before any service starts, so a missing topic fails at once with the bag's
+    topic list (other datasets are checked by the player)."""
+    from semmap.datasets import DatasetError, open_dataset, reader_options
+
+    options = reader_options(data, config)
+    if not options:
+        return None
+    try:
+        open_dataset(data, **options).close()
+    except DatasetError as exc:
+        return str(exc)
+    return None
 
 
 def _add_view(sub: argparse._SubParsersAction) -> None:
@@ -227,11 +250,30 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
             signal.signal(signal.SIGTERM, previous)
 
 
+def _add_ros2(sub: argparse._SubParsersAction) -> None:
+    from semmap.ros2.bridge import add_arguments
+
+    p = sub.add_parser("ros2", help="ROS 2 bridge: camera + SLAM topics in, landmarks and trajectory out "
+                       "(needs the ros2 extra; see docs/ROS2.md)",
+                       description="Feed a running `semmap run external` from ROS 2 topics and publish the map "
+                       "back. ROS arguments follow --ros-args (remap topics with -r FROM:=TO, parameters with "
+                       "-p NAME:=VALUE).")
+    add_arguments(p)
+    p.set_defaults(func=_ros2)
+
+
+def _ros2(args: argparse.Namespace) -> int:
+    from semmap.ros2.bridge import run
+
+    return run(args, args.ros_args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="semmap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_run(sub)
     _add_view(sub)
+    _add_ros2(sub)
     from semmap.eval_cli import register as register_eval
     from semmap.map_cli import register as register_map
 
@@ -248,7 +290,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = argv[argv.index("--ros-args"):] if argv[:1] == ["ros2"] and "--ros-args" in argv else []
+    args = parser.parse_args(argv[: len(argv) - len(ros_args)])
+    args.ros_args = ros_args
     configure_logging(getattr(args, "verbose", False), "semmap")
     logging.getLogger("semmap.run").setLevel(logging.INFO)
     try:

@@ -14,6 +14,7 @@ from typing import Any
 
 from .base import CameraIntrinsics, Dataset, DatasetError, FrameData, InstanceBox, ObjectTruth
 from .kitti import is_kitti_dir
+from .rosbag import is_rosbag
 from .sevenscenes import is_sevenscenes_dir
 from .tum import is_tum_dir
 
@@ -28,6 +29,7 @@ __all__ = [
     "detect_format",
     "find_data_root",
     "open_dataset",
+    "reader_options",
     "register",
 ]
 
@@ -79,6 +81,12 @@ def _open_kitti(path: Path, **options: Any) -> Dataset:
     return KittiDataset(path, **options)
 
 
+def _open_rosbag(path: Path, **options: Any) -> Dataset:
+    from .rosbag import RosbagDataset
+
+    return RosbagDataset(path, **options)
+
+
 register("synthetic", _open_synthetic, "synthetic[:frames=N,seed=S,size=WxH,...]: the built-in ray-cast scene")
 register(
     "7scenes",
@@ -89,6 +97,12 @@ register(
 register("tum", _open_tum, "TUM RGB-D: a folder with rgb.txt, depth.txt (+ groundtruth.txt)", is_tum_dir)
 register(
     "kitti", _open_kitti, "KITTI odometry: a folder with calib.txt, image_2/, image_3/ (+ times.txt)", is_kitti_dir
+)
+register(
+    "rosbag",
+    _open_rosbag,
+    "ROS bag: a ROS 1 .bag, a rosbag2 folder (.db3 or .mcap + metadata.yaml) or a single .mcap file",
+    is_rosbag,
 )
 
 
@@ -151,6 +165,16 @@ def _resolve(path: Path) -> Path:
     if root is not None and (root / path).exists():
         return root / path
     return path
+
+
+def reader_options(spec: str | Path, config: dict[str, Any]) -> dict[str, Any]:
+    """The keyword options a run's config gives the reader of `spec`: its `rosbag` section for a bag, none else."""
+    text = str(spec).strip()
+    name, _, rest = text.partition(":")
+    if name == "rosbag" and rest:
+        return dict(config.get("rosbag") or {})
+    path = _resolve(Path(text).expanduser())
+    return dict(config.get("rosbag") or {}) if path.exists() and is_rosbag(path) else {}
 
 
 def open_dataset(spec: str | Path, **options: Any) -> Dataset:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from semmap.datasets import DatasetError, open_dataset
+from semmap.datasets import DatasetError, open_dataset, reader_options
 from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.trajectory_io import write_tum
 from semmap.messages import Control, Frame, GroundTruthInstance, Intrinsics, Progress, ServiceStatus
@@ -50,7 +50,7 @@ class PlayerService(Service):
 
     def setup(self) -> None:
         run = self.config["run"]
-        self.dataset: Dataset = open_dataset(self.args.data)
+        self.dataset: Dataset = open_dataset(self.args.data, **reader_options(self.args.data, self.config))
         limit = int(run.get("max_frames") or 0)
         self.loops = max(1, int(run["loops"]))
         self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops

@@ -1,0 +1,221 @@
+"""The ROS 2 bridge with real rclpy nodes, each its own process, discovery on this host only: a camera + SLAM node
+publishes 7-Scenes frames; `semmap ros2` feeds `semmap run external`; the landmarks on /semmap/landmarks equal
+those of `semmap run` on the folder with the same poses from a file."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semmap.datasets import open_dataset
+from semmap.datasets.trajectory_io import write_tum
+
+pytest.importorskip("rclpy", reason="ROS 2 wheels absent: ./dev.sh setup installs the ros2 extra (semmap[ros2])")
+sys.path.insert(0, str(Path(__file__).parents[1] / "datasets"))
+from bag_writer import OFF_GRID_ARGS  # noqa: E402  (ROS header stamps vs n/30: see there)
+
+PROJECT = Path(__file__).resolve().parents[2]
+NODES = Path(__file__).with_name("ros_nodes.py")
+FRAMES = 60
+
+
+@pytest.fixture
+def ros_env(tmp_path: Path) -> dict:
+    """Discovery on this host only, a domain of its own (tests running side by side do not see each other)."""
+    domain = str(100 + os.getpid() % 100)
+    return {
+        **os.environ,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_DOMAIN_ID": domain,
+        "CI": "true",
+        "ROS_LOG_DIR": str(tmp_path / "roslog"),
+        "PYTHONPATH": str(PROJECT),
+    }
+
+
+def _map(out: Path) -> list[dict]:
+    return json.loads((out / "map.json").read_text())["landmarks"]
+
+
+@pytest.mark.needs_model
+def test_bridge_maps_like_the_folder_and_skips_bad_messages(
+    tmp_path: Path, kitchen_dir: Path, router, semmap_run, ros_env: dict
+) -> None:
+    dataset = open_dataset(kitchen_dir)
+    trajectory = tmp_path / "slam.tum"
+    write_tum(trajectory, [(dataset[i].stamp, dataset[i].gt_pose) for i in range(FRAMES)])
+    folder = tmp_path / "folder"
+    result = semmap_run(
+        [
+            str(kitchen_dir),
+            "--out",
+            str(folder),
+            "--odometry",
+            f"file:{trajectory}",
+            "--max-frames",
+            str(FRAMES),
+            "--no-viz",
+            *OFF_GRID_ARGS,
+        ],
+        timeout=400,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    want = _map(folder)
+    assert len(want) >= 3, "the first two seconds show a cup, chairs and a table"
+
+    external = tmp_path / "external"
+    outcome: dict = {}
+    runner = threading.Thread(
+        target=lambda: outcome.setdefault(
+            "run",
+            semmap_run(
+                [
+                    "external",
+                    "--out",
+                    str(external),
+                    "--no-viz",
+                    "--connect",
+                    router.endpoint,
+                    "--zenoh-mode",
+                    "client",
+                    *OFF_GRID_ARGS,
+                ],
+                timeout=500,
+            ),
+        )
+    )
+    runner.start()
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    procs: dict[str, subprocess.Popen] = {}
+
+    def start(name: str, argv: list[str]) -> None:
+        procs[name] = subprocess.Popen(
+            argv,
+            cwd=PROJECT,
+            env=ros_env,
+            stdout=open(logs / f"{name}.log", "w"),  # noqa: SIM115
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+    listened = tmp_path / "listened.json"
+    try:
+        start(
+            "bridge",
+            [
+                sys.executable,
+                "-m",
+                "semmap.cli",
+                "ros2",
+                "--connect",
+                router.endpoint,
+                "--zenoh-mode",
+                "client",
+                "--ros-args",
+                "-r",
+                "/odom:=/slam/odom",
+                "-p",
+                "lockstep:=true",
+                "-p",
+                "reliable_input:=true",
+                "-p",
+                "input_depth:=200",
+                "-p",
+                "end_after_idle_s:=4.0",
+                "-p",
+                "max_wait_s:=60.0",
+            ],
+        )
+        start("listener", [sys.executable, str(NODES), "listen", str(listened), str(FRAMES)])
+        start("camera", [sys.executable, str(NODES), "publish", str(kitchen_dir), str(FRAMES), "--bad"])
+        assert procs["camera"].wait(timeout=300) == 0, (logs / "camera.log").read_text()[-3000:]
+        assert procs["listener"].wait(timeout=400) == 0, (logs / "bridge.log").read_text()[-3000:]
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGINT)
+        for proc in procs.values():
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        runner.join(timeout=300)
+    assert procs["bridge"].returncode == 0, (logs / "bridge.log").read_text()[-3000:]
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+
+    state = json.loads(listened.read_text())
+    status = state["status"]
+    assert status["frames_sent"] == FRAMES and status["frames_done"] == FRAMES and status["ended"]
+    # the bad messages were counted and skipped; none of them became a frame
+    assert status["sync"]["bad_colour"] == 1 and status["sync"]["size_mismatch"] == 1
+    assert status["sync"]["bad_pose"] == 1 and status["sync"]["matched"] == FRAMES
+    markers = state["markers"]
+    assert [m["id"] for m in markers] == [lm["id"] for lm in want]
+    assert [m["label"] for m in markers] == [f"{lm['class']} #{lm['id']}" for lm in want]
+    for m, lm in zip(markers, want, strict=True):
+        assert np.allclose(m["centroid"], lm["centroid"], atol=1e-3), (m, lm)
+        assert np.allclose(m["scale"], np.maximum(lm["extent"], 0.02), atol=1e-3)
+        assert m["frame"] == "world"  # the SLAM's frame (the pose messages' header)
+    colours = {m["label"].split(" #")[0]: tuple(m["colour"]) for m in markers}
+    assert all(tuple(m["colour"]) == colours[m["label"].split(" #")[0]] for m in markers)  # one colour per class
+    # the optimised trajectory arrived, one pose per frame, at the frames' stamps
+    path = state["path"]
+    assert path is not None and len(path["poses"]) == FRAMES and path["frame"] == "world"
+    assert np.allclose([p[0] for p in path["poses"]], [dataset[i].stamp for i in range(FRAMES)], atol=1e-6)
+    assert [lm["id"] for lm in _map(external)] == [lm["id"] for lm in want]
+
+
+def test_a_topic_that_never_arrives_is_reported_by_name_and_ctrl_c_stops_cleanly(tmp_path: Path, ros_env: dict) -> None:
+    """No camera, no semmap: after topic_timeout_s the bridge names each silent input (as remapped); SIGINT ends it
+    with exit code 0."""
+    log = tmp_path / "bridge.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "semmap.cli",
+                "ros2",
+                "--connect",
+                "tcp/127.0.0.1:9",
+                "--ros-args",
+                "-r",
+                "/odom:=/robot/odom",
+                "-p",
+                "topic_timeout_s:=1.0",
+            ],
+            cwd=PROJECT,
+            env=ros_env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while "no message on /robot/odom" not in log.read_text(errors="replace"):
+                assert proc.poll() is None and time.monotonic() < deadline, log.read_text(errors="replace")[-3000:]
+                time.sleep(0.2)
+        finally:
+            os.killpg(proc.pid, signal.SIGINT)
+            code = proc.wait(timeout=60)
+    text = log.read_text(errors="replace")
+    assert code == 0, text[-3000:]
+    for topic in (
+        "/camera/camera/color/image_raw",
+        "/camera/camera/aligned_depth_to_color/image_raw",
+        "/camera/camera/color/camera_info",
+        "/robot/odom",
+    ):
+        assert f"no message on {topic}" in text
+    assert '"missing_topics": ["/camera/camera/color/image_raw"' in text  # the final counters in the log
