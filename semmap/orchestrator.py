@@ -207,7 +207,7 @@ class Orchestrator:
             own_config = zenoh_config_for(plan.zenoh_config, spec.name)
             extra = ["--zenoh-config", own_config] if own_config else []
             if plan.resume and spec.name != "player":
-                extra.append("--resume")
+                extra += ["--resume", "--frame-base", str(self._resume_frame())]
             for r in range(spec.replicas):
                 instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"
                 argv = [sys.executable, "-m", f"services.{spec.name}", *common, "--instance", instance, *extra,
@@ -258,7 +258,7 @@ class Orchestrator:
     def _resume_args(self, child: _Child) -> list[str]:
         """A restarted service picks up its saved state; the player continues after the last finished frame."""
         if child.name != "player":
-            return ["--resume"]
+            return ["--resume", "--frame-base", str(self._frames_done())]
         return ["--start-at", str(self._frames_done())]
 
     def _frames_done(self, default: int = 0) -> int:

@@ -134,6 +134,9 @@ def common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", default=None, choices=("lockstep", "realtime"), help="playback mode")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the state this service saved in --out (after a crash or restart)")
+    parser.add_argument("--frame-base", type=int, default=0, metavar="N",
+                        help="in a run: the frame the stream is at (a restarted service); frame ids further than "
+                        "security.max_frame_gap from it are refused")
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -235,7 +238,9 @@ class Service:
         if not isinstance(frame_id, int) or isinstance(message, Progress) or self.max_frame_gap <= 0:
             return True
         with self._gap_lock:
-            newest = self._newest.get(stream, self.last_frame_id if self.last_frame_id >= 0 else None)
+            newest = self._newest.get(stream)
+            if newest is None and self.bus.trust.key:  # in a run the stream starts where the run is
+                newest = max(self.last_frame_id, int(getattr(self.args, "frame_base", 0) or 0) - 1)
             if newest is not None and abs(frame_id - newest) > self.max_frame_gap:
                 counter = f"rejected_frame_gap[{topic}]"
                 n = self._gap_rejected[counter] = self._gap_rejected.get(counter, 0) + 1
@@ -444,7 +449,7 @@ class Service:
                 self.teardown()
             finally:
                 self.bus.close()
-        return 0
+        return 2 if self.state == "failed" else 0  # failed: its status says why; a restart would not help
 
 
 def service_main(service_cls: type[Service], argv: list[str] | None = None,
