@@ -132,7 +132,7 @@ def _run(args: argparse.Namespace) -> int:
         check_writable(plan.out_dir, float(run["min_free_mb"]))
         preflight_dataset(args.data, config)
     except OutputError as exc:
-        lock.release()
+        lock.release(refused=True)
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:

@@ -15,12 +15,13 @@ import errno
 import fcntl
 import os
 import shutil
+import sqlite3
 import tempfile
 from pathlib import Path
 
 LOCK_NAME = ".semmap.lock"
 # what marks a directory as a semmap run's (only such a directory is wiped by --overwrite)
-RUN_MARKERS = ("stats.json", "logs", LOCK_NAME, "map.json")
+RUN_MARKERS = ("stats.json", "logs", "map.json")
 # errors of the disk itself: no retry or restart helps, the operator must act (named as they are)
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})
 
@@ -57,8 +58,10 @@ class OutputLock:
     def __init__(self, out_dir: Path) -> None:
         self.path = Path(out_dir) / LOCK_NAME
         self._fd: int | None = None
+        self._created = False
 
     def acquire(self) -> None:
+        self._created = not self.path.exists()
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
@@ -74,8 +77,12 @@ class OutputLock:
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
 
-    def release(self) -> None:
+    def release(self, refused: bool = False) -> None:
+        """Unlock; `refused` (the run never started): also remove the lock file if this run created it."""
         if self._fd is not None:
+            if refused and self._created:
+                with contextlib.suppress(OSError):
+                    self.path.unlink()
             with contextlib.suppress(OSError):
                 fcntl.flock(self._fd, fcntl.LOCK_UN)
                 os.close(self._fd)
@@ -124,7 +131,18 @@ def check_writable(out_dir: Path, min_free_mb: float) -> None:
                           f"{min_free_mb:.0f} MB (run.min_free_mb)")
 
 
-def describe_disk_error(exc: OSError) -> str:
+def is_disk_error(exc: BaseException) -> bool:
+    """A full, read-only or failing disk (SQLite says so in words, not with an errno)."""
+    if isinstance(exc, OSError):
+        return exc.errno in DISK_ERRNOS
+    text = str(exc).lower()
+    return isinstance(exc, sqlite3.OperationalError) and any(
+        w in text for w in ("disk is full", "readonly database", "disk i/o error", "unable to open database"))
+
+
+def describe_disk_error(exc: BaseException) -> str:
     """`[Errno 28] No space left on device: 'out/map.sqlite'` -> a line that names the disk as the cause."""
-    where = f" ({exc.filename})" if exc.filename else ""
-    return f"disk error: {exc.strerror or exc}{where}"
+    if isinstance(exc, OSError):
+        where = f" ({exc.filename})" if exc.filename else ""
+        return f"disk error: {exc.strerror or exc}{where}"
+    return f"disk error: {exc} (SQLite)"

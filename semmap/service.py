@@ -13,6 +13,7 @@ import logging
 import os
 import resource
 import signal
+import sqlite3
 import sys
 import threading
 import time
@@ -29,7 +30,7 @@ from semmap.bus import Bus, BusConfig, BusError, Inbox, Publisher, RunTrust
 from semmap.config import ConfigError, load_config
 from semmap.keys import EXTERNAL_SENDER, InvalidNameError
 from semmap.messages import Control, Message, MessageError, Progress, ServiceStatus
-from semmap.outputs import DISK_ERRNOS, describe_disk_error
+from semmap.outputs import describe_disk_error, is_disk_error
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
@@ -361,9 +362,10 @@ class Service:
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self.write_outputs()
-        except OSError as exc:
+        except (OSError, sqlite3.OperationalError) as exc:
             self.log.error("writing outputs failed:\n%s", traceback.format_exc())
-            self.fail(f"writing outputs failed: {describe_disk_error(exc)}")
+            why = describe_disk_error(exc) if is_disk_error(exc) else f"{type(exc).__name__}: {exc}"
+            self.fail(f"writing outputs failed: {why}")
             return False
         except Exception as exc:
             self.log.error("writing outputs failed:\n%s", traceback.format_exc())
@@ -378,8 +380,8 @@ class Service:
         except (MessageError, ValueError) as exc:
             self.metrics.count("bad_input")
             self.log.warning("skipped a bad %s message: %s", what, exc)
-        except OSError as exc:
-            if exc.errno in DISK_ERRNOS:
+        except (OSError, sqlite3.OperationalError) as exc:
+            if is_disk_error(exc):
                 # a full or read-only disk: no retry helps; say so at once rather than as "no progress" later
                 self.metrics.count("errors")
                 self.log.error("%s handler failed:\n%s", what, traceback.format_exc())

@@ -123,7 +123,9 @@ class Hostile:
     def _sniff(self, sample: zenoh.Sample) -> None:
         """The run's own traffic gives its id away on an open bus (what an eavesdropper would do)."""
         with contextlib.suppress(Exception):  # a hostile peer does not care
-            self.live_run = ServiceStatus.decode(sample.payload.to_bytes()).run or self.live_run
+            run = ServiceStatus.decode(sample.payload.to_bytes()).run
+            if run and run != self.foreign.run_id:  # (not its own forgeries)
+                self.live_run = run
 
     def _sniff_progress(self, sample: zenoh.Sample) -> None:
         with contextlib.suppress(Exception):
