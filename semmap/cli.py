@@ -119,7 +119,9 @@ def _run(args: argparse.Namespace) -> int:
                    mode=args.mode or run["mode"], services=specs, config_path=args.config,
                    overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode,
                    zenoh_config=args.zenoh_config, verbose=args.verbose, quiet=args.quiet, deadline_s=deadline,
-                   stall_s=float(run["start_timeout_s"]) + 2 * float(run["frame_timeout_s"]) + 30.0,
+                   # (an external SLAM may connect whenever it likes: no stall limit without a player)
+                   stall_s=0.0 if args.data == "external" else
+                   float(run["start_timeout_s"]) + 2 * float(run["frame_timeout_s"]) + 30.0,
                    resume=args.resume)
     lock = OutputLock(plan.out_dir)
     try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
@@ -310,6 +312,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    finally:
+        if argv is None:  # a process of its own: Zenoh's threads must not keep it alive past its end
+            from semmap.service import exit_backstop
+
+            exit_backstop()
 
 
 if __name__ == "__main__":

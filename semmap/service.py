@@ -471,7 +471,8 @@ def service_main(service_cls: type[Service], argv: list[str] | None = None,
         return 2
     finally:
         # from here on a signal ends the process (no handler needs the main thread), and the interpreter's
-        # shutdown may not hang on Zenoh's threads for longer than the backstop
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, signal.SIG_DFL)
-        exit_backstop()
+        # shutdown may not hang on Zenoh's threads for longer than the backstop (a process of its own only)
+        if argv is None:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, signal.SIG_DFL)
+            exit_backstop()
