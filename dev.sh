@@ -21,6 +21,8 @@ system_packages() {
   # headless Chromium (software WebGL2 through its bundled SwiftShader) for the web-viewer screenshot test;
   # fonts-liberation is only a Recommends of chromium, so ask for it with it
   command -v chromium >/dev/null 2>&1 || missing+=(chromium fonts-liberation)
+  # the secure profile's development certificates (scripts/make-dev-certs.sh) and its tests
+  command -v openssl >/dev/null 2>&1 || missing+=(openssl)
   [ ${#missing[@]} -eq 0 ] && return 0
   echo "dev.sh: installing system packages: ${missing[*]}"
   local sudo=""
