@@ -71,8 +71,10 @@ class OutputLock:
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
             os.close(fd)
-            raise OutputError(f"{self.path.parent} is in use by another semmap run (pid {holder}); wait for it or "
-                              "choose another --out") from None
+            raise OutputError(
+                f"{self.path.parent} is in use by another semmap run (pid {holder}); wait for it or "
+                "choose another --out"
+            ) from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
@@ -100,12 +102,16 @@ def prepare_output_dir(out_dir: Path, resume: bool = False, overwrite: bool = Fa
         raise OutputError(f"--out {out_dir} exists and is not a directory")
     existing = _contents(out_dir)
     if existing and not (resume or overwrite):
-        raise OutputError(f"--out {out_dir} is not empty ({len(existing)} entries, e.g. {existing[0].name}): "
-                          "pass --resume to continue that run, --overwrite to replace it, or choose another --out")
+        raise OutputError(
+            f"--out {out_dir} is not empty ({len(existing)} entries, e.g. {existing[0].name}): "
+            "pass --resume to continue that run, --overwrite to replace it, or choose another --out"
+        )
     if existing and overwrite:
         if not any((out_dir / m).exists() for m in RUN_MARKERS):
-            raise OutputError(f"--out {out_dir} does not look like a semmap output directory (no stats.json, logs/ "
-                              "or map.json): refusing to empty it; choose an empty or new directory")
+            raise OutputError(
+                f"--out {out_dir} does not look like a semmap output directory (no stats.json, logs/ "
+                "or map.json): refusing to empty it; choose an empty or new directory"
+            )
         for entry in existing:
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry)
@@ -127,8 +133,10 @@ def check_writable(out_dir: Path, min_free_mb: float) -> None:
         raise OutputError(f"cannot write to --out {out_dir}: {exc.strerror or exc}") from None
     free_mb = shutil.disk_usage(out_dir).free / 1e6
     if free_mb < min_free_mb:
-        raise OutputError(f"only {free_mb:.0f} MB free on the disk of --out {out_dir}; a run needs at least "
-                          f"{min_free_mb:.0f} MB (run.min_free_mb)")
+        raise OutputError(
+            f"only {free_mb:.0f} MB free on the disk of --out {out_dir}; a run needs at least "
+            f"{min_free_mb:.0f} MB (run.min_free_mb)"
+        )
 
 
 def is_disk_error(exc: BaseException) -> bool:
@@ -137,7 +145,8 @@ def is_disk_error(exc: BaseException) -> bool:
         return exc.errno in DISK_ERRNOS
     text = str(exc).lower()
     return isinstance(exc, sqlite3.OperationalError) and any(
-        w in text for w in ("disk is full", "readonly database", "disk i/o error", "unable to open database"))
+        w in text for w in ("disk is full", "readonly database", "disk i/o error", "unable to open database")
+    )
 
 
 def describe_disk_error(exc: BaseException) -> str:

@@ -19,11 +19,15 @@ from semmap.bus import BusConfig, BusError, open_session
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m semmap.router", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m semmap.router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--zenoh-config", default=None, help="Zenoh configuration file (mode is forced to router)")
-    parser.add_argument("--listen", default=None, help="endpoints to listen on, comma-separated (default: the "
-                        "file's, else tcp/127.0.0.1:7447)")
+    parser.add_argument(
+        "--listen",
+        default=None,
+        help="endpoints to listen on, comma-separated (default: the file's, else tcp/127.0.0.1:7447)",
+    )
     args = parser.parse_args(argv)
     listen = args.listen if args.listen is not None else (None if args.zenoh_config else "tcp/127.0.0.1:7447")
     try:

@@ -64,8 +64,9 @@ def access_control() -> dict:
     subjects = [{"id": identity, "cert_common_names": [identity]} for identity in IDENTITIES]
 
     def rule(rule_id: str, messages: list[str], flows: list[str], topics: list[str]) -> str:
-        rules.append({"id": rule_id, "messages": messages, "flows": flows, "permission": "allow",
-                      "key_exprs": _keys(topics)})
+        rules.append(
+            {"id": rule_id, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": _keys(topics)}
+        )
         return rule_id
 
     for identity in IDENTITIES:
@@ -84,9 +85,14 @@ def access_control() -> dict:
             mine.append(rule(f"{identity}-sub", ["declare_subscriber"], ["ingress"], listens))
             mine.append(rule(f"{identity}-receive", ["put"], ["egress"], listens))
         if identity == "detector":  # replicas share the frames by their liveliness tokens
-            mine.append(rule("detector-replicas", ["liveliness_token", "declare_liveliness_subscriber",
-                                                    "liveliness_query"], ["ingress", "egress"],
-                             ["detector/replicas/**"]))
+            mine.append(
+                rule(
+                    "detector-replicas",
+                    ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                    ["ingress", "egress"],
+                    ["detector/replicas/**"],
+                )
+            )
         if identity == "associator":  # it answers map queries
             mine.append(rule("associator-queryable", ["declare_queryable", "reply"], ["ingress"], ["map/query"]))
             mine.append(rule("associator-queries", ["query"], ["egress"], ["map/query"]))
@@ -94,8 +100,7 @@ def access_control() -> dict:
             mine.append(rule(f"{identity}-query", ["query"], ["ingress"], ["map/query"]))
             mine.append(rule(f"{identity}-replies", ["reply"], ["egress"], ["map/query"]))
         policies.append({"id": f"{identity}-policy", "rules": mine, "subjects": [identity]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 def router_config(cert_dir: Path, listen: list[str]) -> dict:
@@ -105,12 +110,17 @@ def router_config(cert_dir: Path, listen: list[str]) -> dict:
         "listen": {"endpoints": listen},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {
-            "protocols": ["tls"],
-            "tls": {"root_ca_certificate": str(cert_dir / "ca.pem"),
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(cert_dir / "ca.pem"),
                     "listen_private_key": str(cert_dir / "router.key"),
                     "listen_certificate": str(cert_dir / "router.pem"),
-                    "enable_mtls": True}}},
+                    "enable_mtls": True,
+                },
+            }
+        },
         "access_control": access_control(),
     }
 
@@ -121,25 +131,34 @@ def client_config(cert_dir: Path, identity: str, router: list[str]) -> dict:
         "mode": "client",
         "connect": {"endpoints": router},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {
-            "protocols": ["tls"],
-            "tls": {"root_ca_certificate": str(cert_dir / "ca.pem"),
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(cert_dir / "ca.pem"),
                     "connect_private_key": str(cert_dir / f"{identity}.key"),
                     "connect_certificate": str(cert_dir / f"{identity}.pem"),
-                    "enable_mtls": True}}},
+                    "enable_mtls": True,
+                },
+            }
+        },
     }
 
 
-HEADER = ("// semmap secure profile (docs/SECURITY.md), written by `python -m semmap.secure_profile`: mutual TLS\n"
-          "// and the router's access-control list. Regenerate rather than edit.\n")
+HEADER = (
+    "// semmap secure profile (docs/SECURITY.md), written by `python -m semmap.secure_profile`: mutual TLS\n"
+    "// and the router's access-control list. Regenerate rather than edit.\n"
+)
 
 
 def write_profile(cert_dir: Path, out_dir: Path, router: list[str], listen: list[str]) -> list[Path]:
     """router.json5 and one <identity>.json5 per identity; returns the files written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    files = {"router": router_config(cert_dir, listen),
-             **{identity: client_config(cert_dir, identity, router) for identity in IDENTITIES}}
+    files = {
+        "router": router_config(cert_dir, listen),
+        **{identity: client_config(cert_dir, identity, router) for identity in IDENTITIES},
+    }
     for name, body in files.items():
         path = out_dir / f"{name}.json5"
         path.write_text(HEADER + json.dumps(body, indent=2) + "\n")
@@ -148,18 +167,31 @@ def write_profile(cert_dir: Path, out_dir: Path, router: list[str], listen: list
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m semmap.secure_profile", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("cert_dir", type=Path, help="certificates from scripts/make-dev-certs.sh (paths are written "
-                        "as given: use the path the processes will see, e.g. /certs in containers)")
+    parser = argparse.ArgumentParser(
+        prog="python -m semmap.secure_profile",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "cert_dir",
+        type=Path,
+        help="certificates from scripts/make-dev-certs.sh (paths are written "
+        "as given: use the path the processes will see, e.g. /certs in containers)",
+    )
     parser.add_argument("out_dir", type=Path)
-    parser.add_argument("--router", action="append", default=None,
-                        help="where clients connect (default tls/localhost:7447; repeatable)")
-    parser.add_argument("--listen", action="append", default=None,
-                        help="where the router listens (default tls/127.0.0.1:7447: this host only; repeatable)")
+    parser.add_argument(
+        "--router", action="append", default=None, help="where clients connect (default tls/localhost:7447; repeatable)"
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        help="where the router listens (default tls/127.0.0.1:7447: this host only; repeatable)",
+    )
     args = parser.parse_args(argv)
-    files = write_profile(args.cert_dir, args.out_dir, args.router or ["tls/localhost:7447"],
-                          args.listen or ["tls/127.0.0.1:7447"])
+    files = write_profile(
+        args.cert_dir, args.out_dir, args.router or ["tls/localhost:7447"], args.listen or ["tls/127.0.0.1:7447"]
+    )
     print(f"wrote {len(files)} files to {args.out_dir}", file=sys.stderr)
     return 0
 

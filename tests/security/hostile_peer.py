@@ -74,16 +74,22 @@ def forged_messages(rng: np.random.Generator) -> list[tuple[str, Message]]:
     patch = DepthPatch(100, 100, 2, np.full((20, 20), 1200, np.uint16))
     det = Detection((100.0, 100.0, 140.0, 140.0), "cup", 0.95, 1.2, patch)
     measurements = [Measurement(f, f / 30.0, det, INTR, 0.001) for f in range(5, 10)]
-    tracks = Tracks(ROBOT, 10, 10 / 30.0, [CandidateUpdate(900_000 + int(rng.integers(1000)), "cup", measurements,
-                                                           True)], [], [])
-    observations = Observations(ROBOT, 12, 0.4, [Observation(int(rng.integers(0, 12)), "chair",
-                                                             tuple(rng.uniform(-2, 2, 3)), 0.01, 0.5)],
-                                [(0, 1), (2, 3), (4, 5)])
+    tracks = Tracks(
+        ROBOT, 10, 10 / 30.0, [CandidateUpdate(900_000 + int(rng.integers(1000)), "cup", measurements, True)], [], []
+    )
+    observations = Observations(
+        ROBOT,
+        12,
+        0.4,
+        [Observation(int(rng.integers(0, 12)), "chair", tuple(rng.uniform(-2, 2, 3)), 0.01, 0.5)],
+        [(0, 1), (2, 3), (4, 5)],
+    )
     n = 50
     poses = np.stack([_pose(rng) for _ in range(n)])
     corrected = CorrectedPoses(ROBOT, 10_000, 49, np.arange(n, dtype=np.int64), np.arange(n) / 30.0, poses)
-    status = ServiceStatus(ROBOT, "associator", "associator", "failed", 3, {}, {}, 100.0, 1.0,
-                           "forged: the associator lost its map")
+    status = ServiceStatus(
+        ROBOT, "associator", "associator", "failed", 3, {}, {}, 100.0, 1.0, "forged: the associator lost its map"
+    )
     landmark = Landmark(0, "cup", (9.0, 9.0, 9.0), 0.1, (0.1, 0.1, 0.1), 5, 0.0, 1.0)
     out: list[tuple[str, Message]] = [
         (keys.control, Control(ROBOT, "stop")),
@@ -117,8 +123,10 @@ class Hostile:
         self.session.declare_subscriber(self.keys.status_all, self._sniff)
         self.session.declare_subscriber(self.keys.progress_all, self._sniff_progress)
         liveliness = self.session.liveliness()
-        self.tokens = [liveliness.declare_token(self.keys.detector_replica("aaa-fake")),
-                       liveliness.declare_token(self.keys.detector_replica("aaa-fake", "a0foreign0run"))]
+        self.tokens = [
+            liveliness.declare_token(self.keys.detector_replica("aaa-fake")),
+            liveliness.declare_token(self.keys.detector_replica("aaa-fake", "a0foreign0run")),
+        ]
 
     def _sniff(self, sample: zenoh.Sample) -> None:
         """The run's own traffic gives its id away on an open bus (what an eavesdropper would do)."""

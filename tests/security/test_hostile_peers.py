@@ -24,13 +24,31 @@ DATA = "synthetic:frames=60"
 
 
 def _run(out: Path, endpoint: str, semmap_run, *extra: str):  # noqa: ANN001, ANN202
-    return semmap_run([DATA, "--out", str(out), "--no-viz", "--odometry", "gt+drift", "--connect", endpoint,
-                       "--zenoh-mode", "client", *extra], timeout=400)
+    return semmap_run(
+        [
+            DATA,
+            "--out",
+            str(out),
+            "--no-viz",
+            "--odometry",
+            "gt+drift",
+            "--connect",
+            endpoint,
+            "--zenoh-mode",
+            "client",
+            *extra,
+        ],
+        timeout=400,
+    )
 
 
 def _start_hostile(endpoint: str, *extra: str) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "tests.security.hostile_peer", endpoint, "--seconds", "600",
-                             *extra], cwd=PROJECT, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.security.hostile_peer", endpoint, "--seconds", "600", *extra],
+        cwd=PROJECT,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
     return proc
 
@@ -45,8 +63,12 @@ def _peak_rss(stats: dict) -> dict[str, float]:
     return {name: s["peak_rss_mb"] for name, s in stats["services"].items() if "peak_rss_mb" in s}
 
 
-def test_forged_messages_from_every_disguise_change_nothing(tmp_path: Path, router, semmap_run,  # noqa: ANN001
-                                                             read_stats) -> None:  # noqa: ANN001
+def test_forged_messages_from_every_disguise_change_nothing(
+    tmp_path: Path,
+    router,
+    semmap_run,  # noqa: ANN001
+    read_stats,
+) -> None:  # noqa: ANN001
     clean = tmp_path / "clean"
     result = _run(clean, router.endpoint, semmap_run)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -72,17 +94,30 @@ def test_forged_messages_from_every_disguise_change_nothing(tmp_path: Path, rout
     # every refusal counted, by reason and key
     rejected = stats["rejected"]
     assert clean_stats["rejected"] == {}, clean_stats["rejected"]
-    for counter in ("rejected_unsigned[control]", "rejected_foreign_run[control]",
-                    "rejected_bad_signature[control]", "rejected_size[control]",
-                    "rejected_unsigned[frames]", "rejected_foreign_run[frames]", "rejected_bad_signature[frames]",
-                    "rejected_unsigned[status/associator/associator]",
-                    "rejected_bad_signature[status/associator/associator]",
-                    "rejected_unsigned[progress/backend]", "rejected_foreign_run[progress/associator]",
-                    "rejected_unsigned[tracks]", "rejected_foreign_run[tracks]", "rejected_bad_signature[tracks]",
-                    "rejected_unsigned[observations]", "rejected_bad_signature[observations]",
-                    "rejected_unsigned[poses/corrected]", "rejected_foreign_run[poses/corrected]",
-                    "rejected_bad_signature[poses/corrected]", "rejected_unsigned[odometry]",
-                    "rejected_unsigned[detections]", "rejected_foreign_replica"):
+    for counter in (
+        "rejected_unsigned[control]",
+        "rejected_foreign_run[control]",
+        "rejected_bad_signature[control]",
+        "rejected_size[control]",
+        "rejected_unsigned[frames]",
+        "rejected_foreign_run[frames]",
+        "rejected_bad_signature[frames]",
+        "rejected_unsigned[status/associator/associator]",
+        "rejected_bad_signature[status/associator/associator]",
+        "rejected_unsigned[progress/backend]",
+        "rejected_foreign_run[progress/associator]",
+        "rejected_unsigned[tracks]",
+        "rejected_foreign_run[tracks]",
+        "rejected_bad_signature[tracks]",
+        "rejected_unsigned[observations]",
+        "rejected_bad_signature[observations]",
+        "rejected_unsigned[poses/corrected]",
+        "rejected_foreign_run[poses/corrected]",
+        "rejected_bad_signature[poses/corrected]",
+        "rejected_unsigned[odometry]",
+        "rejected_unsigned[detections]",
+        "rejected_foreign_replica",
+    ):
         assert rejected.get(counter, 0) > 0, (counter, rejected)
     detector = next(s for s in stats["services"].values() if s["service"] == "detector")
     assert detector["counters"]["frames_detected"] == 60  # one replica, not "1 of 2" or "1 of 3"
@@ -101,10 +136,19 @@ def _feed_external(endpoint: str, frames: int) -> None:
         for i in range(frames):
             f = dataset[i]
             k = f.intrinsics
-            instances = [GroundTruthInstance(x.instance_id, x.class_name, tuple(x.box), x.visible_pixels, x.moving)
-                         for x in f.instances]
-            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale,
-                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height), instances)
+            instances = [
+                GroundTruthInstance(x.instance_id, x.class_name, tuple(x.box), x.visible_pixels, x.moving)
+                for x in f.instances
+            ]
+            client.publish_frame(
+                i,
+                f.stamp,
+                f.rgb,
+                f.depth,
+                f.depth_scale,
+                Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height),
+                instances,
+            )
             client.publish_pose(i, f.stamp, f.gt_pose)
             client.wait_frame_done(i, timeout=120)
         client.end_of_stream(frames - 1)
@@ -112,17 +156,38 @@ def _feed_external(endpoint: str, frames: int) -> None:
 
 def _external_run(out: Path, endpoint: str, semmap_run):  # noqa: ANN001, ANN202
     outcome: dict = {}
-    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
-        ["external", "--out", str(out), "--no-viz", "--connect", endpoint, "--zenoh-mode", "client", "--set",
-         "detector.kind=oracle"], timeout=400)))
+    runner = threading.Thread(
+        target=lambda: outcome.setdefault(
+            "run",
+            semmap_run(
+                [
+                    "external",
+                    "--out",
+                    str(out),
+                    "--no-viz",
+                    "--connect",
+                    endpoint,
+                    "--zenoh-mode",
+                    "client",
+                    "--set",
+                    "detector.kind=oracle",
+                ],
+                timeout=400,
+            ),
+        )
+    )
     runner.start()
     _feed_external(endpoint, 60)
     runner.join(timeout=400)
     return outcome["run"]
 
 
-def test_an_open_input_run_refuses_absurd_frame_ids_a_foreign_stop_and_a_false_end(tmp_path: Path, router,  # noqa: ANN001
-                                                                                      semmap_run, read_stats) -> None:  # noqa: ANN001
+def test_an_open_input_run_refuses_absurd_frame_ids_a_foreign_stop_and_a_false_end(
+    tmp_path: Path,
+    router,  # noqa: ANN001
+    semmap_run,
+    read_stats,
+) -> None:  # noqa: ANN001
     """`semmap run external` takes unsigned frames, poses and end of stream (an external SLAM has no run key):
     the checks behind the signature still hold there."""
     clean = tmp_path / "clean"

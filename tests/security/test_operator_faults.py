@@ -58,9 +58,14 @@ def _tmpfs(path: Path, options: str) -> Iterator[Path]:
 
 
 def _popen_run(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "semmap.cli", "run", *args, "--quiet"], cwd=PROJECT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "CI": "true"})
+    return subprocess.Popen(
+        [sys.executable, "-m", "semmap.cli", "run", *args, "--quiet"],
+        cwd=PROJECT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "CI": "true"},
+    )
 
 
 def _wait_for_log(path: Path, text: str, timeout: float = 180.0) -> None:
@@ -75,8 +80,9 @@ def _wait_for_log(path: Path, text: str, timeout: float = 180.0) -> None:
 
 def _kitchen_copy(kitchen_dir: Path, dest: Path, frames: int, poses: bool = True, depth_8bit: bool = False) -> Path:
     dest.mkdir(parents=True)
-    shutil.copy(kitchen_dir / "camera-intrinsics.txt", dest) if (kitchen_dir / "camera-intrinsics.txt").exists() \
-        else None
+    shutil.copy(kitchen_dir / "camera-intrinsics.txt", dest) if (
+        kitchen_dir / "camera-intrinsics.txt"
+    ).exists() else None
     for i in range(frames):
         stem = f"frame-{i:06d}"
         shutil.copy(kitchen_dir / f"{stem}.color.jpg", dest)
@@ -115,8 +121,11 @@ def test_read_only_out_is_one_clear_error_and_no_process(tmp_path: Path, semmap_
 
 
 def test_config_values_out_of_range_are_refused_naming_the_key(semmap_run) -> None:  # noqa: ANN001
-    for item, key in (("detector.confidence=-1", "detector.confidence"), ("detector.confidence=1.5",
-                      "detector.confidence"), ("associator.gate_u=0", "associator.gate_u")):
+    for item, key in (
+        ("detector.confidence=-1", "detector.confidence"),
+        ("detector.confidence=1.5", "detector.confidence"),
+        ("associator.gate_u=0", "associator.gate_u"),
+    ):
         result = semmap_run(["synthetic:frames=5", "--set", item], timeout=60)
         assert result.returncode == 2 and key in result.stderr, (item, result.stderr)
 
@@ -133,8 +142,11 @@ def test_a_non_empty_out_needs_resume_or_overwrite(tmp_path: Path, semmap_run) -
 
 
 @pytest.mark.needs_data
-def test_a_dataset_whose_frames_cannot_be_read_is_refused(tmp_path: Path, kitchen_dir: Path,  # noqa: ANN001
-                                                          semmap_run) -> None:  # noqa: ANN001
+def test_a_dataset_whose_frames_cannot_be_read_is_refused(
+    tmp_path: Path,
+    kitchen_dir: Path,  # noqa: ANN001
+    semmap_run,
+) -> None:  # noqa: ANN001
     data = _kitchen_copy(kitchen_dir, tmp_path / "eight-bit", 3, depth_8bit=True)
     out = tmp_path / "out"
     result = semmap_run([str(data), "--out", str(out), "--no-viz"], timeout=120)
@@ -144,8 +156,11 @@ def test_a_dataset_whose_frames_cannot_be_read_is_refused(tmp_path: Path, kitche
 
 
 @pytest.mark.needs_data
-def test_gt_odometry_without_ground_truth_is_refused_at_once(tmp_path: Path, kitchen_dir: Path,  # noqa: ANN001
-                                                             semmap_run) -> None:  # noqa: ANN001
+def test_gt_odometry_without_ground_truth_is_refused_at_once(
+    tmp_path: Path,
+    kitchen_dir: Path,  # noqa: ANN001
+    semmap_run,
+) -> None:  # noqa: ANN001
     data = _kitchen_copy(kitchen_dir, tmp_path / "no-poses", 3, poses=False)
     started = time.monotonic()
     result = semmap_run([str(data), "--out", str(tmp_path / "out"), "--odometry", "gt", "--no-viz"], timeout=120)
@@ -157,8 +172,10 @@ def test_overwrite_replaces_a_previous_run(tmp_path: Path, semmap_run) -> None: 
     out = tmp_path / "run"
     (out / "logs").mkdir(parents=True)
     (out / "stats.json").write_text("{}")
-    result = semmap_run(["synthetic:frames=5", "--out", str(out), "--overwrite", "--no-viz",
-                         "--set", "run.min_free_mb=1e12"], timeout=60)  # refused after the overwrite, before a run
+    result = semmap_run(
+        ["synthetic:frames=5", "--out", str(out), "--overwrite", "--no-viz", "--set", "run.min_free_mb=1e12"],
+        timeout=60,
+    )  # refused after the overwrite, before a run
     assert result.returncode == 2 and "MB free" in result.stderr, result.stderr
     assert not (out / "stats.json").exists() and not (out / "logs").exists()
 
@@ -189,9 +206,13 @@ def test_a_service_that_stops_unasked_fails_the_run(tmp_path: Path) -> None:
     run = _popen_run(["synthetic:frames=2000", "--out", str(out), "--no-viz"])
     _wait_for_log(out / "logs" / "tracker.log", "started as")
     _wait_for_log(out / "logs" / "player.log", "pipeline ready")
-    tracker = next(int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit() and str(out) in
-                   (p / "cmdline").read_bytes().decode(errors="replace") and b"services.tracker" in
-                   (p / "cmdline").read_bytes())
+    tracker = next(
+        int(p.name)
+        for p in Path("/proc").iterdir()
+        if p.name.isdigit()
+        and str(out) in (p / "cmdline").read_bytes().decode(errors="replace")
+        and b"services.tracker" in (p / "cmdline").read_bytes()
+    )
     os.kill(tracker, signal.SIGTERM)  # it writes its outputs and says "stopped", exit 0: nobody asked it to
     _, err = run.communicate(timeout=120)
     assert run.returncode == 1, err[-3000:]
@@ -216,8 +237,9 @@ def test_sigterm_ends_the_run_and_every_service_within_seconds(tmp_path: Path) -
 
 
 def test_the_deadline_fails_a_run_that_takes_too_long(tmp_path: Path, semmap_run) -> None:  # noqa: ANN001
-    result = semmap_run(["synthetic:frames=2000", "--out", str(tmp_path / "run"), "--no-viz", "--deadline", "20"],
-                        timeout=180)
+    result = semmap_run(
+        ["synthetic:frames=2000", "--out", str(tmp_path / "run"), "--no-viz", "--deadline", "20"], timeout=180
+    )
     assert result.returncode == 1 and "deadline of 20 s" in result.stderr, result.stderr[-2000:]
     _assert_no_leftovers(str(tmp_path / "run"))
 
@@ -229,8 +251,9 @@ def test_a_full_disk_names_the_cause_and_truncates_nothing(tmp_path: Path, semma
         filler = disk / "filler"
         free = shutil.disk_usage(disk).free
         filler.write_bytes(b"\0" * (free - 700_000))
-        result = semmap_run(["synthetic:frames=60", "--out", str(out), "--no-viz", "--set", "run.min_free_mb=0.1"],
-                            timeout=300)
+        result = semmap_run(
+            ["synthetic:frames=60", "--out", str(out), "--no-viz", "--set", "run.min_free_mb=0.1"], timeout=300
+        )
         assert result.returncode != 0, result.stderr[-3000:]
         assert "No space left on device" in result.stderr or "disk is full" in result.stderr, result.stderr[-3000:]
         assert "no progress" not in result.stderr.split("\n---")[0]
@@ -242,22 +265,23 @@ def test_a_full_disk_names_the_cause_and_truncates_nothing(tmp_path: Path, semma
 
 
 def _orchestrator(tmp_path: Path) -> Orchestrator:
-    return Orchestrator(RunPlan("data", tmp_path, "robot1", "lockstep", [ServiceSpec("detector"),
-                                                                         ServiceSpec("tracker")]))
+    return Orchestrator(
+        RunPlan("data", tmp_path, "robot1", "lockstep", [ServiceSpec("detector"), ServiceSpec("tracker")])
+    )
 
 
 def test_fewer_frames_processed_than_sent_or_none_fail_the_run(tmp_path: Path) -> None:
     orch = _orchestrator(tmp_path)
-    player = ServiceStatus("robot1", "player", "player", "finished", 59, {"frames_published": 60,
-                                                                          "frames_total": 60})
+    player = ServiceStatus("robot1", "player", "player", "finished", 59, {"frames_published": 60, "frames_total": 60})
     orch.statuses["player"] = player
     orch.progress = {"detector": 59, "tracker": 40}
     with pytest.raises(RunFailed, match="only 41 of the 60 frames"):
         orch._check_frames()
     orch.progress["tracker"] = 59
     orch._check_frames()  # all there
-    orch.statuses["player"] = ServiceStatus("robot1", "player", "player", "finished", -1,
-                                            {"frames_unreadable": 12, "frames_total": 12})
+    orch.statuses["player"] = ServiceStatus(
+        "robot1", "player", "player", "finished", -1, {"frames_unreadable": 12, "frames_total": 12}
+    )
     orch.progress = {}
     with pytest.raises(RunFailed, match="all 12 frames of data were unreadable"):
         orch._check_frames()

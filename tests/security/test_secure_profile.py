@@ -29,15 +29,21 @@ pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("certs")
-    subprocess.run(["bash", str(PROJECT / "scripts" / "make-dev-certs.sh"), str(out)], check=True,
-                   env={**os.environ, "SEMMAP_CERT_EXTRA": "intruder"}, capture_output=True, timeout=120)
+    subprocess.run(
+        ["bash", str(PROJECT / "scripts" / "make-dev-certs.sh"), str(out)],
+        check=True,
+        env={**os.environ, "SEMMAP_CERT_EXTRA": "intruder"},
+        capture_output=True,
+        timeout=120,
+    )
     return out
 
 
 def _with_identity(profile: Path, base: str, name: str, key: str | None, cert: str | None) -> Path:
     """A client file like `base`'s with another certificate (None: no client certificate at all)."""
-    body = json.loads("\n".join(line for line in (profile / f"{base}.json5").read_text().splitlines()
-                                if not line.startswith("//")))
+    body = json.loads(
+        "\n".join(line for line in (profile / f"{base}.json5").read_text().splitlines() if not line.startswith("//"))
+    )
     tls = body["transport"]["link"]["tls"]
     tls.pop("connect_private_key"), tls.pop("connect_certificate")
     if key and cert:
@@ -52,8 +58,13 @@ def secure_router(certs: Path, tmp_path: Path):  # noqa: ANN201
     port = free_loopback_port()
     profile = tmp_path / "profile"
     write_profile(certs, profile, [f"tls/localhost:{port}"], [f"tls/127.0.0.1:{port}"])
-    router = subprocess.Popen([sys.executable, "-m", "semmap.router", "--zenoh-config", str(profile / "router.json5")],
-                              cwd=PROJECT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    router = subprocess.Popen(
+        [sys.executable, "-m", "semmap.router", "--zenoh-config", str(profile / "router.json5")],
+        cwd=PROJECT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert router.stdout is not None and router.stdout.readline().startswith("router up"), router.stderr.read()
     yield f"tls/localhost:{port}", profile
     router.terminate()
@@ -71,8 +82,13 @@ def test_profile_files_cover_every_identity(certs: Path, tmp_path: Path) -> None
         zenoh.Config.from_file(str(path))  # each one a valid Zenoh configuration
 
 
-def test_services_work_and_strangers_can_neither_read_nor_put(secure_router, certs: Path, tmp_path: Path,  # noqa: ANN001
-                                                             semmap_run, read_stats) -> None:  # noqa: ANN001
+def test_services_work_and_strangers_can_neither_read_nor_put(
+    secure_router,
+    certs: Path,
+    tmp_path: Path,  # noqa: ANN001
+    semmap_run,
+    read_stats,
+) -> None:  # noqa: ANN001
     endpoint, profile = secure_router
     keys = Keys("robot1")
     # no certificate: the TLS handshake fails, there is no session at all
@@ -92,8 +108,16 @@ def test_services_work_and_strangers_can_neither_read_nor_put(secure_router, cer
     attempts = {"n": 0}
 
     def forge() -> None:
-        topics = [keys.frames, keys.control, keys.corrected_poses, keys.tracks, keys.observations,
-                  keys.status("associator", "associator"), keys.progress("backend"), keys.odometry]
+        topics = [
+            keys.frames,
+            keys.control,
+            keys.corrected_poses,
+            keys.tracks,
+            keys.observations,
+            keys.status("associator", "associator"),
+            keys.progress("backend"),
+            keys.odometry,
+        ]
         started = time.monotonic()
         while not stop.is_set() and time.monotonic() - started < 25:
             for session in putters:
@@ -109,8 +133,20 @@ def test_services_work_and_strangers_can_neither_read_nor_put(secure_router, cer
     forger.start()
     out = tmp_path / "run"
     try:
-        result = semmap_run(["synthetic:frames=60", "--out", str(out), "--connect", endpoint, "--zenoh-mode",
-                             "client", "--zenoh-config", str(profile)], timeout=400)
+        result = semmap_run(
+            [
+                "synthetic:frames=60",
+                "--out",
+                str(out),
+                "--connect",
+                endpoint,
+                "--zenoh-mode",
+                "client",
+                "--zenoh-config",
+                str(profile),
+            ],
+            timeout=400,
+        )
     finally:
         stop.set()
         forger.join(timeout=10)

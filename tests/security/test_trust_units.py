@@ -91,8 +91,10 @@ def test_signed_buses_refuse_what_they_should(tmp_path: Path) -> None:
     got: list[Progress] = []
     try:
         receiver.subscribe(receiver.keys.progress_all, Progress, got.append)
-        pubs = [(bus, bus.publisher(bus.keys.progress(svc))) for bus, svc in
-                ((member, "tracker"), (stranger, "tracker"), (plain, "tracker"), (member, "backend"))]
+        pubs = [
+            (bus, bus.publisher(bus.keys.progress(svc)))
+            for bus, svc in ((member, "tracker"), (stranger, "tracker"), (plain, "tracker"), (member, "backend"))
+        ]
         for _, pub in pubs:
             assert pub.wait_matching(10)
         for i, (_, pub) in enumerate(pubs):
@@ -101,9 +103,11 @@ def test_signed_buses_refuse_what_they_should(tmp_path: Path) -> None:
         while time.monotonic() < deadline and sum(receiver.rejected.values()) + len(got) < 4:
             time.sleep(0.05)
         assert [(p.frame_id, p.sender, p.run) for p in got] == [(0, "tracker", "run1")]
-        assert receiver.rejected == {"rejected_foreign_run[progress/tracker]": 1,
-                                     "rejected_unsigned[progress/tracker]": 1,
-                                     "rejected_wrong_sender[progress/backend]": 1}
+        assert receiver.rejected == {
+            "rejected_foreign_run[progress/tracker]": 1,
+            "rejected_unsigned[progress/tracker]": 1,
+            "rejected_wrong_sender[progress/backend]": 1,
+        }
     finally:
         for bus in (plain, stranger, member, receiver):
             bus.close()
@@ -111,8 +115,10 @@ def test_signed_buses_refuse_what_they_should(tmp_path: Path) -> None:
 
 def test_a_zenoh_config_file_is_merged_with_semmaps_settings(tmp_path: Path) -> None:
     path = tmp_path / "z.json5"
-    path.write_text('// a user file\n{ mode: "client", connect: { endpoints: ["tcp/10.0.0.1:7447"] },'
-                    ' transport: { link: { tx: { lease: 12345 } } } }')
+    path.write_text(
+        '// a user file\n{ mode: "client", connect: { endpoints: ["tcp/10.0.0.1:7447"] },'
+        " transport: { link: { tx: { lease: 12345 } } } }"
+    )
     kept = BusConfig.from_env(config_file=str(path)).to_zenoh()  # nothing given: the file's settings stay
     assert json.loads(kept.get_json("mode")) == "client"
     assert json.loads(kept.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447"]
@@ -159,11 +165,20 @@ def test_the_output_lock_is_exclusive_across_processes(tmp_path: Path) -> None:
     lock = OutputLock(tmp_path)
     lock.acquire()
     try:
-        other = subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path\n"
-                                "from semmap.outputs import OutputLock, OutputError\n"
-                                f"try: OutputLock(Path({str(tmp_path)!r})).acquire()\n"
-                                "except OutputError as e: print(e); sys.exit(3)"],
-                               cwd=PROJECT, capture_output=True, text=True, timeout=60)
+        other = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "import sys; from pathlib import Path\n"
+                "from semmap.outputs import OutputLock, OutputError\n"
+                f"try: OutputLock(Path({str(tmp_path)!r})).acquire()\n"
+                "except OutputError as e: print(e); sys.exit(3)",
+            ],
+            cwd=PROJECT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert other.returncode == 3 and f"pid {os.getpid()}" in other.stdout
     finally:
         lock.release()
