@@ -30,6 +30,8 @@ system_packages() {
   command -v debootstrap >/dev/null 2>&1 || [ -x /usr/sbin/debootstrap ] || missing+=(debootstrap)
   [ -x /usr/libexec/podman/catatonit ] || missing+=(catatonit)
   [ -x /usr/lib/cni/dnsname ] || missing+=(golang-github-containernetworking-plugin-dnsname)
+  # the secure profile's development certificates (scripts/make-dev-certs.sh) and its tests
+  command -v openssl >/dev/null 2>&1 || missing+=(openssl)
   [ ${#missing[@]} -eq 0 ] && return 0
   echo "dev.sh: installing system packages: ${missing[*]}"
   local sudo=""

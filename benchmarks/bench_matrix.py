@@ -88,7 +88,7 @@ def run_pipeline(case: Case, out_dir: Path, max_frames: int | None, extra: list[
     from semmap.evaluation import evaluate_run
 
     cmd = [sys.executable, "-m", "semmap.cli", "run", case.data, "--out", str(out_dir), "--odometry",
-           case.odometry, "--seed", str(case.seed), "--quiet", "--no-viz"]
+           case.odometry, "--seed", str(case.seed), "--quiet", "--no-viz", "--overwrite"]
     if max_frames:
         cmd += ["--max-frames", str(max_frames)]
     for item in [*case.overrides, *extra]:

@@ -45,7 +45,7 @@ STAGES = [
 
 def run(data: Path, out: Path, mode: str, frames: int, detect_every: int, precision: str) -> dict:
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--out", str(out), f"--{mode}", "--odometry", "gt",
-           "--max-frames", str(frames), "--quiet", "--set", f"detector.every_n_frames={detect_every}",
+           "--max-frames", str(frames), "--quiet", "--overwrite", "--set", f"detector.every_n_frames={detect_every}",
            "--set", f"detector.precision={precision}"]
     result = subprocess.run(cmd, cwd=PROJECT, capture_output=True, text=True, env={**os.environ, "CI": "true"})
     if result.returncode != 0:

@@ -3,12 +3,22 @@
 Default (embedded): every process is a Zenoh *peer* on loopback with explicit endpoints and multicast scouting
 off; `semmap run` listens on one port and services connect to it, then find each other through gossip.
 Deployed: services connect to a Zenoh router (`--connect tcp/router:7447` or `SEMMAP_ZENOH_CONNECT`), usually
-in client mode (`SEMMAP_ZENOH_MODE=client`).
+in client mode (`SEMMAP_ZENOH_MODE=client`). A Zenoh configuration file (`--zenoh-config FILE` or
+`SEMMAP_ZENOH_CONFIG`) adds what semmap does not set itself (TLS, authentication, access control, ...; see
+docs/SECURITY.md); semmap's own settings given by flags or environment win over the file's.
+
+Trust on the bus (docs/SECURITY.md): inside a `semmap run` every message is signed with the run's secret key
+(`SEMMAP_RUN_KEY`, made by the orchestrator and handed to its children only) and the sender's role, and carries
+the run id (`SEMMAP_RUN_ID`). A receiver rejects, and counts, unsigned or badly signed messages, messages of
+another run, messages from a sender that does not own the key (`semmap.keys.PUBLISHERS`), oversized payloads
+and floods beyond a per-key rate.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import json
 import logging
 import os
@@ -19,10 +29,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import msgpack
 import zenoh
 
-from semmap.keys import Keys
-from semmap.messages import Message, MessageError
+from semmap.keys import EXTERNAL_SENDER, Keys
+from semmap.messages import Control, Message, MessageError, Progress, ServiceStatus
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -30,7 +41,14 @@ M = TypeVar("M", bound=Message)
 ENV_CONNECT = "SEMMAP_ZENOH_CONNECT"
 ENV_LISTEN = "SEMMAP_ZENOH_LISTEN"
 ENV_MODE = "SEMMAP_ZENOH_MODE"
+ENV_ZENOH_CONFIG = "SEMMAP_ZENOH_CONFIG"
+ENV_RUN_ID = "SEMMAP_RUN_ID"
+ENV_RUN_KEY = "SEMMAP_RUN_KEY"
+ENV_RUN_OPEN_KEYS = "SEMMAP_RUN_OPEN_KEYS"  # topics a run takes unsigned messages on (`semmap run external`)
 MODES = ("peer", "client", "router")
+SMALL_KINDS = (Control, Progress, ServiceStatus)
+SMALL_MESSAGE_BYTES = 64 * 1024  # control, progress, status: anything bigger is not ours
+DEFAULT_RATE_HZ = 5000.0  # per subscription; a lockstep run stays far below (progress: ~6 messages a frame)
 
 
 class BusError(RuntimeError):
@@ -49,38 +67,164 @@ class BusConfig:
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     multicast_scouting: bool = False
+    config_file: str | None = None  # a Zenoh configuration file (TLS, authentication, access control...)
+    # which of mode / connect / listen were given (flags, environment): those override the file's
+    explicit: frozenset[str] = frozenset({"mode", "connect", "listen"})
 
     @classmethod
-    def from_env(cls, connect: str | None = None, mode: str | None = None, listen: str | None = None) -> BusConfig:
-        """Flags win over environment variables, which win over the embedded default."""
-        mode = mode or os.environ.get(ENV_MODE) or "peer"
+    def from_env(cls, connect: str | None = None, mode: str | None = None, listen: str | None = None,
+                 config_file: str | None = None) -> BusConfig:
+        """Flags win over environment variables, which win over the Zenoh config file, which wins over the
+        embedded default."""
+        config_file = config_file or os.environ.get(ENV_ZENOH_CONFIG) or None
+        if config_file and not os.path.isfile(config_file):
+            raise BusError(f"Zenoh config file {config_file} does not exist (--zenoh-config / {ENV_ZENOH_CONFIG})")
+        explicit = set()
+        mode_given = mode or os.environ.get(ENV_MODE)
+        if mode_given:
+            explicit.add("mode")
+        mode = mode_given or "peer"
         if mode not in MODES:
             raise BusError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
-        connect_list = _split(connect or os.environ.get(ENV_CONNECT))
+        connect_spec = connect or os.environ.get(ENV_CONNECT)
+        if connect_spec:
+            explicit.add("connect")
+        connect_list = _split(connect_spec)
         listen_spec = listen if listen is not None else os.environ.get(ENV_LISTEN)
         if listen_spec is not None:
+            explicit.add("listen")
             listen_list = _split(listen_spec)
         else:
             listen_list = [] if mode == "client" else ["tcp/127.0.0.1:0"]
-        return cls(mode=mode, connect=connect_list, listen=listen_list)
+        if not config_file:  # no file: semmap's defaults are the whole configuration
+            explicit = {"mode", "connect", "listen"}
+        return cls(mode=mode, connect=connect_list, listen=listen_list, config_file=config_file,
+                   explicit=frozenset(explicit))
 
     def to_zenoh(self) -> zenoh.Config:
-        body: dict[str, Any] = {
-            "mode": self.mode,
-            "scouting": {"multicast": {"enabled": self.multicast_scouting}},
-            "connect": {"endpoints": self.connect},
-            "listen": {"endpoints": self.listen},
-        }
-        if self.mode == "client":
-            body.pop("listen")
-        return zenoh.Config.from_json5(json.dumps(body))
+        """The session configuration: the file (if any) with semmap's settings merged in. A setting the file
+        leaves unset gets semmap's default; one given by flag or environment replaces the file's."""
+        if self.config_file:
+            try:
+                cfg = zenoh.Config.from_file(self.config_file)
+            except (zenoh.ZError, OSError) as exc:
+                raise BusError(f"cannot read Zenoh config file {self.config_file}: {exc}") from None
+        else:
+            cfg = zenoh.Config()
+
+        def unset(path: str) -> bool:
+            value = json.loads(cfg.get_json(path))
+            return value is None or value == [] or isinstance(value, dict)  # (listen's per-mode default)
+
+        mode = self.mode if "mode" in self.explicit or unset("mode") else json.loads(cfg.get_json("mode"))
+        cfg.insert_json5("mode", json.dumps(mode))
+        if unset("scouting/multicast/enabled"):
+            cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        if "connect" in self.explicit or unset("connect/endpoints"):
+            cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        if mode != "client" and ("listen" in self.explicit or unset("listen/endpoints")):
+            cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
+        return cfg
 
     def as_args(self) -> list[str]:
         """The command-line flags that give a child process this configuration."""
         args = ["--zenoh-mode", self.mode, "--listen", ",".join(self.listen)]
         if self.connect:
             args += ["--connect", ",".join(self.connect)]
+        if self.config_file:
+            args += ["--zenoh-config", self.config_file]
         return args
+
+
+class Refused(Exception):  # noqa: N818 - a verdict, not a failure
+    """A message refused by the run's trust checks; `reason` names the counter."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass
+class RunTrust:
+    """A run's identity and secret: messages are signed with the sender's role and checked on receipt.
+
+    `key` empty: no signing, no checks (a deployment without `semmap run`; the secure profile's access control
+    protects it). `open_keys`: topics whose unsigned messages are taken (an external SLAM's frames, poses and
+    end of stream in `semmap run external`); they may still not name another run.
+    """
+
+    run_id: str = ""
+    key: bytes = b""
+    sender: str = ""
+    open_keys: frozenset[str] = frozenset()
+
+    @classmethod
+    def from_env(cls, sender: str) -> RunTrust:
+        run_id = os.environ.get(ENV_RUN_ID, "")
+        open_keys = _split(os.environ.get(ENV_RUN_OPEN_KEYS))
+        key_hex = os.environ.get(ENV_RUN_KEY, "")
+        try:
+            key = bytes.fromhex(key_hex)
+        except ValueError:
+            raise BusError(f"{ENV_RUN_KEY} must be hex") from None
+        if key and not run_id:
+            raise BusError(f"{ENV_RUN_KEY} is set but {ENV_RUN_ID} is not")
+        return cls(run_id, key, sender, frozenset(open_keys))
+
+    @staticmethod
+    def new_secret() -> str:
+        return os.urandom(32).hex()
+
+    def _mac(self, key_expr: str, sender: str, payload: bytes) -> bytes:
+        h = hashlib.blake2b(key=self.key, digest_size=16, person=b"semmap-run-v1")
+        h.update(b"\0".join((key_expr.encode(), self.run_id.encode(), sender.encode(), b"")))
+        h.update(payload)
+        return h.digest()
+
+    def sign(self, key_expr: str, payload: bytes) -> bytes | None:
+        if not self.key:
+            return None
+        return msgpack.packb([1, self.run_id, self.sender, self._mac(key_expr, self.sender, payload)])
+
+    def verify(self, key_expr: str, topic: str, payload: bytes, attachment: bytes | None) -> str:
+        """The sender's role, or `Refused`."""
+        if attachment is None:
+            if topic in self.open_keys:
+                return EXTERNAL_SENDER
+            raise Refused("unsigned")
+        try:
+            version, run_id, sender, mac = msgpack.unpackb(attachment, raw=False)
+            if version != 1 or not isinstance(sender, str) or not isinstance(mac, bytes):
+                raise ValueError
+        except Exception:  # noqa: BLE001 - any malformed attachment is one verdict
+            raise Refused("bad_signature") from None
+        if run_id != self.run_id:
+            raise Refused("foreign_run")
+        if not hmac.compare_digest(mac, self._mac(key_expr, sender, payload)):
+            raise Refused("bad_signature")
+        return sender
+
+
+class RateLimit:
+    """A token bucket: `rate` messages a second, bursts of as many (bounded work under a flood)."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.tokens = rate
+        self.at = time.monotonic()
+        self._lock = threading.Lock()
+
+    def take(self) -> bool:
+        if self.rate <= 0:
+            return True
+        with self._lock:
+            now = time.monotonic()
+            self.tokens = min(self.rate, self.tokens + (now - self.at) * self.rate)
+            self.at = now
+            if self.tokens < 1.0:
+                return False
+            self.tokens -= 1.0
+            return True
 
 
 def open_session(config: BusConfig, retries: int = 50, delay_s: float = 0.2) -> zenoh.Session:
@@ -144,28 +288,65 @@ class Inbox:
 class Bus:
     """A Zenoh session for one robot with typed publishers and validated subscriptions."""
 
-    def __init__(self, config: BusConfig, robot: str) -> None:
+    def __init__(self, config: BusConfig, robot: str, trust: RunTrust | None = None,
+                 rate_hz: float = DEFAULT_RATE_HZ) -> None:
         self.keys = Keys(robot)
         self.config = config
+        self.trust = trust or RunTrust()
+        self.rate_hz = rate_hz
         self.session = open_session(config)
-        self.rejected: dict[str, int] = {}
+        self.rejected: dict[str, int] = {}  # by counter name: `rejected[<topic>]` (malformed),
+        # `rejected_<reason>[<topic>]` (unsigned, bad_signature, foreign_run, wrong_sender, size, rate)
         self._lock = threading.Lock()
         self._undeclare: list[Any] = []
 
     def publisher(self, key: str, express: bool = False) -> Publisher:
         pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
         self._undeclare.append(pub)
-        return Publisher(pub)
+        return Publisher(pub, self.trust, key)
 
     def subscribe(self, key: str, kind: type[M], on_message: Callable[[M], None]) -> None:
-        """Decode and validate every sample on `key`; a bad one is logged and counted, never raised."""
+        """Check and decode every sample on `key`; a refused or bad one is logged and counted, never raised.
+
+        In a run (`trust.key`): the signature, the run id, the sender's right to the key; always: the size and
+        the rate. The decoded message gets `.sender` (the signed role, "" outside a run)."""
+        max_bytes = SMALL_MESSAGE_BYTES if issubclass(kind, SMALL_KINDS) else None
+        limit = RateLimit(self.rate_hz)
+        trust = self.trust
 
         def callback(sample: zenoh.Sample) -> None:
+            key_expr = str(sample.key_expr)
+            topic = self.keys.topic(key_expr)
+            payload = sample.payload.to_bytes()
+            sender = ""
             try:
-                message = kind.decode(sample.payload.to_bytes())
-            except MessageError as exc:
-                self._reject(key, str(exc))
+                if max_bytes is not None and len(payload) > max_bytes:
+                    raise Refused("size")
+                if trust.key:
+                    attachment = sample.attachment
+                    sender = trust.verify(key_expr, topic, payload,
+                                          None if attachment is None else attachment.to_bytes())
+                    allowed = self.keys.publishers(key_expr)
+                    if allowed is not None and sender not in allowed:
+                        raise Refused("wrong_sender")
+                if not limit.take():
+                    raise Refused("rate")
+            except Refused as refused:
+                self._reject(f"rejected_{refused.reason}[{topic}]", f"{refused.reason} on {key_expr}")
                 return
+            try:
+                message = kind.decode(payload)
+            except MessageError as exc:
+                self._reject(f"rejected[{topic}]", f"{key}: {exc}")
+                return
+            run = getattr(message, "run", "")
+            if trust.run_id and (run != trust.run_id if sender != EXTERNAL_SENDER else run not in ("", trust.run_id)):
+                self._reject(f"rejected_foreign_run[{topic}]", f"run {run!r} on {key_expr}")
+                return
+            if sender and sender != EXTERNAL_SENDER and getattr(message, "service", sender) != sender:
+                self._reject(f"rejected_wrong_sender[{topic}]", f"{sender} speaking for {message.service}")
+                return
+            message.sender = sender
             on_message(message)
 
         self._undeclare.append(self.session.declare_subscriber(key, callback))
@@ -174,11 +355,11 @@ class Bus:
         inbox.add_stream(stream, capacity)
         self.subscribe(key, kind, lambda message: inbox.put(stream, message))
 
-    def _reject(self, key: str, reason: str) -> None:
+    def _reject(self, counter: str, reason: str) -> None:
         with self._lock:
-            n = self.rejected[key] = self.rejected.get(key, 0) + 1
+            n = self.rejected[counter] = self.rejected.get(counter, 0) + 1
         if n <= 5 or n % 100 == 0:
-            log.warning("rejected message #%d on %s: %s", n, key, reason)
+            log.warning("rejected message #%d (%s): %s", n, counter, reason)
 
     def close(self) -> None:
         for entity in reversed(self._undeclare):
@@ -191,18 +372,26 @@ class Bus:
 class Publisher:
     """Puts `Message`s; stamps `sent_at` and can wait until a subscriber matches (early puts would vanish)."""
 
-    def __init__(self, publisher: zenoh.Publisher) -> None:
+    def __init__(self, publisher: zenoh.Publisher, trust: RunTrust | None = None, key: str = "") -> None:
         self._pub = publisher
+        self._trust = trust or RunTrust()
+        self._key = key
 
     def put(self, message: Message) -> int:
         if hasattr(message, "sent_at"):
             message.sent_at = time.time()
+        if self._trust.run_id:
+            message.run = self._trust.run_id
         payload = message.encode()
-        self._pub.put(payload)
+        self.put_bytes(payload)
         return len(payload)
 
     def put_bytes(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        signature = self._trust.sign(self._key, payload)
+        if signature is None:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, attachment=signature)
 
     def matching(self) -> bool:
         return bool(self._pub.matching_status.matching)

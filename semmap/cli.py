@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from semmap.config import ConfigError, load_config, validate_sections
+from semmap.outputs import OutputError, OutputLock, check_writable, prepare_output_dir
 from semmap.service import configure_logging
 
 # services a run starts, in data-flow order; each is `python -m services.<name>`
@@ -63,6 +64,16 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
     p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    p.add_argument("--zenoh-config", default=os.environ.get("SEMMAP_ZENOH_CONFIG"), metavar="FILE_OR_DIR",
+                   help="Zenoh configuration (TLS, access control; env SEMMAP_ZENOH_CONFIG): one file for every "
+                   "process, or a folder with one <service>.json5 per identity (docs/SECURITY.md)")
+    p.add_argument("--deadline", type=float, default=None, metavar="S",
+                   help="fail the run if it takes longer than S seconds (default: run.deadline_s, 0 = none)")
+    existing = p.add_mutually_exclusive_group()
+    existing.add_argument("--resume", action="store_true",
+                          help="continue the interrupted run in a non-empty --out (services from their journals)")
+    existing.add_argument("--overwrite", action="store_true",
+                          help="replace the previous run in a non-empty --out")
     p.add_argument("--no-viz", action="store_true", help="do not record run.rrd")
     p.add_argument("--serve", action="store_true",
                    help="serve the Rerun web viewer for the live run (http://localhost:9090)")
@@ -106,12 +117,58 @@ def _run(args: argparse.Namespace) -> int:
     if unknown:
         print(f"error: unknown service(s) {', '.join(unknown)}; known: {', '.join(PIPELINE)}", file=sys.stderr)
         return 2
+    if args.zenoh_config and not Path(args.zenoh_config).exists():
+        print(f"error: --zenoh-config {args.zenoh_config} does not exist", file=sys.stderr)
+        return 2
     specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve)
-    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or config["run"]["robot"],
-                   mode=args.mode or config["run"]["mode"], services=specs, config_path=args.config,
-                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,
-                   quiet=args.quiet)
-    return Orchestrator(plan).run()
+    run = config["run"]
+    deadline = args.deadline if args.deadline is not None else float(run["deadline_s"])
+    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run["robot"],
+                   mode=args.mode or run["mode"], services=specs, config_path=args.config,
+                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode,
+                   zenoh_config=args.zenoh_config, verbose=args.verbose, quiet=args.quiet, deadline_s=deadline,
+                   # (an external SLAM may connect whenever it likes: no stall limit without a player)
+                   stall_s=0.0 if args.data == "external" else
+                   float(run["start_timeout_s"]) + 2 * float(run["frame_timeout_s"]) + 30.0,
+                   resume=args.resume)
+    lock = OutputLock(plan.out_dir)
+    try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
+        try:
+            plan.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create --out {plan.out_dir}: {exc.strerror or exc}") from None
+        lock.acquire()
+        prepare_output_dir(plan.out_dir, args.resume, args.overwrite)
+        check_writable(plan.out_dir, float(run["min_free_mb"]))
+        preflight_dataset(args.data, config)
+    except OutputError as exc:
+        lock.release(refused=True)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return Orchestrator(plan).run()
+    finally:
+        lock.release()
+
+
+def preflight_dataset(data: str, config: dict) -> None:
+    """The dataset's first frame reads, and it has ground truth where the odometry needs it (else a run would
+    wait for a frame that never comes and blame 'no progress')."""
+    from semmap.datasets import DatasetError, open_dataset
+
+    if data == "external" or data == "synthetic" or data.startswith("synthetic:"):
+        return
+    try:
+        dataset = open_dataset(data)
+        if len(dataset) == 0:
+            raise OutputError(f"dataset {data} has no frames")
+        dataset[0]
+    except DatasetError as exc:
+        raise OutputError(f"dataset {data}: its first frame cannot be read: {exc}") from None
+    mode = str(config["odometry"]["mode"])
+    if mode in ("gt", "gt+drift") and not dataset.has_groundtruth:
+        raise OutputError(f"--odometry {mode} needs ground-truth poses, and dataset {data} has none: use "
+                          "--odometry rgbd or file:PATH")
 
 
 def _check_bag(data: str, config: dict) -> str | None:
@@ -300,6 +357,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    finally:
+        if argv is None:  # a process of its own: Zenoh's threads must not keep it alive past its end
+            from semmap.service import exit_backstop
+
+            exit_backstop()
 
 
 if __name__ == "__main__":

@@ -12,6 +12,22 @@ import re
 KEYSPACE = "semmap/v1"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
+EXTERNAL_SENDER = "external"  # an unsigned publisher on a key a run leaves open (an external SLAM's inputs)
+# Who may publish on each topic (a run's messages are signed with the sender's role; semmap.bus checks it, and
+# the secure profile's access-control list grants the same puts). `status/<service>/...` and
+# `progress/<service>` belong to `<service>`. A topic not listed here: any member of the run.
+PUBLISHERS: dict[str, tuple[str, ...]] = {
+    "frames": ("player", EXTERNAL_SENDER),
+    "odometry": ("odometry", EXTERNAL_SENDER),
+    "detections": ("detector",),
+    "tracks": ("tracker",),
+    "observations": ("associator",),
+    "observations/tags": ("associator",),
+    "map/updates": ("associator",),
+    "poses/corrected": ("backend",),
+    "control": ("orchestrator", "player", EXTERNAL_SENDER),
+}
+
 
 class InvalidNameError(ValueError):
     """An invalid robot, service or instance name (it would break or widen a key expression)."""
@@ -88,13 +104,32 @@ class Keys:
     def status_all(self) -> str:
         return f"{self.root}/status/**"
 
-    def detector_replica(self, instance: str) -> str:
-        """Liveliness token of one detector replica: replicas share frames by rank among the live tokens."""
-        return f"{self.root}/detector/replicas/{_check(instance, 'instance')}"
+    def detector_replica(self, instance: str, run: str = "") -> str:
+        """Liveliness token of one detector replica: replicas share frames by rank among the live tokens. Within
+        a run (`run` id) the token sits under the run, so a token of another run (or a forged one) is not
+        counted as a replica."""
+        run_chunk = f"{_check(run, 'run')}/" if run else ""
+        return f"{self.root}/detector/replicas/{run_chunk}{_check(instance, 'instance')}"
+
+    def detector_replicas(self, run: str = "") -> str:
+        return f"{self.root}/detector/replicas/{_check(run, 'run') + '/' if run else ''}*"
 
     @property
-    def detector_replicas(self) -> str:
-        return f"{self.root}/detector/replicas/*"
+    def detector_replicas_all(self) -> str:
+        return f"{self.root}/detector/replicas/**"
+
+    def topic(self, key: str) -> str:
+        """`semmap/v1/robot1/poses/corrected` -> `poses/corrected` (the name counters use)."""
+        key = str(key)
+        return key[len(self.root) + 1:] if key.startswith(self.root + "/") else key
+
+    def publishers(self, key: str) -> tuple[str, ...] | None:
+        """The senders allowed to publish on `key` (None: any member of the run)."""
+        topic = self.topic(key)
+        head, _, rest = topic.partition("/")
+        if head in ("status", "progress") and rest:
+            return (rest.split("/", 1)[0],)
+        return PUBLISHERS.get(topic)
 
     @staticmethod
     def instance_of(key: str) -> str:

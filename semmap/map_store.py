@@ -7,7 +7,6 @@ transaction replacing one row. `map.json` is the documented, tool-friendly expor
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Any
 import msgpack
 
 from semmap.messages import Landmark, MessageError
+from semmap.outputs import atomic_write_text
 
 MAP_SCHEMA = "semmap.map/1"
 
@@ -71,9 +71,7 @@ def landmark_json(lm: Landmark) -> dict[str, Any]:
 def write_map_json(path: Path, landmarks: Iterable[Landmark]) -> None:
     """Write `map.json` atomically (write a temporary file, then rename)."""
     body = {"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in sorted(landmarks, key=lambda x: x.id)]}
-    tmp = Path(path).with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(body, indent=1))
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(body, indent=1))
 
 
 def read_map_json(path: Path) -> list[Landmark]:

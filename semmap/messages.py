@@ -155,9 +155,16 @@ def _box(values: Any, name: str = "box") -> tuple[float, float, float, float]:
 
 
 class Message:
-    """Base of all messages: `encode()` to bytes, `decode(bytes)` with validation."""
+    """Base of all messages: `encode()` to bytes, `decode(bytes)` with validation.
+
+    Every message may carry `run`: the id of the `semmap run` that sent it (optional; absent or "" from peers
+    that do not know it, so older peers keep working). Receivers in a run reject messages of another run.
+    `sender` is not on the wire: the bus sets it on receipt to the role the message was signed by.
+    """
 
     SCHEMA: ClassVar[str] = ""
+    run: str = ""  # not a dataclass field of the kinds: handled here, for every kind alike
+    sender: str = ""
 
     def to_dict(self) -> dict:
         raise NotImplementedError
@@ -169,6 +176,8 @@ class Message:
     def encode(self) -> bytes:
         body = self.to_dict()
         body["schema"] = self.SCHEMA
+        if self.run:
+            body["run"] = self.run
         return msgpack.packb(body, use_bin_type=True)
 
     @classmethod
@@ -187,12 +196,18 @@ class Message:
             if isinstance(schema, str) and schema.partition("/")[0] == kind:
                 raise MessageError(f"unsupported version {schema!r}: this build reads {cls.SCHEMA!r}")
             raise MessageError(f"expected schema {cls.SCHEMA!r}, got {schema!r}")
+        run = d.get("run", "")
+        if not isinstance(run, str) or (run and not ROBOT_NAME.match(run)):
+            raise MessageError("field 'run' must be 1-64 letters, digits, '_' or '-'")
         try:
-            return cls.from_dict(d)
+            message = cls.from_dict(d)
         except MessageError:
             raise
         except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError, cv2.error) as exc:
             raise MessageError(f"invalid {cls.SCHEMA} message: {type(exc).__name__}: {exc}") from None
+        if run:
+            message.run = run
+        return message
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -3,6 +3,11 @@
 The orchestrator is itself a Zenoh peer listening on a loopback port (or a client of a router given with
 `--connect`); services connect to it. It shows progress from the services' status messages, fails the run with
 the failing service's log tail when one dies, and writes `stats.json` from their final statuses.
+
+It also keeps the run honest (docs/SECURITY.md): a run id and a secret key for the run's signed messages go to
+its children only (environment); a watchdog fails the run when a child stops unasked (even "exit 0, stopped"),
+when nothing moves for too long, or past the run's deadline; a run that processed fewer frames than its player
+sent, or none, fails with the reason.
 """
 
 from __future__ import annotations
@@ -17,16 +22,20 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import fmean
 
-from semmap.bus import Bus, BusConfig
+from semmap.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
 from semmap.messages import Control, Progress, ServiceStatus
+from semmap.outputs import atomic_write_text, describe_disk_error
+from semmap.service import exit_backstop
 
 log = logging.getLogger("semmap.run")
 
 STOP_GRACE_S = 15.0
+INTERRUPT_GRACE_S = 8.0  # after Ctrl-C / SIGTERM: children get SIGTERM at once, and SIGKILL after this
 MAX_RESTARTS = 5
 RESTART_BACKOFF_S = 0.5
 EXTERNAL = "external"  # `semmap run external`: no player, no odometry; a SLAM feeds the bus (semmap.client)
@@ -53,8 +62,12 @@ class RunPlan:
     overrides: list[str] = field(default_factory=list)
     connect: str | None = None  # a router to join instead of hosting the bus
     zenoh_mode: str | None = None
+    zenoh_config: str | None = None  # a Zenoh config file, or a folder of `<service>.json5` (one identity each)
     verbose: bool = False
     quiet: bool = False
+    deadline_s: float = 0.0  # the whole run (0: none)
+    stall_s: float = 0.0  # nothing moved for this long: the run fails (0: never)
+    resume: bool = False  # continue the run in out_dir (services from their journals, the player after it)
 
 
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
@@ -72,11 +85,22 @@ def free_loopback_port(preferred: int = 0) -> int:
     raise OSError("no free loopback port")
 
 
+def zenoh_config_for(spec: str | None, identity: str) -> str | None:
+    """`--zenoh-config`: one file for every process, or a folder holding one file per identity
+    (`<service>.json5`, `orchestrator.json5`: each its own certificate in the secure profile)."""
+    if not spec or not Path(spec).is_dir():
+        return spec
+    path = Path(spec) / f"{identity}.json5"
+    if not path.is_file():
+        raise RunFailed(f"--zenoh-config {spec} has no {path.name} for {identity}")
+    return str(path)
+
+
 class _Child:
     """One service process; restarted in place (same instance name, same log) when it crashes."""
 
-    def __init__(self, name: str, instance: str, argv: list[str], log_path: Path) -> None:
-        self.name, self.instance, self.argv, self.log_path = name, instance, argv, log_path
+    def __init__(self, name: str, instance: str, argv: list[str], log_path: Path, env: dict[str, str]) -> None:
+        self.name, self.instance, self.argv, self.log_path, self.env = name, instance, argv, log_path, env
         self.log_file = open(log_path, "ab")  # noqa: SIM115 - lives as long as the process
         self.restarts = 0
         self.restart_at: float | None = None  # when a crashed process is due to come back
@@ -84,7 +108,7 @@ class _Child:
 
     def _spawn(self, argv: list[str]) -> subprocess.Popen:
         return subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+                                start_new_session=True, env=self.env)
 
     def restart(self, extra_args: list[str]) -> None:
         self.restarts += 1
@@ -116,12 +140,23 @@ class Orchestrator:
         self.endpoint = ""
         self.restarts: dict[str, int] = {}
         self.rss: dict[str, list[float]] = {}  # per instance, one sample a second (status period)
+        # the run's identity and secret: every message of the run is signed with it (semmap.bus.RunTrust);
+        # children get it through their environment only (not on a command line others can read)
+        self.run_id = uuid.uuid4().hex[:16]
+        self.open_keys = ("frames", "odometry", "control") if plan.data == EXTERNAL else ()
+        self.trust = RunTrust(self.run_id, bytes.fromhex(RunTrust.new_secret()), "orchestrator",
+                              frozenset(self.open_keys))
+        self.failure = ""  # why the run failed, for stats.json
+        self._moved_at = time.monotonic()
+        self._last_motion: tuple = ()
+        self._bus_rejected: dict[str, int] = {}
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _bus_config(self) -> tuple[BusConfig, list[str]]:
-        """The orchestrator's own bus config and the flags its children get."""
+        """The orchestrator's own bus config and the flags its children get (`--zenoh-config` is per child)."""
+        own_file = zenoh_config_for(self.plan.zenoh_config, "orchestrator")
         if self.plan.connect:
-            cfg = BusConfig.from_env(self.plan.connect, self.plan.zenoh_mode or "client")
+            cfg = BusConfig.from_env(self.plan.connect, self.plan.zenoh_mode or "client", config_file=own_file)
             child = ["--connect", self.plan.connect]
             if self.plan.zenoh_mode:
                 child += ["--zenoh-mode", self.plan.zenoh_mode]
@@ -129,8 +164,14 @@ class Orchestrator:
         port = free_loopback_port(DEFAULT_PORT)
         hub = f"tcp/127.0.0.1:{port}"
         self.endpoint = hub
-        return BusConfig(mode="peer", listen=[hub]), ["--zenoh-mode", "peer", "--connect", hub,
-                                                      "--listen", "tcp/127.0.0.1:0"]
+        cfg = BusConfig(mode="peer", listen=[hub], config_file=own_file)
+        return cfg, ["--zenoh-mode", "peer", "--connect", hub, "--listen", "tcp/127.0.0.1:0"]
+
+    def _child_env(self) -> dict[str, str]:
+        env = {**os.environ, ENV_RUN_ID: self.run_id, ENV_RUN_KEY: self.trust.key.hex(),
+               ENV_RUN_OPEN_KEYS: ",".join(self.open_keys)}
+        env.pop("SEMMAP_ZENOH_CONFIG", None)  # each child gets its own file by flag
+        return env
 
     def _on_status(self, s: ServiceStatus) -> None:
         with self.lock:
@@ -157,15 +198,29 @@ class Orchestrator:
         start_after = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if not s.lockstep)
         specs = list(plan.services)
         if plan.data != EXTERNAL:  # an external SLAM publishes the frames and poses itself
-            specs.append(ServiceSpec("player", ["--data", plan.data, "--wait-for", wait_for, "--start-after",
-                                                start_after], 1, False))
+            player_args = ["--data", plan.data, "--wait-for", wait_for, "--start-after", start_after]
+            if plan.resume:
+                player_args += ["--start-at", str(self._resume_frame())]
+            specs.append(ServiceSpec("player", player_args, 1, False))
+        env = self._child_env()
         for spec in specs:
+            own_config = zenoh_config_for(plan.zenoh_config, spec.name)
+            extra = ["--zenoh-config", own_config] if own_config else []
+            if plan.resume and spec.name != "player":
+                extra += ["--resume", "--frame-base", str(self._resume_frame())]
             for r in range(spec.replicas):
                 instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"
-                argv = [sys.executable, "-m", f"services.{spec.name}", *common, "--instance", instance,
+                argv = [sys.executable, "-m", f"services.{spec.name}", *common, "--instance", instance, *extra,
                         *spec.extra_args]
-                self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log"))
+                self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log", env))
                 log.info("started %s (pid %d)", instance, self.children[-1].proc.pid)
+
+    def _resume_frame(self) -> int:
+        """`--resume`: the player starts after the frames the interrupted run processed (its stats.json)."""
+        try:
+            return int(json.loads((self.plan.out_dir / "stats.json").read_text())["frames"]["processed"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return 0
 
     def _check_children(self) -> None:
         """Fail the run on a service that reports failure (bad config, missing model: a restart cannot help);
@@ -181,10 +236,16 @@ class Orchestrator:
             status = self.statuses.get(child.instance)
             if status is not None and status.state == "failed":
                 raise RunFailed(f"{child.instance} failed: {status.message}\n--- {child.log_path} ---\n{child.tail()}")
-            if code is None or (code == 0 and status is not None and status.state in ("finished", "stopped")):
+            if code is None:
                 continue
+            if code == 0:
+                # only the orchestrator stops a run: a child that left on its own (even saying "stopped"), or
+                # one that finished and then left, took part of the run with it
+                state = status.state if status is not None else "no status"
+                raise RunFailed(f"{child.instance} stopped unasked (exit 0, {state})\n--- {child.log_path} ---\n"
+                                f"{child.tail()}")
             if code == 2 or child.restarts >= MAX_RESTARTS:  # 2: a usage / set-up error, it would fail again
-                why = f"exited with code {code}" if code != 0 else "exited early"
+                why = f"exited with code {code}"
                 more = f" after {child.restarts} restarts" if child.restarts else ""
                 raise RunFailed(f"{child.instance} {why}{more}\n--- {child.log_path} ---\n{child.tail()}")
             delay = min(RESTART_BACKOFF_S * 2**child.restarts, 10.0)
@@ -197,13 +258,16 @@ class Orchestrator:
     def _resume_args(self, child: _Child) -> list[str]:
         """A restarted service picks up its saved state; the player continues after the last finished frame."""
         if child.name != "player":
-            return ["--resume"]
+            return ["--resume", "--frame-base", str(self._frames_done())]
         return ["--start-at", str(self._frames_done())]
 
     def _frames_done(self, default: int = 0) -> int:
         """How many frames every lockstep service has finished (`default` when none gates the stream)."""
         with self.lock:
-            done = [self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep]
+            return self._frames_done_locked(default)
+
+    def _frames_done_locked(self, default: int = 0) -> int:
+        done = [self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep]
         return min(done) + 1 if done else default
 
     def _all_finished(self) -> bool:
@@ -214,14 +278,50 @@ class Orchestrator:
                 (s := self.statuses.get(c.instance)) is not None and s.state == "finished" for c in self.children
             )
 
-    def _stop_children(self, control_pub: object | None) -> None:
+    def _check_time(self, started: float) -> None:
+        """The run's deadline, and a backstop for a run in which nothing moves (no frame, no status change)."""
+        now = time.monotonic()
+        if self.plan.deadline_s > 0 and now - started > self.plan.deadline_s:
+            raise RunFailed(f"the run passed its deadline of {self.plan.deadline_s:.0f} s (--deadline / "
+                            f"run.deadline_s) at {self._frames_done()} frames processed")
+        with self.lock:
+            motion = (self._frames_done_locked(), tuple(sorted((i, s.state, s.last_frame_id)
+                                                               for i, s in self.statuses.items())))
+        if motion != self._last_motion:
+            self._last_motion, self._moved_at = motion, now
+        elif self.plan.stall_s > 0 and now - self._moved_at > self.plan.stall_s:
+            raise RunFailed(f"nothing moved for {self.plan.stall_s:.0f} s (no frame processed, no service "
+                            f"changed state) at {self._frames_done()} frames processed")
+
+    def _check_frames(self) -> None:
+        """Every service finished: did they process every frame the player sent? (None, or fewer: a failure.)"""
+        with self.lock:
+            player = next((s for s in self.statuses.values() if s.service == "player"), None)
+        if player is None:  # an external SLAM fed the run
+            return
+        unreadable = player.counters.get("frames_unreadable", 0)
+        total = player.counters.get("frames_total", 0)
+        if player.last_frame_id < 0:
+            why = (f"all {unreadable} frames of {self.plan.data} were unreadable" if unreadable
+                   else f"no frame was published from {self.plan.data}")
+            raise RunFailed(f"no frame was processed: {why} (see logs/player.log)")
+        expected, processed = player.last_frame_id + 1, self._frames_done()
+        if processed < expected:
+            raise RunFailed(f"only {processed} of the {expected} frames the player sent were processed")
+        if unreadable and unreadable >= total:
+            raise RunFailed(f"no frame was processed: all {unreadable} frames were unreadable")
+
+    def _stop_children(self, control_pub: object | None, urgent: bool = False) -> None:
+        """Stop every child: a `stop` message, then SIGTERM, then SIGKILL. `urgent` (interrupted, failed):
+        SIGTERM at once and a short grace, so the whole run is gone within seconds."""
         if control_pub is not None:
             with contextlib.suppress(Exception):  # the bus may be gone; signals follow anyway
                 control_pub.put(Control(self.plan.robot, "stop"))  # type: ignore[attr-defined]
-        deadline = time.monotonic() + STOP_GRACE_S
+        deadline = time.monotonic() + (INTERRUPT_GRACE_S if urgent else STOP_GRACE_S)
         for child in self.children:
-            if child.proc.poll() is None and control_pub is None:
-                child.proc.send_signal(signal.SIGTERM)
+            if child.proc.poll() is None and (control_pub is None or urgent):
+                with contextlib.suppress(ProcessLookupError):
+                    child.proc.send_signal(signal.SIGTERM)
         for child in self.children:
             try:
                 child.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
@@ -288,36 +388,50 @@ class Orchestrator:
             restarts = dict(self.restarts)
         for instance, n in restarts.items():
             services.setdefault(instance, {})["restarts"] = n
+        # every message refused by a trust check, summed over the services (per service in their counters)
+        rejected: dict[str, int] = {}
+        counters_by_source = [s.counters for s in statuses.values()] + [self._bus_rejected]
+        for counters in counters_by_source:
+            for name, n in counters.items():
+                if name.startswith("rejected") or name == "wrong_robot":
+                    rejected[name] = rejected.get(name, 0) + n
         stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
-                 "robot": self.plan.robot, "wall_s": round(wall_s, 2),
+                 "robot": self.plan.robot, "run_id": self.run_id, "wall_s": round(wall_s, 2),
+                 "failure": self.failure, "rejected": dict(sorted(rejected.items())),
                  "frames": {"published": published, "processed": processed, "detected": detected,
                             "dropped": dropped, "unreadable": unreadable},
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "services": services}
         path = self.plan.out_dir / "stats.json"
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(stats, indent=2))
-        os.replace(tmp, path)
+        atomic_write_text(path, json.dumps(stats, indent=2))
         return path
 
     # -- the run --------------------------------------------------------------------------------------------
+    def _on_signal(self, *_: object) -> None:
+        self.interrupted.set()
+        # children get SIGTERM and, after INTERRUPT_GRACE_S, SIGKILL; whatever hangs, this process ends then
+        exit_backstop(int(INTERRUPT_GRACE_S + 15))
+
     def run(self) -> int:
         plan = self.plan
-        plan.out_dir.mkdir(parents=True, exist_ok=True)
-        bus_cfg, child_args = self._bus_config()
-        bus = Bus(bus_cfg, plan.robot)
-        if self.endpoint:
-            log.info("bus: %s (robot %s); e.g. semmap query --connect %s", self.endpoint, plan.robot, self.endpoint)
-        bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
-        bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
-        control_pub = bus.publisher(bus.keys.control)
-        previous = signal.signal(signal.SIGINT, lambda *_: self.interrupted.set())
-        signal.signal(signal.SIGTERM, lambda *_: self.interrupted.set())
         started = time.monotonic()
         outcome, code = "completed", 0
         tty = sys.stderr.isatty() and not plan.quiet
         last_line = 0.0
+        bus: Bus | None = None
+        control_pub = None
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
         try:
+            plan.out_dir.mkdir(parents=True, exist_ok=True)
+            bus_cfg, child_args = self._bus_config()
+            bus = Bus(bus_cfg, plan.robot, self.trust)
+            if self.endpoint:
+                log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,
+                         self.run_id, self.endpoint)
+            bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
+            bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
+            control_pub = bus.publisher(bus.keys.control)
             self._start(child_args)
             while True:
                 if self.interrupted.is_set():
@@ -326,7 +440,9 @@ class Orchestrator:
                     break
                 self._check_children()
                 if self._all_finished():
+                    self._check_frames()
                     break
+                self._check_time(started)
                 now = time.monotonic()
                 if not plan.quiet and (tty and now - last_line > 0.2 or not tty and now - last_line > 5.0):
                     line = self._progress_line(started)
@@ -335,16 +451,29 @@ class Orchestrator:
                 time.sleep(0.05)
             if not plan.quiet:
                 print(("\r" if tty else "") + self._progress_line(started), file=sys.stderr, flush=True)
-        except RunFailed as exc:
+        except (RunFailed, BusError, OSError) as exc:
             outcome, code = "failed", 1
-            print(f"\nerror: {exc}", file=sys.stderr)
+            self.failure = str(exc).split("\n", 1)[0]
+            if isinstance(exc, OSError):
+                self.failure = f"the orchestrator could not go on: {describe_disk_error(exc)}"
+            print(f"\nerror: {exc if not isinstance(exc, OSError) else self.failure}", file=sys.stderr)
         finally:
-            self._stop_children(control_pub)
+            self._stop_children(control_pub, urgent=code != 0)
             time.sleep(0.2)  # last statuses
             wall = time.monotonic() - started
-            stats = self.write_stats(wall, outcome)
-            bus.close()
-            signal.signal(signal.SIGINT, previous)
-        if code == 0 and not plan.quiet:
+            if bus is not None:
+                with bus._lock:
+                    self._bus_rejected = dict(bus.rejected)
+            try:
+                stats: Path | None = self.write_stats(wall, outcome)
+            except OSError as exc:
+                stats = None
+                print(f"error: stats.json not written: {describe_disk_error(exc)}", file=sys.stderr)
+                code = code or 1
+            if bus is not None:
+                bus.close()
+            for sig in (signal.SIGINT, signal.SIGTERM):  # from here on a signal just ends the process
+                signal.signal(sig, signal.SIG_DFL)
+        if code == 0 and not plan.quiet and stats is not None:
             print(f"done in {wall:.1f} s: outputs in {plan.out_dir} ({stats.name}, logs/)", file=sys.stderr)
         return code

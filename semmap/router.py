@@ -1,9 +1,12 @@
-"""A Zenoh router from semmap's own image: `python -m semmap.router [--listen tcp/0.0.0.0:7447]`.
+"""A Zenoh router in a Python process, for hosts and images without `zenohd` (it is not on PyPI or Debian):
 
-Compose deployments use the `eclipse/zenoh` router image. Where that image cannot be pulled (an air-gapped site, the
-container test in CI), a Python Zenoh session in router mode routes the same traffic between client services
-(tests/deploy/compose.podman.yaml selects it). It has no plugins (no REST, no storage), and like every semmap service
-it touches `$SEMMAP_HEALTH_FILE` once a second so the container health check works.
+    python -m semmap.router --listen tcp/127.0.0.1:7447                    # a plain one, this host only
+    python -m semmap.router --zenoh-config deploy/secure/router.json5     # the secure profile's router (TLS + ACL)
+
+Compose deployments use the `eclipse/zenoh` router image; where that image cannot be pulled (an air-gapped site, the
+container test in CI) this routes the same traffic between client services (tests/deploy/compose.podman.yaml selects
+it). It has no plugins (no REST, no storage). Like every semmap service it touches `$SEMMAP_HEALTH_FILE` once a second
+so a container health check works, and it exits on SIGTERM / SIGINT.
 """
 
 from __future__ import annotations
@@ -15,21 +18,25 @@ import signal
 import sys
 import threading
 
+import zenoh
+
 from semmap.bus import ENV_LISTEN, BusConfig, BusError, open_session
 from semmap.service import HEALTH_FILE, configure_logging, touch_health
 
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"  # what zenohd listens on: every interface of its container
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # this host only; a container passes tcp/0.0.0.0:7447 explicitly
 HEARTBEAT_S = 1.0
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="semmap.router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m semmap.router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.add_argument("--zenoh-config", default=None, help="Zenoh configuration file (mode is forced to router)")
     parser.add_argument(
         "--listen",
-        default=os.environ.get(ENV_LISTEN) or DEFAULT_LISTEN,
-        help=f"endpoints to listen on, comma-separated (env {ENV_LISTEN}; default {DEFAULT_LISTEN})",
+        default=os.environ.get(ENV_LISTEN),
+        help=f"endpoints to listen on, comma-separated (env {ENV_LISTEN}; default: the configuration file's, "
+        f"else {DEFAULT_LISTEN})",
     )
     parser.add_argument(
         "--health-file",
@@ -39,19 +46,21 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     configure_logging(False, "router")
     log = logging.getLogger("router")
-    listen = [e.strip() for e in args.listen.split(",") if e.strip()]
-    if not listen:
+    listen = args.listen if args.listen is not None else (None if args.zenoh_config else DEFAULT_LISTEN)
+    if listen is not None and not [e for e in listen.split(",") if e.strip()]:
         log.error("--listen names no endpoint")
+        return 2
+    try:
+        config = BusConfig.from_env(mode="router", listen=listen, config_file=args.zenoh_config)
+        session = open_session(config, retries=5)
+    except (BusError, zenoh.ZError) as exc:  # e.g. the port is taken, a bad configuration file
+        log.error("%s", exc)
         return 2
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    try:
-        session = open_session(BusConfig(mode="router", listen=listen), retries=5)
-    except BusError as exc:  # e.g. the port is taken
-        log.error("%s", exc)
-        return 2
-    log.info("routing on %s (zid %s)", ", ".join(listen), session.zid())
+    print(f"router up ({session.zid()})", flush=True)
+    log.info("routing (zid %s)", session.zid())
     try:
         while True:
             if args.health_file:

@@ -13,6 +13,7 @@ import logging
 import os
 import resource
 import signal
+import sqlite3
 import sys
 import threading
 import time
@@ -25,10 +26,11 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from semmap.bus import Bus, BusConfig, Inbox, Publisher
+from semmap.bus import Bus, BusConfig, BusError, Inbox, Publisher, RunTrust
 from semmap.config import ConfigError, load_config
-from semmap.keys import InvalidNameError
+from semmap.keys import EXTERNAL_SENDER, InvalidNameError
 from semmap.messages import Control, Message, MessageError, Progress, ServiceStatus
+from semmap.outputs import describe_disk_error, is_disk_error
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0
@@ -36,6 +38,16 @@ QUEUE_CAPACITY = 100_000  # messages a stream may queue (real time: unless it as
 REPLAY_FRAMES = 8  # how many recent frames' outputs a service can send again
 MAX_ERRORS_IN_A_ROW = 10  # handler failures in a row that make a service give up (a bug, not bad luck)
 HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched with every status (see semmap.health)
+EXIT_BACKSTOP_S = 10  # after SIGTERM / SIGINT, or once run() returned: the kernel ends a process still alive then
+# (Zenoh's native threads can keep a finishing interpreter alive; SIGALRM's default action terminates)
+CONTROL_SENDERS = {"stop": ("orchestrator",), "end_of_stream": ("player", EXTERNAL_SENDER),
+                   "frame_unreadable": ("player", EXTERNAL_SENDER)}
+
+
+def exit_backstop(seconds: int = EXIT_BACKSTOP_S) -> None:
+    """Make sure this process ends within `seconds` whatever hangs (SIGALRM with its default action: terminate)."""
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+    signal.alarm(seconds)
 
 
 def touch_health(path: str) -> None:
@@ -117,9 +129,15 @@ def common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", default=None, help="Zenoh endpoints to connect to, comma-separated")
     parser.add_argument("--listen", default=None, help="Zenoh endpoints to listen on, comma-separated")
     parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client", "router"))
+    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="Zenoh configuration file (TLS, access control...; env SEMMAP_ZENOH_CONFIG): see "
+                        "docs/SECURITY.md")
     parser.add_argument("--mode", default=None, choices=("lockstep", "realtime"), help="playback mode")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the state this service saved in --out (after a crash or restart)")
+    parser.add_argument("--frame-base", type=int, default=0, metavar="N",
+                        help="in a run: the frame the stream is at (a restarted service); frame ids further than "
+                        "security.max_frame_gap from it are refused")
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -153,6 +171,13 @@ class Service:
         self._sent: dict[int, list[tuple[Publisher, Message]]] = {}  # recent outputs by frame, for replays
         # handling journalled inputs again after a crash: outputs are remembered but not sent (they were sent)
         self.muted = False
+        # frame ids more than this away from the newest one seen on a stream are refused (a forged or broken
+        # publisher must not make a service loop over an absurd gap or skip the frames in between)
+        self.max_frame_gap = int(self.config["security"]["max_frame_gap"])
+        self._newest: dict[str, int] = {}  # per stream, the newest frame id accepted
+        self._gap_rejected: dict[str, int] = {}
+        self._gap_lock = threading.Lock()
+        self.newest_frame_id = -1  # over every stream: an end of stream before it is not believed
         self.bus: Bus
         self._status_pub: Publisher
         self._progress_pub: Publisher
@@ -187,6 +212,8 @@ class Service:
         stream = f"{key}#{kind.SCHEMA}"
         capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
+        topic = self.bus.keys.topic(key)
+
         def checked(message: M) -> None:
             robot = getattr(message, "robot", self.robot)
             if robot != self.robot:  # on our key but naming another robot: a misconfigured publisher
@@ -197,8 +224,35 @@ class Service:
                 return
             handler(message)
 
+        def arrived(message: M) -> None:  # (a Zenoh thread) checked on arrival, before it takes queue space
+            if self._frame_id_plausible(stream, topic, message):
+                self.inbox.put(stream, message)
+
         self._handlers[stream] = checked
-        self.bus.subscribe_to_inbox(key, kind, self.inbox, stream, capacity)
+        self.inbox.add_stream(stream, capacity)
+        self.bus.subscribe(key, kind, arrived)
+
+    def _frame_id_plausible(self, stream: str, topic: str, message: Message) -> bool:
+        """Frame ids move forward within a window: one more than `max_frame_gap` from the newest accepted on
+        this stream (either way) is refused and counted, so no absurd id drives a skip loop or a memory grab."""
+        frame_id = getattr(message, "frame_id", None)
+        if not isinstance(frame_id, int) or isinstance(message, Progress) or self.max_frame_gap <= 0:
+            return True
+        with self._gap_lock:
+            newest = self._newest.get(stream)
+            if newest is None and self.bus.trust.key:  # in a run the stream starts where the run is
+                newest = max(self.last_frame_id, int(getattr(self.args, "frame_base", 0) or 0) - 1)
+            if newest is not None and abs(frame_id - newest) > self.max_frame_gap:
+                counter = f"rejected_frame_gap[{topic}]"
+                n = self._gap_rejected[counter] = self._gap_rejected.get(counter, 0) + 1
+                if n <= 5:
+                    self.log.warning("refused frame id %d on %s: the newest is %d (max gap %d)", frame_id, topic,
+                                     newest, self.max_frame_gap)
+                return False
+            if newest is None or frame_id > newest:
+                self._newest[stream] = frame_id
+                self.newest_frame_id = max(self.newest_frame_id, frame_id)
+        return True
 
     def publisher(self, key: str) -> Publisher:
         return self.bus.publisher(key)
@@ -239,7 +293,8 @@ class Service:
         if self.finished:
             return
         self.finished = True
-        self._write_outputs_safely()
+        if not self._write_outputs_safely():
+            return
         self.state = "finished"
         self.publish_status()
         self.log.info("finished (last frame %d)", self.last_frame_id)
@@ -258,8 +313,10 @@ class Service:
         for stream, n in self.inbox.dropped.items():
             if n:
                 counters[f"dropped[{stream.split('#')[0].rsplit('/', 1)[-1]}]"] = n
-        for key, n in self.bus.rejected.items():
-            counters[f"rejected[{key.rsplit('/', 1)[-1]}]"] = n
+        with self.bus._lock:
+            counters.update(self.bus.rejected)
+        with self._gap_lock:
+            counters.update(self._gap_rejected)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         status = ServiceStatus(self.robot, self.name, self.instance, self.state, self.last_frame_id, counters,
                                self.metrics.summary(), rss, usage.ru_utime + usage.ru_stime, message)
@@ -273,23 +330,48 @@ class Service:
 
     # -- the loop --------------------------------------------------------------------------------------------
     def _on_control(self, control: Control) -> None:
+        # in a run, each command has its owner: `stop` the orchestrator, the stream's end and gaps the player
+        # (or an external SLAM where the run leaves control open); the bus has checked who signed it
+        if self.bus.trust.key and control.sender not in CONTROL_SENDERS[control.command]:
+            self._refuse_control(control, f"{control.command} from {control.sender!r}")
+            return
         if control.command == "stop":
             self.stop_event.set()
         elif control.command == "frame_unreadable":
             self.metrics.count("unreadable_skipped")
             self.on_frame_unreadable(control.last_frame_id)
         elif control.command == "end_of_stream":
+            if control.last_frame_id < self.newest_frame_id or (
+                    self.end_of_stream is not None and control.last_frame_id != self.end_of_stream.last_frame_id):
+                # the stream cannot end before a frame this service already has, nor end twice differently
+                self._refuse_control(control, f"end of stream at frame {control.last_frame_id}, but frame "
+                                     f"{self.newest_frame_id} was seen")
+                return
             self.end_of_stream = control
             self.on_end_of_stream(control)
 
-    def _write_outputs_safely(self) -> None:
+    def _refuse_control(self, control: Control, why: str) -> None:
+        self.metrics.count(f"rejected_control[{control.command}]")
+        if self.metrics.counters[f"rejected_control[{control.command}]"] <= 5:
+            self.log.warning("refused control: %s", why)
+
+    def _write_outputs_safely(self) -> bool:
+        """Write the outputs; a failure fails the service with its cause (a full disk is named as such)."""
         if self.out_dir is None:
-            return
+            return True
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self.write_outputs()
-        except Exception:
+        except (OSError, sqlite3.OperationalError) as exc:
             self.log.error("writing outputs failed:\n%s", traceback.format_exc())
+            why = describe_disk_error(exc) if is_disk_error(exc) else f"{type(exc).__name__}: {exc}"
+            self.fail(f"writing outputs failed: {why}")
+            return False
+        except Exception as exc:
+            self.log.error("writing outputs failed:\n%s", traceback.format_exc())
+            self.fail(f"writing outputs failed: {type(exc).__name__}: {exc}")
+            return False
+        return True
 
     def _guarded(self, fn: Callable[..., None], message: Any = None, what: str = "tick") -> None:
         """Run one handler; bad input is a counted skip, any other failure a counted, logged error."""
@@ -298,21 +380,40 @@ class Service:
         except (MessageError, ValueError) as exc:
             self.metrics.count("bad_input")
             self.log.warning("skipped a bad %s message: %s", what, exc)
+        except (OSError, sqlite3.OperationalError) as exc:
+            if is_disk_error(exc):
+                # a full or read-only disk: no retry helps; say so at once rather than as "no progress" later
+                self.metrics.count("errors")
+                self.log.error("%s handler failed:\n%s", what, traceback.format_exc())
+                self.fail(describe_disk_error(exc))
+            else:
+                self._handler_failed(what)
         except Exception:
-            self._error_count += 1
-            self._errors_in_a_row += 1
-            self.metrics.count("errors")
-            self.log.error("%s handler failed (error %d):\n%s", what, self._error_count, traceback.format_exc())
-            if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:  # not bad luck but a bug or a broken set-up
-                self.fail(f"{self._errors_in_a_row} {what} handler failures in a row; last: "
-                          f"{traceback.format_exc(limit=1).strip().splitlines()[-1]}")
+            self._handler_failed(what)
         else:
             self._errors_in_a_row = 0
 
+    def _handler_failed(self, what: str) -> None:
+        """(In an `except` block.) Count and log; give up after MAX_ERRORS_IN_A_ROW."""
+        self._error_count += 1
+        self._errors_in_a_row += 1
+        self.metrics.count("errors")
+        self.log.error("%s handler failed (error %d):\n%s", what, self._error_count, traceback.format_exc())
+        if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:  # not bad luck but a bug or a broken set-up
+            self.fail(f"{self._errors_in_a_row} {what} handler failures in a row; last: "
+                      f"{traceback.format_exc(limit=1).strip().splitlines()[-1]}")
+
+    def _on_signal(self, *_: object) -> None:
+        self.stop_event.set()
+        exit_backstop()  # outputs are written within seconds; a wedged process must not outlive its stop
+
     def run(self) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: self.stop_event.set())
-        self.bus = Bus(BusConfig.from_env(self.args.connect, self.args.zenoh_mode, self.args.listen), self.robot)
+            signal.signal(sig, self._on_signal)
+        bus_config = BusConfig.from_env(self.args.connect, self.args.zenoh_mode, self.args.listen,
+                                        getattr(self.args, "zenoh_config", None))
+        self.bus = Bus(bus_config, self.robot, RunTrust.from_env(self.name),
+                       float(self.config["security"]["max_rate_hz"]))
         self._status_pub = self.bus.publisher(self.bus.keys.status(self.name, self.instance))
         self._progress_pub = self.bus.publisher(self.bus.keys.progress(self.name))
         try:
@@ -350,7 +451,7 @@ class Service:
                 self.teardown()
             finally:
                 self.bus.close()
-        return 0
+        return 2 if self.state == "failed" else 0  # failed: its status says why; a restart would not help
 
 
 def service_main(service_cls: type[Service], argv: list[str] | None = None,
@@ -364,7 +465,14 @@ def service_main(service_cls: type[Service], argv: list[str] | None = None,
     configure_logging(args.verbose, service_cls.name)
     try:
         service = service_cls(args)
-    except (ConfigError, InvalidNameError, ValueError) as exc:
+        return service.run()
+    except (ConfigError, InvalidNameError, ValueError, BusError) as exc:
         logging.getLogger(service_cls.name).error("%s", exc)
         return 2
-    return service.run()
+    finally:
+        # from here on a signal ends the process (no handler needs the main thread), and the interpreter's
+        # shutdown may not hang on Zenoh's threads for longer than the backstop (a process of its own only)
+        if argv is None:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, signal.SIG_DFL)
+            exit_backstop()

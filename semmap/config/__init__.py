@@ -103,6 +103,12 @@ def validate_sections(config: dict[str, Any]) -> None:
     from services.backend.loop_closure import LoopClosureParams
     from services.backend.pose_graph import BackendParams
 
+    confidence = config["detector"]["confidence"]
+    if isinstance(confidence, bool) or not isinstance(confidence, int | float) or not 0.0 < confidence <= 1.0:
+        raise ConfigError(f"detector.confidence must be in (0, 1], got {confidence!r}")
+    gate_u = config["associator"].get("gate_u", 1.0)
+    if isinstance(gate_u, bool) or not isinstance(gate_u, int | float) or not (math.isfinite(gate_u) and gate_u > 0):
+        raise ConfigError(f"associator.gate_u must be a positive number, got {gate_u!r}")
     try:
         MapperParams.from_dict({k: v for k, v in config["associator"].items() if k not in SERVICE_DEFAULTS})
         BackendParams.from_config(config["backend"])

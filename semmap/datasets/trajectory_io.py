@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..outputs import atomic_write_text
 from .base import DatasetError
 
 Pose = np.ndarray  # 4x4 float64 homogeneous transform
@@ -92,7 +93,7 @@ def write_tum(path: str | Path, poses: Iterable[tuple[float, Pose]], header: str
         for (stamp, _), t, q in zip(items, matrices[:, :3, 3], quats, strict=True):
             values = (*t, *q)
             lines.append(f"{float(stamp):.6f} " + " ".join(f"{v:.9f}" for v in values))
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")  # never a truncated trajectory (full disk, kill)
     return len(items)
 
 
@@ -121,7 +122,7 @@ def write_kitti_poses(path: str | Path, poses: Iterable[Pose]) -> int:
         if pose.shape != (4, 4):
             raise ValueError(f"expected a 4x4 pose, got shape {pose.shape}")
         lines.append(" ".join(f"{v:.9e}" for v in pose[:3, :].ravel()))
-    Path(path).write_text("\n".join(lines) + ("\n" if lines else ""))
+    atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
     return len(lines)
 
 

@@ -64,9 +64,12 @@ class DetectorService(Service):
         self._members_lock = threading.Lock()
         self._members_changed = time.monotonic()
         liveliness = self.bus.session.liveliness()
-        self._token = liveliness.declare_token(self.bus.keys.detector_replica(self.instance))
+        run = self.bus.trust.run_id
+        self._token = liveliness.declare_token(self.bus.keys.detector_replica(self.instance, run))
+        self._replica_prefix = self.bus.keys.detector_replicas(run)[:-1]  # a replica of this run: prefix + name
+        self._foreign_tokens = 0
         self._live_sub = liveliness.declare_subscriber(
-            self.bus.keys.detector_replicas, self._on_liveliness, history=True
+            self.bus.keys.detector_replicas_all, self._on_liveliness, history=True
         )
         self.last_mine = -1
         self._last_frame: Frame | None = None
@@ -78,7 +81,14 @@ class DetectorService(Service):
         self.log.info("replica %d of %d", *self._rank())
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = Keys.instance_of(str(sample.key_expr))
+        key = str(sample.key_expr)
+        name = Keys.instance_of(key)
+        if key != self._replica_prefix + name:  # another run's replica, or a forged token: not one of ours
+            with self._members_lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._foreign_tokens += 1
+                    self.metrics.counters["rejected_foreign_replica"] = self._foreign_tokens
+            return
         with self._members_lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._members.add(name)

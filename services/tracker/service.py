@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 from semmap.messages import Detections, Tracks
+from semmap.outputs import atomic_write_text
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
 from services.tracker.iou_tracker import IouTracker, TrackerParams
@@ -39,7 +40,7 @@ class TrackerService(Service):
             epoch = int(time.time())  # no run directory: a clock-based block
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(str(epoch))
+            atomic_write_text(path, str(epoch))
         return epoch * TRACK_ID_BLOCK
 
     def on_detections(self, message: Detections) -> None:
