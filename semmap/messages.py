@@ -578,6 +578,9 @@ class Tracks(Message):
 # the map and the pose graph
 
 
+LANDMARK_STATUSES = ("present", "prior", "missing")
+
+
 @dataclass
 class Landmark:
     """A mapped object. `centroid` and `extent` in the world frame (metres); `radius` is its sphere's."""
@@ -590,11 +593,14 @@ class Landmark:
     observations: int
     first_seen: float
     last_seen: float
+    # "present" (mapped or seen again this session), "prior" (from a loaded map, not seen again yet) or
+    # "missing" (from a loaded map, in plain view for several frames and not detected); see docs/MAPS.md
+    status: str = "present"
 
     def to_dict(self) -> dict:
         return {"id": self.id, "class": self.class_name, "centroid": list(self.centroid), "radius": self.radius,
                 "extent": list(self.extent), "observations": self.observations, "first_seen": self.first_seen,
-                "last_seen": self.last_seen}
+                "last_seen": self.last_seen, "status": self.status}
 
     @classmethod
     def from_dict(cls, d: Any) -> Landmark:
@@ -602,9 +608,12 @@ class Landmark:
             raise MessageError("a landmark must be a map")
         c = _finite_floats(d.get("centroid"), 3, "centroid")
         e = _finite_floats(d.get("extent"), 3, "extent")
+        status = _get(d, "status", str, optional=True) or "present"
+        if status not in LANDMARK_STATUSES:
+            raise MessageError(f"landmark status must be one of {', '.join(LANDMARK_STATUSES)}, got {status!r}")
         return cls(_non_negative_int(d, "id"), _get(d, "class", str), (c[0], c[1], c[2]), _get(d, "radius", float),
                    (e[0], e[1], e[2]), _non_negative_int(d, "observations"), _get(d, "first_seen", float),
-                   _get(d, "last_seen", float))
+                   _get(d, "last_seen", float), status)
 
 
 @dataclass
