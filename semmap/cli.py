@@ -234,9 +234,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view(sub)
     from semmap.eval_cli import register as register_eval
     from semmap.map_cli import register as register_map
+    from semmap.maps_cli import register_commands as register_maps
 
     register_eval(sub)
     register_map(sub)
+    register_maps(sub)
     try:
         from services.detector.commands import register as register_detector
     except ImportError:  # pragma: no cover - the detector commands are part of the package
