@@ -48,6 +48,21 @@ def load_map(arg: str | Path) -> tuple[list[Landmark], dict[int, np.ndarray]]:
     raise MessageError(f"no map at {path} (no map.json or map.sqlite)")
 
 
+def prior_map_path(arg: str | Path, out_dir: Path) -> Path:
+    """The map.sqlite of `semmap run --map ARG`, checked now (exists, this version, holds a map) rather than in
+    the associator; ValueError (MessageError) with the reason otherwise."""
+    path = Path(arg)
+    db = path / "map.sqlite" if path.is_dir() else path
+    if db.suffix != ".sqlite":
+        raise MessageError(f"--map {arg}: expected a run directory or its map.sqlite")
+    if db.resolve() == (out_dir / "map.sqlite").resolve():
+        raise MessageError(f"--map {arg} is the output directory's own map, which a new run replaces: use "
+                           "another --out")
+    if MapStore.open_existing(db).load() is None:
+        raise MessageError(f"--map {arg}: {db} holds no map")
+    return db.resolve()
+
+
 def _registered(args: argparse.Namespace) -> tuple[list[Landmark], list[Landmark], RelocResult | None]:
     a, clouds_a = load_map(args.a)
     b, clouds_b = load_map(args.b)

@@ -643,10 +643,47 @@ class Observation:
 
 
 @dataclass
+class MapAlignment:
+    """A session relocalised against a prior map (docs/MAPS.md): from the frame that carries it on, the session's
+    poses belong in the prior map's frame. `transform` takes the session's (odometry) frame to the prior frame;
+    `anchors` are prior landmarks (id, position in the prior frame) that the backend holds within `anchor_sigma_m`;
+    the fit's own figures (`inliers`, `rms_m`) travel along for the record."""
+
+    transform: np.ndarray
+    anchors: list[tuple[int, tuple[float, float, float]]]
+    anchor_sigma_m: float
+    inliers: int
+    rms_m: float
+
+    def to_dict(self) -> dict:
+        return {"transform": [float(v) for v in np.asarray(self.transform).reshape(16)],
+                "anchors": [[i, list(p)] for i, p in self.anchors], "anchor_sigma_m": self.anchor_sigma_m,
+                "inliers": self.inliers, "rms_m": self.rms_m}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> MapAlignment:
+        if not isinstance(d, dict):
+            raise MessageError("an alignment must be a map")
+        anchors = []
+        for a in _get(d, "anchors", list):
+            if not (isinstance(a, list) and len(a) == 2 and isinstance(a[0], int) and not isinstance(a[0], bool)
+                    and a[0] >= 0):
+                raise MessageError("an anchor must be [landmark_id, [x, y, z]]")
+            x = _finite_floats(a[1], 3, "anchor")
+            anchors.append((a[0], (x[0], x[1], x[2])))
+        sigma = _get(d, "anchor_sigma_m", float)
+        if sigma <= 0:
+            raise MessageError("anchor_sigma_m must be positive")
+        return cls(validate_pose(d.get("transform"), "transform"), anchors, sigma,
+                   _non_negative_int(d, "inliers"), _get(d, "rms_m", float))
+
+
+@dataclass
 class Observations(Message):
     """The associator's landmark observations for one frame (at most one per landmark every 2 s), and merges.
 
-    `merges` are (absorbed id, surviving id): the backend joins the two landmark variables.
+    `merges` are (absorbed id, surviving id): the backend joins the two landmark variables. `alignment` (once per
+    session, optional): the session relocalised against a prior map at this frame.
     """
 
     SCHEMA: ClassVar[str] = "semmap.observations/1"
@@ -656,17 +693,21 @@ class Observations(Message):
     observations: list[Observation] = field(default_factory=list)
     merges: list[tuple[int, int]] = field(default_factory=list)
     sent_at: float = 0.0
+    alignment: MapAlignment | None = None
 
     def to_dict(self) -> dict:
         return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
                 "observations": [o.to_dict() for o in self.observations],
-                "merges": [list(m) for m in self.merges], "sent_at": self.sent_at}
+                "merges": [list(m) for m in self.merges], "sent_at": self.sent_at,
+                "alignment": None if self.alignment is None else self.alignment.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict) -> Observations:
+        alignment = d.get("alignment")
         return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
                    [Observation.from_dict(o) for o in _get(d, "observations", list)],
-                   _merges(_get(d, "merges", list)), _get(d, "sent_at", float))
+                   _merges(_get(d, "merges", list)), _get(d, "sent_at", float),
+                   None if alignment is None else MapAlignment.from_dict(alignment))
 
 
 def _merges(raw: list) -> list[tuple[int, int]]:
