@@ -56,8 +56,9 @@ def prior_map_path(arg: str | Path, out_dir: Path) -> Path:
     if db.suffix != ".sqlite":
         raise MessageError(f"--map {arg}: expected a run directory or its map.sqlite")
     if db.resolve() == (out_dir / "map.sqlite").resolve():
-        raise MessageError(f"--map {arg} is the output directory's own map, which a new run replaces: use "
-                           "another --out")
+        raise MessageError(
+            f"--map {arg} is the output directory's own map, which a new run replaces: use another --out"
+        )
     if MapStore.open_existing(db).load() is None:
         raise MessageError(f"--map {arg}: {db} holds no map")
     return db.resolve()
