@@ -185,3 +185,44 @@ def test_cli_checks_the_prior_map_before_starting(tmp_path: Path) -> None:
     out = _run("synthetic:frames=5", "--out", str(tmp_path / "p"), "--map", str(tmp_path / "o"))
     assert out.returncode == 2 and "newer semmap" in out.stderr
     assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        "x",
+        {"transform": [1.0] * 16, "anchors": [], "anchor_sigma_m": 0.03, "inliers": 4, "rms_m": 0.01},
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [[1, [0, 0]]],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": 0.01,
+        },
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [[-1, [0, 0, 0]]],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": 0.01,
+        },
+        {"transform": list(np.eye(4).reshape(16)), "anchors": [], "anchor_sigma_m": 0.0, "inliers": 4, "rms_m": 0.01},
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": float("nan"),
+        },
+    ],
+)
+def test_malformed_alignments_are_refused(bad: object) -> None:
+    from semmap.messages import MessageError
+
+    body = Observations("r", 1, 0.0).to_dict()
+    body["alignment"] = bad
+    with pytest.raises(MessageError):
+        Observations.from_dict(body)
+    good = MapAlignment(OFFSET, [(3, (1.0, 2.0, 3.0))], 0.03, 5, 0.02)
+    back = Observations.decode(Observations("r", 1, 0.0, alignment=good).encode()).alignment
+    assert back is not None and np.allclose(back.transform, OFFSET) and back.anchors == good.anchors
