@@ -10,9 +10,12 @@ within a gate of `max(gate_m, gate_radius_factor * larger radius)`: a large obje
   reported as `moved`; what is left is `missing` (in A, not in B) or `added` (in B, not in A). A landmark that B
   itself marks `missing` (a relocalised session looked and did not find it) counts as absent from B; one that B
   marks `prior` (carried over, never looked at) is reported `unseen`, not missing.
-- merge: a pair becomes one landmark (the older id, A's), its centre the observation-weighted mean, its extent
-  the larger, observations summed, first/last seen the earliest/latest; unpaired landmarks of B join with new
-  ids after A's. The result is in A's frame.
+- merge: a pair becomes one landmark (the older id, A's), observations summed, first/last seen the
+  earliest/latest; where both maps come with their clouds (run directories), its centre and extent are the
+  robust box of the two clouds fused (as the mapper fuses views: a large object seen from two sides is centred
+  on both sides, not on the mean of two partial centres, which was 10 cm off for a fridge), otherwise the
+  observation-weighted mean and the larger extent; unpaired landmarks of B join with new ids after A's. The
+  result is in A's frame.
 """
 
 from __future__ import annotations
@@ -137,11 +140,18 @@ def diff_maps(a: Sequence[Landmark], b_in_a: Sequence[Landmark], params: MatchPa
     return out
 
 
-def merge_maps(a: Sequence[Landmark], b_in_a: Sequence[Landmark], params: MatchParams | None = None) -> list[Landmark]:
-    """A and B (already in A's frame) as one map in A's frame: see the module docstring."""
+def merge_maps(
+    a: Sequence[Landmark],
+    b_in_a: Sequence[Landmark],
+    params: MatchParams | None = None,
+    clouds_a: dict[int, np.ndarray] | None = None,
+    clouds_b_in_a: dict[int, np.ndarray] | None = None,
+) -> list[Landmark]:
+    """A and B (already in A's frame, clouds too) as one map in A's frame: see the module docstring."""
     p = params or MatchParams()
+    clouds_a, clouds_b_in_a = clouds_a or {}, clouds_b_in_a or {}
     pairs = _pair(a, b_in_a, lambda x, y: _gate(x, y, p))
-    fused = {a[i].id: _fuse(a[i], b_in_a[j]) for i, j in pairs}
+    fused = {a[i].id: _fuse(a[i], b_in_a[j], clouds_a.get(a[i].id), clouds_b_in_a.get(b_in_a[j].id)) for i, j in pairs}
     paired_b = {j for _, j in pairs}
     out = [fused.get(lm.id, lm) for lm in a]
     next_id = max((lm.id for lm in a), default=-1) + 1
@@ -152,17 +162,26 @@ def merge_maps(a: Sequence[Landmark], b_in_a: Sequence[Landmark], params: MatchP
     return sorted(out, key=lambda lm: lm.id)
 
 
-def _fuse(x: Landmark, y: Landmark) -> Landmark:
+def _fuse(x: Landmark, y: Landmark, cx: np.ndarray | None = None, cy: np.ndarray | None = None) -> Landmark:
     wx, wy = max(x.observations, 1), max(y.observations, 1)
     c = (np.asarray(x.centroid) * wx + np.asarray(y.centroid) * wy) / (wx + wy)
     e = np.maximum(x.extent, y.extent)
+    radius = max(x.radius, y.radius)
+    if cx is not None and cy is not None and len(cx) >= 4 and len(cy) >= 4:
+        from services.associator.geometry import robust_box, voxel_downsample
+        from services.associator.params import MapperParams
+
+        mp = MapperParams()
+        cloud = voxel_downsample(np.concatenate([cx, cy]), mp.voxel_m, mp.cloud_max_points)
+        c, e = robust_box(cloud, mp.extent_percentile)
+        radius = float(np.linalg.norm(e)) / 2.0
     statuses = (x.status, y.status)
     status = next(s for s in ("present", "missing", "prior") if s in statuses)
     return Landmark(
         x.id,
         x.class_name,
         (float(c[0]), float(c[1]), float(c[2])),
-        max(x.radius, y.radius),
+        radius,
         (float(e[0]), float(e[1]), float(e[2])),
         x.observations + y.observations,
         min(x.first_seen, y.first_seen),

@@ -18,7 +18,7 @@ import numpy as np
 from semmap.map_merge import MatchParams, diff_maps, merge_maps, register, transform_landmark
 from semmap.map_store import MapStore, read_map_json, write_map_json
 from semmap.messages import Landmark, MessageError
-from semmap.relocalize import RelocResult
+from semmap.relocalize import RelocResult, apply
 
 
 def load_map(arg: str | Path) -> tuple[list[Landmark], dict[int, np.ndarray]]:
@@ -64,11 +64,14 @@ def prior_map_path(arg: str | Path, out_dir: Path) -> Path:
     return db.resolve()
 
 
-def _registered(args: argparse.Namespace) -> tuple[list[Landmark], list[Landmark], RelocResult | None]:
+def _registered(
+    args: argparse.Namespace,
+) -> tuple[list[Landmark], list[Landmark], RelocResult | None, dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """A, B in A's frame, the fit, and both maps' clouds (B's in A's frame)."""
     a, clouds_a = load_map(args.a)
     b, clouds_b = load_map(args.b)
     if args.same_frame:
-        return a, b, None
+        return a, b, None, clouds_a, clouds_b
     attempt = register(a, b, clouds_a, clouds_b)
     if attempt.result is None:
         raise MessageError(
@@ -76,7 +79,8 @@ def _registered(args: argparse.Namespace) -> tuple[list[Landmark], list[Landmark
             "(--same-frame if they share a frame)"
         )
     T = attempt.result.transform
-    return a, [transform_landmark(lm, T) for lm in b], attempt.result
+    moved = {i: apply(T, c) for i, c in clouds_b.items()}
+    return a, [transform_landmark(lm, T) for lm in b], attempt.result, clouds_a, moved
 
 
 def _fit_line(fit: RelocResult | None) -> str:
@@ -113,7 +117,7 @@ def _params(args: argparse.Namespace) -> MatchParams:
 
 def _diff(args: argparse.Namespace) -> int:
     try:
-        a, b, fit = _registered(args)
+        a, b, fit, _, _ = _registered(args)
     except MessageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -137,11 +141,11 @@ def _diff(args: argparse.Namespace) -> int:
 
 def _merge(args: argparse.Namespace) -> int:
     try:
-        a, b, fit = _registered(args)
+        a, b, fit, clouds_a, clouds_b = _registered(args)
     except MessageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    merged = merge_maps(a, b, _params(args))
+    merged = merge_maps(a, b, _params(args), clouds_a, clouds_b)
     out = Path(args.out)
     target = out / "map.json" if out.suffix != ".json" else out
     target.parent.mkdir(parents=True, exist_ok=True)
