@@ -79,11 +79,11 @@ def test_recovers_the_transform_with_distractors(seed: int) -> None:
 
 
 def test_cloud_refinement_beats_noisy_centroids() -> None:
-    """Centroids 6 cm off (a partly seen object), surfaces exact: the ICP over clouds removes most of it."""
+    """Centroids 4 cm off per axis (a partly seen object), surfaces exact: the ICP over clouds removes most of it."""
     rng = np.random.default_rng(7)
     prior = _room(rng, 20, clouds=True)
     truth = _transform(rng)
-    query = _observe(prior[:6], truth, rng, noise=0.06)
+    query = _observe(prior[:6], truth, rng, noise=0.04)
     r = relocalize(query, prior).result
     assert r is not None and r.refined
     plain = relocalize([MapObject(o.id, o.class_name, o.centroid) for o in query], prior).result
@@ -137,6 +137,21 @@ def test_unrelated_layouts_are_not_relocalised() -> None:
         if relocalize(elsewhere, prior).result is not None:
             wrong += 1
     assert wrong == 0
+
+
+def test_objects_close_together_leave_the_rotation_open() -> None:
+    """Four objects within 40 cm agreeing to 8 cm: the rotation is uncertain by degrees, so no answer."""
+    prior = [
+        MapObject(i, c, np.array(p, float))
+        for i, (c, p) in enumerate(
+            [("cup", (0, 0, 0.8)), ("bottle", (0.3, 0.1, 0.8)), ("book", (0.1, 0.35, 0.8)), ("bowl", (0.35, 0.3, 0.85))]
+        )
+    ]
+    rng = np.random.default_rng(4)
+    attempt = relocalize(_observe(prior, _transform(rng), rng, 0.04), prior)
+    assert attempt.result is None and attempt.reason.startswith("weak geometry"), attempt.reason
+    wide = [MapObject(o.id, o.class_name, o.centroid * np.array([8.0, 8.0, 1.0])) for o in prior]
+    assert relocalize(_observe(wide, _transform(rng), rng, 0.01), wide).result is not None
 
 
 def test_deterministic() -> None:
