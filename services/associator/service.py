@@ -233,7 +233,8 @@ class AssociatorService(Service):
             return
         fit = self.prior.fit
         body = {"frame_id": self.prior.aligned_at, "inliers": fit.inliers, "runner_up": fit.runner_up,
-                "rms_m": fit.rms_m, "refined_on_clouds": fit.refined, "matches": [list(m) for m in fit.matches],
+                "rms_m": fit.rms_m, "rotation_sigma_deg": fit.rotation_sigma_deg, "refined_on_clouds": fit.refined,
+                "matches": [list(m) for m in fit.matches],
                 "transform": [float(v) for v in fit.transform.reshape(16)], "attempts": self.prior.attempts}
         tmp = target.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(body, indent=1))
