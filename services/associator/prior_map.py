@@ -41,6 +41,8 @@ STATE_VERSION = 1
 class PriorParams:
     relocalize_every_n_frames: int = 5
     relocalize_min_views: int = 5  # a session landmark takes part once it has this many views
+    relocalize_min_inliers: int = 4  # semmap/relocalize.py RelocParams.min_inliers
+    relocalize_max_rotation_sigma_deg: float = 1.5  # RelocParams.max_rotation_sigma_deg
     anchor_sigma_m: float = 0.03  # how firmly the backend holds a prior landmark
     missing_after_frames: int = 10
     missing_min_depth_m: float = 0.5
@@ -59,7 +61,10 @@ class PriorSession:
 
     def __init__(self, prior: LandmarkMap, params: PriorParams | None = None, reloc: RelocParams | None = None) -> None:
         self.params = params or PriorParams()
-        self.reloc_params = reloc or RelocParams()
+        self.reloc_params = reloc or RelocParams(
+            min_inliers=self.params.relocalize_min_inliers,
+            max_rotation_sigma_deg=self.params.relocalize_max_rotation_sigma_deg,
+        )
         self.prior = prior
         self.prior_ids = {lm.id for lm in prior.all()}
         self.next_id = prior.next_id
