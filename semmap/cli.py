@@ -17,7 +17,7 @@ PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
 
 
 def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: list[str] | None = None,
-                   serve: bool = False) -> list:
+                   serve: bool = False, prior_map: Path | None = None) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
     unless disabled."""
     from semmap.orchestrator import ServiceSpec
@@ -31,8 +31,9 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
         extra: list[str] = []
         if name == "detector" and config["detector"]["kind"] == "auto":
             extra = ["--set", f"detector.kind={'oracle' if synthetic else 'onnx'}"]
-        elif name == "associator" and "backend" in chosen:
-            extra = ["--await-backend"]
+        elif name == "associator":
+            extra = (["--await-backend"] if "backend" in chosen else []) + (
+                ["--prior-map", str(prior_map)] if prior_map is not None else [])
         elif name == "viz":
             extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
         specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
@@ -60,6 +61,11 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--topics", default=None, metavar="ROLE=TOPIC,...",
                    help="ROS bags: topics to use (color, depth, camera_info, pose, groundtruth; default: found by "
                    "message type), e.g. color=/camera/color/image_raw,pose=/odom")
+    p.add_argument("--start-frame", type=int, default=None,
+                   help="begin at this frame of the dataset (a later session of the same recording)")
+    p.add_argument("--map", default=None, metavar="PRIOR",
+                   help="start from a saved map (a run directory or its map.sqlite): relocalise against its objects, "
+                        "then map in its frame (docs/MAPS.md)")
     p.add_argument("--detectors", type=int, default=1, help="detector replicas")
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
@@ -96,6 +102,17 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f"run.max_frames={args.max_frames}")
     if args.topics is not None:
         overrides.append(f"rosbag.topics={args.topics}")
+    if args.start_frame is not None:
+        overrides.append(f"run.start_frame={args.start_frame}")
+    prior_map = None
+    if args.map is not None:
+        from semmap.maps_cli import prior_map_path
+
+        try:
+            prior_map = prior_map_path(args.map, Path(args.out))
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     try:
         config = load_config(args.config, overrides)
         validate_sections(config)
@@ -120,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.zenoh_config and not Path(args.zenoh_config).exists():
         print(f"error: --zenoh-config {args.zenoh_config} does not exist", file=sys.stderr)
         return 2
-    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve)
+    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map)
     run = config["run"]
     deadline = args.deadline if args.deadline is not None else float(run["deadline_s"])
     plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run["robot"],
@@ -333,9 +350,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_ros2(sub)
     from semmap.eval_cli import register as register_eval
     from semmap.map_cli import register as register_map
+    from semmap.maps_cli import register_commands as register_maps
 
     register_eval(sub)
     register_map(sub)
+    register_maps(sub)
     try:
         from services.detector.commands import register as register_detector
     except ImportError:  # pragma: no cover - the detector commands are part of the package

@@ -107,7 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--near", help="x,y,z (with --radius)")
     q.add_argument("--radius", type=float, help="metres around --near")
     q.add_argument("--id", help="landmark id(s), comma-separated")
-    q.add_argument("--json", action="store_true", help="print a semmap.map/1 JSON document")
+    q.add_argument("--json", action="store_true", help="print a semmap.map/2 JSON document")
     q.add_argument("--robot", default="robot1")
     q.add_argument("--connect", default=None,
                    help="Zenoh endpoint of the run (env SEMMAP_ZENOH_CONNECT; default tcp/127.0.0.1:7447, "

@@ -2,7 +2,7 @@
 
 A query is a set of optional filters: class, a sphere (near + radius), ids. Over Zenoh it travels as selector
 parameters: `semmap/v1/<robot>/map/query?class=cup;near=1.0,0.5,0.8;radius=0.5;id=3,7`; the reply is a
-`semmap.map/1` document (the same layout as map.json), as JSON.
+`semmap.map/2` document (the same layout as map.json), as JSON.
 """
 
 from __future__ import annotations

@@ -593,6 +593,9 @@ class Tracks(Message):
 # the map and the pose graph
 
 
+LANDMARK_STATUSES = ("present", "prior", "missing")
+
+
 @dataclass
 class Landmark:
     """A mapped object. `centroid` and `extent` in the world frame (metres); `radius` is its sphere's."""
@@ -605,11 +608,14 @@ class Landmark:
     observations: int
     first_seen: float
     last_seen: float
+    # "present" (mapped or seen again this session), "prior" (from a loaded map, not seen again yet) or
+    # "missing" (from a loaded map, in plain view for several frames and not detected); see docs/MAPS.md
+    status: str = "present"
 
     def to_dict(self) -> dict:
         return {"id": self.id, "class": self.class_name, "centroid": list(self.centroid), "radius": self.radius,
                 "extent": list(self.extent), "observations": self.observations, "first_seen": self.first_seen,
-                "last_seen": self.last_seen}
+                "last_seen": self.last_seen, "status": self.status}
 
     @classmethod
     def from_dict(cls, d: Any) -> Landmark:
@@ -617,9 +623,12 @@ class Landmark:
             raise MessageError("a landmark must be a map")
         c = _finite_floats(d.get("centroid"), 3, "centroid")
         e = _finite_floats(d.get("extent"), 3, "extent")
+        status = _get(d, "status", str, optional=True) or "present"
+        if status not in LANDMARK_STATUSES:
+            raise MessageError(f"landmark status must be one of {', '.join(LANDMARK_STATUSES)}, got {status!r}")
         return cls(_non_negative_int(d, "id"), _get(d, "class", str), (c[0], c[1], c[2]), _get(d, "radius", float),
                    (e[0], e[1], e[2]), _non_negative_int(d, "observations"), _get(d, "first_seen", float),
-                   _get(d, "last_seen", float))
+                   _get(d, "last_seen", float), status)
 
 
 @dataclass
@@ -649,10 +658,47 @@ class Observation:
 
 
 @dataclass
+class MapAlignment:
+    """A session relocalised against a prior map (docs/MAPS.md): from the frame that carries it on, the session's
+    poses belong in the prior map's frame. `transform` takes the session's (odometry) frame to the prior frame;
+    `anchors` are prior landmarks (id, position in the prior frame) that the backend holds within `anchor_sigma_m`;
+    the fit's own figures (`inliers`, `rms_m`) travel along for the record."""
+
+    transform: np.ndarray
+    anchors: list[tuple[int, tuple[float, float, float]]]
+    anchor_sigma_m: float
+    inliers: int
+    rms_m: float
+
+    def to_dict(self) -> dict:
+        return {"transform": [float(v) for v in np.asarray(self.transform).reshape(16)],
+                "anchors": [[i, list(p)] for i, p in self.anchors], "anchor_sigma_m": self.anchor_sigma_m,
+                "inliers": self.inliers, "rms_m": self.rms_m}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> MapAlignment:
+        if not isinstance(d, dict):
+            raise MessageError("an alignment must be a map")
+        anchors = []
+        for a in _get(d, "anchors", list):
+            if not (isinstance(a, list) and len(a) == 2 and isinstance(a[0], int) and not isinstance(a[0], bool)
+                    and a[0] >= 0):
+                raise MessageError("an anchor must be [landmark_id, [x, y, z]]")
+            x = _finite_floats(a[1], 3, "anchor")
+            anchors.append((a[0], (x[0], x[1], x[2])))
+        sigma = _get(d, "anchor_sigma_m", float)
+        if sigma <= 0:
+            raise MessageError("anchor_sigma_m must be positive")
+        return cls(validate_pose(d.get("transform"), "transform"), anchors, sigma,
+                   _non_negative_int(d, "inliers"), _get(d, "rms_m", float))
+
+
+@dataclass
 class Observations(Message):
     """The associator's landmark observations for one frame (at most one per landmark every 2 s), and merges.
 
-    `merges` are (absorbed id, surviving id): the backend joins the two landmark variables.
+    `merges` are (absorbed id, surviving id): the backend joins the two landmark variables. `alignment` (once per
+    session, optional): the session relocalised against a prior map at this frame.
     """
 
     SCHEMA: ClassVar[str] = "semmap.observations/1"
@@ -662,17 +708,21 @@ class Observations(Message):
     observations: list[Observation] = field(default_factory=list)
     merges: list[tuple[int, int]] = field(default_factory=list)
     sent_at: float = 0.0
+    alignment: MapAlignment | None = None
 
     def to_dict(self) -> dict:
         return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
                 "observations": [o.to_dict() for o in self.observations],
-                "merges": [list(m) for m in self.merges], "sent_at": self.sent_at}
+                "merges": [list(m) for m in self.merges], "sent_at": self.sent_at,
+                "alignment": None if self.alignment is None else self.alignment.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict) -> Observations:
+        alignment = d.get("alignment")
         return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
                    [Observation.from_dict(o) for o in _get(d, "observations", list)],
-                   _merges(_get(d, "merges", list)), _get(d, "sent_at", float))
+                   _merges(_get(d, "merges", list)), _get(d, "sent_at", float),
+                   None if alignment is None else MapAlignment.from_dict(alignment))
 
 
 def _merges(raw: list) -> list[tuple[int, int]]:

@@ -99,7 +99,7 @@ DATACLASS_SECTIONS = ("associator", "backend")
 def validate_sections(config: dict[str, Any]) -> None:
     """Check the sections owned by parameter dataclasses now, before any process starts."""
     from services.associator.params import MapperParams
-    from services.associator.service import SERVICE_DEFAULTS
+    from services.associator.service import PRIOR_KEYS, SERVICE_DEFAULTS
     from services.backend.loop_closure import LoopClosureParams
     from services.backend.pose_graph import BackendParams
 
@@ -110,7 +110,8 @@ def validate_sections(config: dict[str, Any]) -> None:
     if isinstance(gate_u, bool) or not isinstance(gate_u, int | float) or not (math.isfinite(gate_u) and gate_u > 0):
         raise ConfigError(f"associator.gate_u must be a positive number, got {gate_u!r}")
     try:
-        MapperParams.from_dict({k: v for k, v in config["associator"].items() if k not in SERVICE_DEFAULTS})
+        MapperParams.from_dict({k: v for k, v in config["associator"].items()
+                                if k not in SERVICE_DEFAULTS and k not in PRIOR_KEYS})
         BackendParams.from_config(config["backend"])
         LoopClosureParams.from_config(config["loop_closure"])
     except (TypeError, ValueError) as exc:

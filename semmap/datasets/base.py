@@ -100,3 +100,40 @@ class Dataset(ABC):
     def __iter__(self) -> Iterator[FrameData]:
         for i in range(len(self)):
             yield self[i]
+
+
+class WindowDataset(Dataset):
+    """Frames [start, start + count) of another dataset, renumbered from 0 (stamps and poses unchanged): a
+    later session of the same recording (`run.start_frame`), e.g. 7-Scenes frames 500-999 as a second day."""
+
+    def __init__(self, inner: Dataset, start: int, count: int | None = None) -> None:
+        if not 0 <= start < len(inner):
+            raise DatasetError(f"start frame {start} outside the dataset's {len(inner)} frames")
+        self.inner, self.start = inner, start
+        self.count = len(inner) - start if count is None else max(0, min(count, len(inner) - start))
+        self.name = f"{inner.name}[{start}:{start + self.count}]"
+        self.rate_hz = inner.rate_hz
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int) -> FrameData:
+        if not 0 <= index < self.count:
+            raise IndexError(index)
+        data = self.inner[self.start + index]
+        data.index = index
+        return data
+
+    @property
+    def has_groundtruth(self) -> bool:
+        return self.inner.has_groundtruth
+
+    def groundtruth(self) -> list[tuple[float, np.ndarray]]:
+        gt = self.inner.groundtruth()
+        if len(gt) != len(self.inner):  # not one pose per frame: keep those within the window's stamps
+            lo, hi = self.inner[self.start].stamp, self.inner[self.start + self.count - 1].stamp
+            return [(t, p) for t, p in gt if lo <= t <= hi]
+        return gt[self.start : self.start + self.count]
+
+    def objects(self) -> list[ObjectTruth]:
+        return self.inner.objects()

@@ -53,12 +53,17 @@ class SyntheticConfig:
     persons: int = 2
     depth_noise: float = 0.001
     min_visible_pixels: int = 150
+    moved: int = 0  # this many small table-top objects (seeded choice) stand elsewhere on the table (at most 4)
+    removed: int = 0  # this many more (seeded choice, none of the moved ones) are gone: a later day's scene
 
     def __post_init__(self) -> None:
         if self.frames < 1 or self.width < 16 or self.height < 16:
             raise DatasetError(f"synthetic: frames >= 1 and size >= 16x16 needed, got {self}")
         if not 0 <= self.persons <= 2:
             raise DatasetError(f"synthetic: persons must be 0, 1 or 2, got {self.persons}")
+        if not (0 <= self.moved <= 4 and self.removed >= 0 and self.moved + self.removed <= 8):
+            raise DatasetError(f"synthetic: moved must be 0-4 and moved + removed at most 8, got {self.moved}, "
+                               f"{self.removed}")
         if self.rate_hz <= 0 or self.depth_noise < 0:
             raise DatasetError("synthetic: rate_hz must be > 0 and depth_noise >= 0")
         lx, ly, lz = self.room_size
@@ -232,6 +237,35 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+FREE_TABLE_SPOTS = ((-0.3, -0.35), (-0.7, 0.33), (0.72, -0.38), (0.25, 0.38))  # clear of every table-top object
+MOVABLE = ("cup", "bottle", "bowl", "book")
+
+
+def changed_objects(config: SyntheticConfig, objects: list[_Object]) -> tuple[list[int], list[int]]:
+    """Instance ids of the moved and the removed objects (seeded by the scene's seed, not drawn from the scene's
+    own generator: a scene without changes is the same scene as before)."""
+    pool = [o.instance_id for o in objects if o.class_name in MOVABLE]
+    order = [pool[int(i)] for i in np.random.default_rng([config.seed, 13]).permutation(len(pool))]
+    return order[: config.moved], order[config.moved : config.moved + config.removed]
+
+
+def _change(objects: list[_Object], config: SyntheticConfig) -> None:
+    """Move `moved` objects to free spots on the table and take `removed` ones out of the room (far below the
+    floor: never rendered, the instance ids of the others stay as they were)."""
+    if not (config.moved or config.removed):
+        return
+    moved, removed = changed_objects(config, objects)
+    for oid, spot in zip(moved, FREE_TABLE_SPOTS, strict=False):
+        obj = objects[oid]
+        centre = np.mean(np.concatenate([part.mesh[0] for part in obj.parts]), axis=0)
+        shift = np.array([spot[0] - centre[0], spot[1] - centre[1], 0.0])
+        obj.parts = [dataclasses.replace(part, mesh=(part.mesh[0] + shift, part.mesh[1])) for part in obj.parts]
+    for oid in removed:
+        obj = objects[oid]
+        obj.parts = [dataclasses.replace(part, mesh=(part.mesh[0] + np.array([0.0, 0.0, -50.0]), part.mesh[1]))
+                     for part in obj.parts]
+
+
 def _build_scene(config: SyntheticConfig) -> list[_Object]:
     """Room, table, things on and around it, people; small placements and colours depend on the seed."""
     rng = np.random.default_rng([config.seed, 7])
@@ -333,6 +367,8 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
     face_v, face_f = cylinder_mesh((0.0, 0.0, 0.0), 0.16, 0.16, 0.04)
     face_v = _rotate_x(face_v, math.pi / 2) + np.array([0.9, ly / 2, 2.0])
     add("clock", [_Part((face_v, face_f), jitter((0.95, 0.95, 0.9)), 0.03, 0.5)])
+
+    _change(objects, config)
 
     if config.persons >= 1:
         # Walks round the table between the chairs and the camera's circle, keeping roughly to the far side

@@ -144,6 +144,13 @@ class LandmarkMap:
     def remove(self, landmark_id: int) -> None:
         self._landmarks.pop(landmark_id, None)
 
+    def insert(self, lm: LandmarkState) -> None:
+        """A landmark made elsewhere (a prior map's) under its own id; later ids come after it."""
+        if lm.id in self._landmarks:
+            raise ValueError(f"landmark {lm.id} exists already")
+        self._landmarks[lm.id] = lm
+        self.next_id = max(self.next_id, lm.id + 1)
+
     def all(self) -> list[LandmarkState]:
         return [self._landmarks[i] for i in sorted(self._landmarks)]
 

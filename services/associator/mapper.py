@@ -675,6 +675,23 @@ class LandmarkMapper:
             return None
         return inverse_transform(view.pose, lm.centroid - shift)
 
+    # ---- a prior map (services/associator/prior_map.py)
+
+    def adopt_landmarks(self, landmarks: list[LandmarkState]) -> None:
+        """Landmarks of a prior map join this map under their own ids (the session's ids start after them)."""
+        for lm in landmarks:
+            self.map.insert(lm)
+
+    def fuse(self, keep_id: int, gone_id: int, step: MapperStep) -> None:
+        """One object twice (a session landmark and the prior landmark the relocalisation matched it to): fuse
+        them into `keep_id`, as a merge."""
+        keep, gone = self.map[keep_id], self.map[gone_id]
+        self._absorb(keep, gone)
+        self._recompute([keep], keep.last_seen)
+        step.merges.append((gone_id, keep_id))
+        step.removed.append(gone_id)
+        step.updated = [m for m in step.updated if m.id not in (gone_id, keep_id)] + [keep.to_message()]
+
     # ---- persistence
 
     def to_state(self) -> dict[str, Any]:

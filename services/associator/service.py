@@ -11,6 +11,8 @@ The map is persisted to `DIR/map.sqlite` (atomic) and exported to `DIR/map.json`
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,7 @@ from semmap.messages import (
     Control,
     CorrectedPoses,
     Landmark,
+    MapAlignment,
     MapUpdate,
     Observations,
     OdometryPose,
@@ -34,11 +37,15 @@ from semmap.messages import (
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
 from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
+from services.associator.prior_map import PriorParams, PriorSession
 
 SAVE_PERIOD_S = 1.0
 POSES_KEPT = 300  # recent frames' poses saved with the map (see PoseBook.to_state)
 # settings of the service around the mapper (the rest of the `associator:` section is MapperParams)
 SERVICE_DEFAULTS = {"refine_every_n_frames": 10}
+# with `--prior-map` (semmap run --map): services/associator/prior_map.py, PriorParams; settable as
+# associator.prior_<name>, e.g. associator.prior_missing_after_frames=20
+PRIOR_KEYS = {f"prior_{f.name}": f.name for f in dataclasses.fields(PriorParams)}
 
 
 def combined(a: MapperStep, b: MapperStep) -> MapperStep:
@@ -57,9 +64,20 @@ class PoseBook:
         self.odometry: dict[int, np.ndarray] = {}
         self.corrected: dict[int, np.ndarray] = {}
         self._corrected_ids = np.zeros(0, np.int64)
+        # relocalised against a prior map: odometry frame -> prior frame, and the first frame the backend
+        # answers in the prior frame (earlier corrections are still in the odometry's)
+        self.alignment: np.ndarray | None = None
+        self.aligned_from = 0
+
+    def align(self, transform: np.ndarray, from_frame: int) -> None:
+        """From now on every pose is in the prior map's frame (services/associator/prior_map.py)."""
+        self.alignment, self.aligned_from = np.asarray(transform, np.float64).copy(), int(from_frame)
+        self.corrected = {f: self.alignment @ p for f, p in self.corrected.items()}
 
     def set_corrected(self, msg: CorrectedPoses) -> None:
-        self.corrected = {int(f): p for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
+        late = self.alignment is not None and msg.frame_id < self.aligned_from  # sent before the alignment
+        self.corrected = {int(f): (self.alignment @ p if late else p)
+                          for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
         self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
 
     def to_state(self, recent: int = POSES_KEPT) -> dict[str, Any]:
@@ -74,6 +92,8 @@ class PoseBook:
         return {
             "odometry": {f: self.odometry[f].tobytes() for f in frames},
             "corrected": {f: self.corrected[f].tobytes() for f in frames if f in self.corrected},
+            "alignment": None if self.alignment is None else self.alignment.tobytes(),
+            "aligned_from": self.aligned_from,
         }
 
     @classmethod
@@ -86,6 +106,8 @@ class PoseBook:
         book.odometry = {int(f): pose(b) for f, b in state["odometry"].items()}
         book.corrected = {int(f): pose(b) for f, b in state["corrected"].items()}
         book._corrected_ids = np.sort(np.fromiter(book.corrected, np.int64, len(book.corrected)))
+        if state.get("alignment") is not None:
+            book.alignment, book.aligned_from = pose(state["alignment"]), int(state["aligned_from"])
         return book
 
     def __call__(self, frame_id: int) -> np.ndarray | None:
@@ -101,7 +123,7 @@ class PoseBook:
             if k in self.odometry:
                 return self.corrected[k] @ np.linalg.inv(self.odometry[k]) @ odom
             i -= 1
-        return odom
+        return odom if self.alignment is None else self.alignment @ odom
 
 
 class AssociatorService(Service):
@@ -112,6 +134,7 @@ class AssociatorService(Service):
     def setup(self) -> None:
         section = dict(self.config.get("associator") or {})
         self.service_cfg = {k: section.pop(k, v) for k, v in SERVICE_DEFAULTS.items()}
+        prior_cfg = {name: section.pop(key) for key, name in PRIOR_KEYS.items() if key in section}
         self.params = MapperParams.from_dict(section)
         self.mapper = LandmarkMapper(self.params)
         self.snapshot: list[Landmark] = []  # what map queries answer from (swapped whole, read from Zenoh threads)
@@ -129,12 +152,17 @@ class AssociatorService(Service):
         self.journal = MessageJournal(db.with_name(f"{db.stem}.journal.sqlite")) if db is not None else None
         self.journal_seq = 0  # the last journalled input the saved map includes
         self.restoring = self.store is not None and bool(self.resume or self.args.map_db)
+        self.prior: PriorSession | None = None
+        self.session_start: float | None = None
+        self._alignment: MapAlignment | None = None  # to go out with the current frame's observations
+        if self.args.prior_map is not None:
+            self._load_prior(self.args.prior_map, PriorParams(**prior_cfg))
         if self.restoring:
             self._restore()
         elif self.store is not None and self.journal is not None:  # a new run: nothing of an earlier one
             self.store.clear()
             self.journal.clear()
-        self.snapshot = self.mapper.landmarks()
+        self.snapshot = self._landmarks()
         self.obs_pub = self.publisher(self.bus.keys.observations)
         self.tags_pub = self.publisher(self.bus.keys.landmark_tags)
         self.map_pub = self.publisher(self.bus.keys.map_updates)
@@ -145,6 +173,72 @@ class AssociatorService(Service):
         self._replay_journal()
         if self.snapshot:
             self._publish_map(MapperStep(), self.last_frame_id, 0.0, full=True)
+
+    def _load_prior(self, path: Path, params: PriorParams) -> None:
+        """The prior map this session relocalises against (its landmarks join the map once it has)."""
+        state = MapStore.open_existing(path).load()  # MessageError (MapVersionError) on a file of another version
+        if state is None:
+            raise ValueError(f"the prior map {path} holds no map")
+        prior = LandmarkMapper.from_state(state, self.params).map
+        self.prior = PriorSession(prior, params)
+        self.mapper.map.next_id = max(self.mapper.map.next_id, prior.next_id)  # session ids after the prior's
+        self.metrics.counters["prior_landmarks"] = len(prior)
+        self.metrics.counters["relocalised"] = 0
+        self.log.info("prior map %s: %d landmarks; mapping in a provisional frame (this session's odometry) until "
+                      "the session relocalises against it", path, len(prior))
+
+    def _landmarks(self) -> list[Landmark]:
+        """The map as published and saved: with each prior landmark's status when a prior map is loaded."""
+        landmarks = self.mapper.landmarks()
+        return landmarks if self.prior is None else self.prior.with_status(landmarks)
+
+    def _prior_step(self, tracks: Tracks, step: MapperStep) -> MapperStep:
+        """Relocalise when due; afterwards, statuses of the prior landmarks (seen again, missing)."""
+        assert self.prior is not None
+        seen = [lm.id for lm in step.updated]
+        if self.prior.due(tracks.frame_id):
+            with self.metrics.timer("relocalize_ms"):
+                fit = self.prior.try_relocalize(self.mapper)
+            if fit is not None:
+                self.poses.align(fit.transform, tracks.frame_id)
+                adopted, self._alignment = self.prior.adopt(self.mapper, fit, tracks.frame_id,
+                                                            self.session_start or tracks.stamp, self.poses)
+                step = combined(step, adopted)
+                t = fit.translation
+                self.log.info("relocalised at frame %d: %d landmarks agree (next best placement %d), residual "
+                              "%.1f cm%s; translation (%.3f, %.3f, %.3f) m, rotation %.2f deg; now mapping in the "
+                              "prior map's frame", tracks.frame_id, fit.inliers, fit.runner_up, 100 * fit.rms_m,
+                              ", refined on clouds" if fit.refined else "", t[0], t[1], t[2], fit.rotation_deg)
+                self.metrics.counters.update(relocalised=1, relocalised_at_frame=tracks.frame_id,
+                                             relocalised_inliers=fit.inliers)
+            self.metrics.counters["relocalize_attempts"] = self.prior.attempts
+        changed = self.prior.update(self.mapper, tracks.frame_id, self.poses(tracks.frame_id),
+                                    None if tracks.skipped else tracks.boxes, self.mapper._intrinsics, seen)
+        if changed:
+            ids = set(changed)
+            step.updated = [m for m in step.updated if m.id not in ids] + [
+                self.mapper.map[i].to_message() for i in sorted(ids) if i in self.mapper.map]
+            self.metrics.counters["prior_missing"] = sum(v == "missing" for v in self.prior.status.values())
+            self.metrics.counters["prior_seen_again"] = sum(v == "present" for v in self.prior.status.values())
+        if self.prior.relocalised and self.prior.fit is not None:
+            self._write_relocalisation()
+        return step
+
+    def _write_relocalisation(self) -> None:
+        """DIR/relocalization.json: the fit, for the record and for tools (written once)."""
+        if self.out_dir is None or self.prior is None or self.prior.fit is None:
+            return
+        target = self.out_dir / "relocalization.json"
+        if target.exists():
+            return
+        fit = self.prior.fit
+        body = {"frame_id": self.prior.aligned_at, "inliers": fit.inliers, "runner_up": fit.runner_up,
+                "rms_m": fit.rms_m, "rotation_sigma_deg": fit.rotation_sigma_deg, "refined_on_clouds": fit.refined,
+                "matches": [list(m) for m in fit.matches],
+                "transform": [float(v) for v in fit.transform.reshape(16)], "attempts": self.prior.attempts}
+        tmp = target.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(body, indent=1))
+        tmp.replace(target)
 
     def _on_query(self, query) -> None:  # noqa: ANN001 - zenoh.Query, answered on a Zenoh thread
         try:
@@ -163,6 +257,8 @@ class AssociatorService(Service):
 
     def on_tracks(self, tracks: Tracks) -> None:
         self._journal("tracks", tracks)
+        if self.session_start is None or tracks.stamp < self.session_start:
+            self.session_start = tracks.stamp
         if not self.tracks.push(tracks.frame_id, tracks):
             self.metrics.count("tracks_duplicates")
             if self.awaiting is not None and self.awaiting[0].frame_id == tracks.frame_id:
@@ -202,11 +298,15 @@ class AssociatorService(Service):
                                            boxes=None if tracks.skipped else tracks.boxes)
             for stage, ms in step.timing_ms.items():
                 self.metrics.time_ms(f"{stage}_ms", ms)
+            if self.prior is not None:
+                step = self._prior_step(tracks, step)
             self.metrics.count("candidates_rejected", len(step.rejected))
             self.metrics.count("observations", len(step.observations))
             merges = self.pending_merges + list(step.merges)
             self.pending_merges = []
-            observations = Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges)
+            observations = Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges,
+                                        alignment=self._alignment)
+            self._alignment = None
             self._awaited_observations = observations
             self.emit(self.obs_pub, observations, tracks.frame_id)
             if step.observations:
@@ -254,7 +354,8 @@ class AssociatorService(Service):
         self.map_seq += 1
         if frame_sent_at > 0:  # from the frame's publication to its map update: the pipeline's latency
             self.metrics.time_ms("end_to_end_ms", (time.time() - frame_sent_at) * 1e3)
-        landmarks = self.mapper.landmarks() if full else step.updated
+        landmarks = self._landmarks() if full else (step.updated if self.prior is None
+                                                              else self.prior.with_status(step.updated))
         timing = dict(step.timing_ms)
         if refine_ms:
             timing["refine"] = refine_ms
@@ -263,7 +364,7 @@ class AssociatorService(Service):
         structural = False
         if step.updated or step.removed or step.merges or full:  # most frames change nothing
             known = {lm.id for lm in self.snapshot}
-            self.snapshot = self.mapper.landmarks()
+            self.snapshot = self._landmarks()
             self.dirty = True
             # a new, removed or merged landmark is saved at once (a crash must not lose it); refinements of
             # existing ones at most once a second
@@ -290,6 +391,8 @@ class AssociatorService(Service):
         self.mapper = LandmarkMapper.from_state(state, self.params)
         self.poses = PoseBook.from_state(state.get("poses"))
         self.journal_seq = int(state.get("journal_seq", 0))
+        if self.prior is not None:
+            self.prior.restore(state.get("prior"))
         self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
 
     def _replay_journal(self) -> None:
@@ -311,7 +414,7 @@ class AssociatorService(Service):
             self.muted = False
         if n:
             self.log.info("replayed %d journalled inputs (to frame %d)", n, self.last_frame_id)
-            self.snapshot = self.mapper.landmarks()
+            self.snapshot = self._landmarks()
             self._save()
 
     def _save(self) -> None:
@@ -321,7 +424,8 @@ class AssociatorService(Service):
         with self.metrics.timer("save_ms"):
             if self.store is not None:
                 self.store.save({**self.mapper.to_state(), "poses": self.poses.to_state(),
-                                 "journal_seq": self.journal_seq})
+                                 "journal_seq": self.journal_seq,
+                                 "prior": None if self.prior is None else self.prior.to_state()})
                 if self.journal is not None:
                     self.journal.truncate(self.journal_seq)
             if self.out_dir is not None:
@@ -334,8 +438,12 @@ class AssociatorService(Service):
             self.finish()
 
     def write_outputs(self) -> None:
-        self.snapshot = self.mapper.landmarks()
+        self.snapshot = self._landmarks()
         self._save()
+        if self.prior is not None and not self.prior.relocalised:
+            reason = self.prior.last_attempt.reason if self.prior.last_attempt is not None else "too few landmarks"
+            self.log.warning("never relocalised against the prior map (%d attempts; last: %s): the map is in this "
+                             "session's own frame and holds none of the prior landmarks", self.prior.attempts, reason)
 
     def teardown(self) -> None:
         self._queryable.undeclare()
@@ -346,6 +454,8 @@ class AssociatorService(Service):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--await-backend", action="store_true",
                         help="lockstep: wait for the backend's corrected poses of each frame before the next")
+    parser.add_argument("--prior-map", type=Path, default=None,
+                        help="map.sqlite of a prior run: relocalise against it, then map in its frame (docs/MAPS.md)")
     parser.add_argument("--map-db", type=Path, default=None,
                         help="SQLite file of a persistent map, loaded at start if present (default: DIR/map.sqlite, "
                              "loaded only with --resume)")

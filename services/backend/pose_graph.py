@@ -179,6 +179,9 @@ class PoseGraph:
         self._unposed: dict[int, list[Observation]] = {}  # observations that arrived before their odometry
         self._estimate: gtsam.Values | None = None
         self.last_update_ms = 0.0
+        # (m, rad) of the first pose's prior instead of the params': a session relocalised against a prior map
+        # holds its start only as well as the fit knew it, and lets the anchored landmarks place it
+        self.first_prior: tuple[float, float] | None = None
         self.counters: dict[str, int] = {
             "odometry": 0, "observations": 0, "observation_factors": 0, "observations_dropped": 0,
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
@@ -244,6 +247,20 @@ class PoseGraph:
                 self._waiting.setdefault(root, []).append((frame_id, obs))
                 if self._count[root] >= self.params.min_observations_per_landmark:
                     self._activate(root)
+
+    def anchor_landmark(self, landmark_id: int, position: np.ndarray, sigma_m: float) -> None:
+        """A prior map's landmark, held at `position` (the map's frame) by a prior factor: what ties a relocalised
+        session's trajectory to the map it was placed in. It is a variable at once (no observation count)."""
+        root = self._root(int(landmark_id))
+        position = np.asarray(position, dtype=np.float64)
+        if root not in self._var:
+            self._var[root] = root
+            self._new_values.insert(L(root), position)
+            self._pending_vars.append(root)
+            for frame_id, obs in self._waiting.pop(root, []):
+                self._add_observation_factor(frame_id, obs, root)
+        self._push(None, gtsam.PriorFactorPoint3(L(root), position, gtsam.noiseModel.Isotropic.Sigma(3, sigma_m)))
+        self.counters["anchors"] = self.counters.get("anchors", 0) + 1
 
     def merge_landmarks(self, absorbed_id: int, surviving_id: int) -> None:
         """The associator found two landmarks to be one object (often a revisit after drift: a loop closure).
@@ -448,9 +465,9 @@ class PoseGraph:
         odom = self._odom[frame_id].pose
         if prev is None and nxt is None:
             initial = odom
-            self._push(("prior", frame_id), factors.prior_factor(
-                X(frame_id), odom, self.params.prior_sigma_translation_m,
-                math.radians(self.params.prior_sigma_rotation_deg)))
+            sigma_t, sigma_r = self.first_prior or (self.params.prior_sigma_translation_m,
+                                                    math.radians(self.params.prior_sigma_rotation_deg))
+            self._push(("prior", frame_id), factors.prior_factor(X(frame_id), odom, sigma_t, sigma_r))
         else:
             ref = prev if prev is not None else nxt
             initial = self._node_pose(ref) @ _inv_rigid(self._odom[ref].pose) @ odom

@@ -26,6 +26,7 @@ from services.backend.loop_closure import (
     encode_keyframe,
 )
 from services.backend.pose_graph import BackendParams, PoseGraph
+from services.backend.prior_alignment import PriorAlignment
 
 REALTIME_MAX_PENDING = 8
 REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
@@ -39,6 +40,7 @@ class BackendService(Service):
 
     def setup(self) -> None:
         self.graph = PoseGraph(BackendParams.from_config(self.config.get("backend")))
+        self.aligner = PriorAlignment()  # a session that relocalises against a prior map (docs/MAPS.md)
         self.closer = LoopCloser(LoopClosureParams.from_config(self.config.get("loop_closure")))
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
@@ -115,8 +117,7 @@ class BackendService(Service):
             if self.journal is not None:
                 self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             with self.metrics.timer("update_ms") as timer:
-                self.graph.add_odometry_message(pose)
-                self.graph.add_observations_message(obs)
+                self._add(pose, obs)
                 self.graph.update()
             if cloud is not None:
                 self._close_loop(cloud)
@@ -136,6 +137,17 @@ class BackendService(Service):
             self.metrics.count("observations_unjoined")
         for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
             del self.clouds[stale]
+
+    def _add(self, pose: OdometryPose, obs: Observations) -> None:
+        """One frame into the graph; a frame that carries a prior-map alignment first moves the graph into the
+        prior map's frame (services/backend/prior_alignment.py)."""
+        if obs.alignment is not None and self.aligner.alignment is None:
+            self.graph = self.aligner.realign(self.graph, obs.alignment)
+            self.log.info("relocalised against the prior map at frame %d (%d landmarks agree, residual %.1f cm): "
+                          "the trajectory is now in the prior map's frame, %d prior landmarks anchor it",
+                          obs.frame_id, obs.alignment.inliers, 100 * obs.alignment.rms_m, len(obs.alignment.anchors))
+            self.metrics.counters["relocalised_at_frame"] = obs.frame_id
+        self.aligner.add(self.graph, pose, obs)
 
     def _ready(self, frame_id: int) -> bool:
         if frame_id not in self.observations:
@@ -164,8 +176,7 @@ class BackendService(Service):
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
         n = 0
         for frame_id, odometry, observations, keyframe in self.journal.frames():
-            self.graph.add_odometry_message(OdometryPose.decode(odometry))
-            self.graph.add_observations_message(Observations.decode(observations))
+            self._add(OdometryPose.decode(odometry), Observations.decode(observations))
             self.graph.update()
             if keyframe is not None:
                 self.closer.restore(self.graph, *decode_keyframe(keyframe))

@@ -213,3 +213,21 @@ def make_frontend(mode: str, config: dict) -> FrontEnd:
     if mode.startswith("file:"):
         return FileOdometry(mode[5:], config["file_sigma_translation_m"], config["file_sigma_rotation_deg"])
     raise OdometryError(f"unknown odometry mode {mode!r}: use gt, gt+drift, rgbd or file:PATH")
+
+
+def frame_offset(values: object) -> np.ndarray:
+    """`odometry.frame_offset` [x, y, z (m), roll, pitch, yaw (deg)] as the 4x4 transform from the session's
+    frame to the dataset's: the front end publishes inv(offset) @ pose, so a session starts in a frame of its
+    own (what relocalisation against a prior map must undo; identity by default)."""
+    if not isinstance(values, list | tuple) or len(values) != 6:
+        raise OdometryError(f"odometry.frame_offset must be 6 numbers [x, y, z, roll, pitch, yaw], got {values!r}")
+    try:
+        v = [float(x) for x in values]
+    except (TypeError, ValueError):
+        raise OdometryError(f"odometry.frame_offset must hold numbers, got {values!r}") from None
+    if not all(math.isfinite(x) for x in v):
+        raise OdometryError("odometry.frame_offset must be finite")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()
+    T[:3, 3] = v[:3]
+    return T

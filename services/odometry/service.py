@@ -6,12 +6,13 @@ It stands in for an external SLAM; a real one publishes the same messages on the
 from __future__ import annotations
 
 import msgpack
+import numpy as np
 
 from semmap.datasets.trajectory_io import write_tum
 from semmap.journal import FrameJournal
 from semmap.messages import Frame, OdometryPose
 from semmap.service import Service, service_main
-from services.odometry.frontends import FrontEnd, OdometryInput, make_frontend
+from services.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
 
 
 class OdometryService(Service):
@@ -23,6 +24,7 @@ class OdometryService(Service):
         cfg = self.config["odometry"]
         self.mode: str = cfg["mode"]
         self.frontend: FrontEnd = make_frontend(self.mode, cfg)
+        self.to_session = np.linalg.inv(frame_offset(cfg.get("frame_offset", [0.0] * 6)))
         self.keyframe_every = max(1, int(cfg["keyframe_every"]))
         self.trajectory: list[tuple[float, object]] = []
         self.journal = FrameJournal(self.out_dir / "odometry.sqlite") if self.out_dir is not None else None
@@ -45,7 +47,7 @@ class OdometryService(Service):
                                  intrinsics=frame.intrinsics.matrix)
             if self.frontend.needs_images:
                 data.rgb, data.depth = frame.rgb(), frame.depth()
-            pose = self.frontend.estimate(data)
+            pose = self.to_session @ self.frontend.estimate(data)
         sigma_t, sigma_r = self.frontend.sigmas
         self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
                                               keyframe=frame.frame_id % self.keyframe_every == 0,

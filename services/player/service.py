@@ -11,7 +11,7 @@ import argparse
 import time
 
 from semmap.datasets import DatasetError, open_dataset, reader_options
-from semmap.datasets.base import Dataset, FrameData
+from semmap.datasets.base import Dataset, FrameData, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
 from semmap.messages import Control, Frame, GroundTruthInstance, Intrinsics, Progress, ServiceStatus
 from semmap.service import Service, service_main
@@ -51,6 +51,8 @@ class PlayerService(Service):
     def setup(self) -> None:
         run = self.config["run"]
         self.dataset: Dataset = open_dataset(self.args.data, **reader_options(self.args.data, self.config))
+        if int(run.get("start_frame") or 0) > 0:  # a later session of the recording, renumbered from frame 0
+            self.dataset = WindowDataset(self.dataset, int(run["start_frame"]))
         limit = int(run.get("max_frames") or 0)
         self.loops = max(1, int(run["loops"]))
         self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops

@@ -31,7 +31,7 @@ def saved(tmp_path: Path) -> Path:
 def test_map_json_round_trip_and_schema(saved: Path) -> None:
     assert [lm.id for lm in read_map_json(saved / "map.json")] == [0, 1, 2]
     (saved / "other.json").write_text(json.dumps({"schema": "something/1"}))
-    with pytest.raises(MessageError, match="not a semmap.map/1"):
+    with pytest.raises(MessageError, match="not a semmap.map file"):
         read_map_json(saved / "other.json")
 
 

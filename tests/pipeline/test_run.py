@@ -25,9 +25,10 @@ def _assert_outputs(out: Path, frames: int, groundtruth: bool = True) -> dict:
     assert len(read_tum(out / "trajectory_optimized.tum")) == frames
     assert (out / "groundtruth.tum").is_file() == groundtruth
     body = json.loads((out / "map.json").read_text())
-    assert body["schema"] == "semmap.map/1"
+    assert body["schema"] == "semmap.map/2"
     for lm in body["landmarks"]:
-        assert set(lm) == {"id", "class", "centroid", "radius", "extent", "observations", "first_seen", "last_seen"}
+        assert set(lm) == {"id", "class", "centroid", "radius", "extent", "observations", "first_seen", "last_seen",
+                           "status"}
     assert (out / "run.rrd").stat().st_size > 1000
     for name in ("player", "odometry", "detector", "tracker", "associator", "backend", "viz"):
         assert stats["services"][name]["state"] == "finished", name

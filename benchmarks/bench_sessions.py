@@ -1,0 +1,172 @@
+"""Two sessions of 7-Scenes redkitchen, the second relocalised against the first (issue 19's done-when).
+
+    python benchmarks/bench_sessions.py [--data ../shared/data/7scenes-redkitchen] [--work out/sessions]
+        [--offset 2.0,-1.5,0.4,4,-6,35] [--merge] [--analyse-only] [--set section.key=value ...]
+
+Runs the real pipeline (`semmap run`, lockstep, `gt+drift` odometry) three times: session 1 = frames 0-499
+(seed 0), session 2 = frames 500-999 (seed 1) in a frame moved by `--offset` (x, y, z m, roll, pitch, yaw
+deg) with `--map` session 1, and one 1000-frame run (seed 0) as the reference; with `--merge` also session 2
+without `--map`, merged with session 1 by `semmap merge`. Then prints:
+
+- the relocalisation: frame, agreeing landmarks, runner-up, residual, and the recovered transform's error
+  against the offset (translation at the session frame's origin and at the session's first camera, rotation);
+- duplicates: landmarks session 2 added (ids after session 1's) with a same-class prior landmark within 0.3 m;
+- the final map against the single 1000-frame run: objects paired one-to-one (same class, nearest first), the
+  centroid distances of the pairs, and what either map has that the other has not;
+- the optimised trajectory of session 2 in the prior frame: ATE against the ground truth without any alignment
+  (the frame must be right, not just the shape), and with SE(3) alignment, next to its odometry's;
+- with `--merge`: the merged map against the relocalised run's, paired the same way.
+`--analyse-only` reads the runs already in `--work`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from semmap.datasets.trajectory_io import read_tum  # noqa: E402
+from semmap.evaluation import ate_rmse  # noqa: E402
+from semmap.map_store import read_map_json  # noqa: E402
+from semmap.messages import Landmark  # noqa: E402
+from semmap.relocalize import rotation_angle_deg  # noqa: E402
+from services.odometry.frontends import frame_offset  # noqa: E402
+
+
+def run(args: list[str]) -> None:
+    cmd = [sys.executable, "-m", "semmap.cli", *args]
+    print("$ semmap " + " ".join(args), flush=True)
+    result = subprocess.run(cmd, cwd=ROOT)
+    if result.returncode != 0:
+        raise SystemExit(f"semmap {args[0]} failed ({result.returncode})")
+
+
+def pair(a: list[Landmark], b: list[Landmark]) -> tuple[list[tuple[Landmark, Landmark, float]], list, list]:
+    """One-to-one same-class pairs, nearest first (within 1 m), and the unpaired of each side."""
+    cand = sorted(
+        (math.dist(x.centroid, y.centroid), i, j)
+        for i, x in enumerate(a)
+        for j, y in enumerate(b)
+        if x.class_name == y.class_name
+    )
+    ua, ub, out = set(range(len(a))), set(range(len(b))), []
+    for d, i, j in cand:
+        if d <= 1.0 and i in ua and j in ub:
+            ua.discard(i)
+            ub.discard(j)
+            out.append((a[i], b[j], d))
+    return out, [a[i] for i in sorted(ua)], [b[j] for j in sorted(ub)]
+
+
+def compare(name: str, a: list[Landmark], b: list[Landmark]) -> None:
+    pairs, only_a, only_b = pair(a, b)
+    d = np.array([p[2] for p in pairs])
+    within = int((d <= 0.10).sum())
+    print(
+        f"{name}: {len(a)} vs {len(b)} landmarks; {len(pairs)} paired, {within} within 10 cm "
+        f"(median {np.median(d) * 100:.1f} cm, max {d.max() * 100:.1f} cm)"
+    )
+    for x, y, dist in pairs:
+        if dist > 0.10:
+            print(f"    {x.class_name:<14} #{x.id} / #{y.id}: {dist * 100:.1f} cm apart")
+    for lm in only_a:
+        print(f"    only in the first: {lm.class_name} #{lm.id} ({lm.status})")
+    for lm in only_b:
+        print(f"    only in the second: {lm.class_name} #{lm.id} ({lm.status})")
+
+
+def ate_no_alignment(traj: Path, gt: Path) -> float:
+    truth = {round(t, 4): p for t, p in read_tum(gt)}
+    err = [np.linalg.norm(p[:3, 3] - truth[round(t, 4)][:3, 3]) for t, p in read_tum(traj) if round(t, 4) in truth]
+    return float(np.sqrt(np.mean(np.square(err))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
+    ap.add_argument("--work", default="out/sessions")
+    ap.add_argument("--offset", default="2.0,-1.5,0.4,4,-6,35")
+    ap.add_argument("--merge", action="store_true")
+    ap.add_argument("--analyse-only", action="store_true")
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    args = ap.parse_args()
+    work = Path(args.work)
+    offset = [float(v) for v in args.offset.split(",")]
+    common = ["--odometry", "gt+drift", "--no-viz", "--quiet"] + [x for s in args.overrides for x in ("--set", s)]
+    moved = ["--start-frame", "500", "--seed", "1", "--set", f"odometry.frame_offset=[{args.offset}]"]
+    if not args.analyse_only:
+        run(["run", args.data, "--out", str(work / "s1"), "--max-frames", "500", "--seed", "0", *common])
+        run(["run", args.data, "--out", str(work / "s2"), *moved, *common, "--map", str(work / "s1")])
+        run(["run", args.data, "--out", str(work / "full"), "--seed", "0", *common])
+        if args.merge:
+            run(["run", args.data, "--out", str(work / "s2_alone"), *moved, *common])
+            run(["merge", str(work / "s1"), str(work / "s2_alone"), "--out", str(work / "merged")])
+
+    truth = frame_offset(offset)
+    fit = json.loads((work / "s2" / "relocalization.json").read_text())
+    T = np.array(fit["transform"]).reshape(4, 4)
+    odom = read_tum(work / "s2" / "trajectory_odometry.tum")
+    gt_by_stamp = {round(t, 4): q for t, q in read_tum(work / "s2" / "groundtruth.tum")}
+    stamp, pose = odom[fit["frame_id"]]
+    # what the fit should find at that frame: the offset, and the drift the odometry had gathered by then
+    at_frame = gt_by_stamp[round(stamp, 4)] @ np.linalg.inv(pose)
+    print(
+        f"relocalised at frame {fit['frame_id']} (of session 2): {fit['inliers']} landmarks agree, runner-up "
+        f"{fit['runner_up']}, residual {fit['rms_m'] * 100:.1f} cm, refined on clouds: {fit['refined_on_clouds']}"
+    )
+    for name, ref in (("the frame offset", truth), ("offset + drift so far", at_frame)):
+        D = np.linalg.inv(ref) @ T
+        cam = pose[:3, 3]
+        at_cam = np.linalg.norm(T[:3, :3] @ cam + T[:3, 3] - (ref[:3, :3] @ cam + ref[:3, 3]))
+        print(
+            f"  error against {name}: {rotation_angle_deg(D[:3, :3]):.2f} deg, {at_cam * 100:.1f} cm at the "
+            f"camera of that frame, {np.linalg.norm(T[:3, 3] - ref[:3, 3]) * 100:.1f} cm at the session frame's "
+            f"origin"
+        )
+
+    s1 = read_map_json(work / "s1" / "map.json")
+    s2 = read_map_json(work / "s2" / "map.json")
+    prior_ids = {lm.id for lm in s1}
+    dup = [
+        (n, p)
+        for n in s2
+        if n.id not in prior_ids
+        for p in s2
+        if p.id in prior_ids and p.class_name == n.class_name and math.dist(p.centroid, n.centroid) < 0.3
+    ]
+    statuses = {s: sum(lm.status == s for lm in s2) for s in ("present", "prior", "missing")}
+    print(
+        f"session 2 map: {len(s2)} landmarks ({len(s2) - len(prior_ids & {lm.id for lm in s2})} new), "
+        f"statuses {statuses}; duplicates of a prior landmark: {len(dup)}"
+    )
+    for n, p in dup:
+        print(f"    #{n.id} {n.class_name} within {math.dist(n.centroid, p.centroid) * 100:.1f} cm of prior #{p.id}")
+    compare(
+        "final map vs one 1000-frame run",
+        [lm for lm in s2 if lm.status != "missing"],
+        read_map_json(work / "full" / "map.json"),
+    )
+    gt = work / "s2" / "groundtruth.tum"
+    aligned_opt = ate_rmse(read_tum(gt), read_tum(work / "s2" / "trajectory_optimized.tum"))
+    aligned_odo = ate_rmse(read_tum(gt), read_tum(work / "s2" / "trajectory_odometry.tum"))
+    print(
+        f"session 2 ATE in the prior frame, no alignment: optimised "
+        f"{ate_no_alignment(work / 's2' / 'trajectory_optimized.tum', gt) * 100:.1f} cm; with SE(3) alignment: "
+        f"optimised {aligned_opt * 100:.1f} cm, odometry {aligned_odo * 100:.1f} cm"
+    )
+    if (work / "merged" / "map.json").is_file():
+        compare(
+            "semmap merge of the two sessions vs the relocalised run", read_map_json(work / "merged" / "map.json"), s2
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,134 @@
+"""`semmap diff` / `semmap merge` on saved maps: registration by objects, moved / missing / added, fusion."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from semmap.map_merge import diff_maps, merge_maps, register, transform_landmark
+from semmap.map_store import read_map_json, write_map_json
+from semmap.messages import Landmark
+
+PROJECT = Path(__file__).resolve().parents[2]
+CLASSES = ("chair", "cup", "tv", "book", "bottle", "laptop", "clock", "plant", "chair", "cup", "vase", "bowl")
+
+
+def _room(seed: int = 0) -> list[Landmark]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, cls in enumerate(CLASSES):
+        c = rng.uniform([0, 0, 0], [5, 4, 1.8])
+        r = float(rng.uniform(0.05, 0.4))
+        out.append(Landmark(i, cls, tuple(float(v) for v in c), r, (r, r, r), 10 + i, 0.0, 30.0))
+    return out
+
+
+def _frame() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zyx", [35, 8, -5], degrees=True).as_matrix()
+    T[:3, 3] = [2.5, -1.2, 0.3]
+    return T
+
+
+def _second_session(a: list[Landmark]) -> tuple[list[Landmark], np.ndarray]:
+    """The room a day later, mapped in another frame: two objects moved, one gone, one new; ids of its own."""
+    T_b_from_a = _frame()
+    b = []
+    for lm in a:
+        if lm.id == 5:
+            continue  # the laptop was taken away
+        c = np.array(lm.centroid) + (np.array([1.5, 0.5, 0.0]) if lm.id in (1, 3) else 0.0)  # cup, book moved
+        c = c + np.random.default_rng(lm.id).normal(0, 0.02, 3)
+        b.append(replace(lm, id=100 + lm.id, centroid=tuple(float(v) for v in c)))
+    b.append(Landmark(200, "backpack", (1.0, 1.0, 0.3), 0.2, (0.3, 0.2, 0.4), 7, 40.0, 60.0))
+    return [transform_landmark(lm, T_b_from_a) for lm in b], T_b_from_a
+
+
+def test_register_diff_and_merge() -> None:
+    a = _room()
+    b, T_b_from_a = _second_session(a)
+    fit = register(a, b).result
+    assert fit is not None
+    D = fit.transform @ T_b_from_a  # should be the identity
+    assert np.linalg.norm(D[:3, 3]) < 0.05 and np.degrees(np.arccos((np.trace(D[:3, :3]) - 1) / 2)) < 1.0
+    b_in_a = [transform_landmark(lm, fit.transform) for lm in b]
+    d = diff_maps(a, b_in_a)
+    assert sorted((x.id, y.id) for x, y in d.moved) == [(1, 101), (3, 103)]
+    assert [lm.id for lm in d.missing] == [5]
+    assert [lm.id for lm in d.added] == [200]
+    assert len(d.kept) == len(a) - 3 and not d.unseen
+    merged = merge_maps(a, b_in_a)
+    # every kept object once, at the observation-weighted centre; moved ones stay two (two places), the new one
+    # is appended after A's ids
+    assert len(merged) == len(a) + 2 + 1
+    assert [lm.id for lm in merged][-3:] == [12, 13, 14]
+    chair = next(lm for lm in merged if lm.id == 0)
+    assert chair.observations == 20 and abs(chair.centroid[0] - a[0].centroid[0]) < 0.03
+
+
+def test_statuses_of_a_relocalised_session() -> None:
+    """B made from A with --map: `prior` landmarks were never looked at (unseen), `missing` ones were."""
+    a = _room()
+    b = [replace(lm, status="prior") if lm.id in (7, 8) else lm for lm in a]
+    b = [replace(lm, status="missing") if lm.id == 2 else lm for lm in b]
+    d = diff_maps(a, b)
+    assert sorted(lm.id for lm in d.unseen) == [7, 8]
+    assert [lm.id for lm in d.missing] == [2]
+    assert not d.added and not d.moved
+    merged = merge_maps(a, b)
+    assert len(merged) == len(a) and next(lm for lm in merged if lm.id == 2).status == "present"
+    assert {lm.status for lm in merge_maps(b, b)} == {"present", "prior", "missing"}
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "semmap.cli", *args], cwd=PROJECT, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_cli(tmp_path: Path) -> None:
+    a = _room()
+    b, _ = _second_session(a)
+    write_map_json(tmp_path / "a.json", a)
+    (tmp_path / "b").mkdir()
+    write_map_json(tmp_path / "b" / "map.json", b)
+    out = _cli("diff", str(tmp_path / "a.json"), str(tmp_path / "b"), "--json")
+    assert out.returncode == 0, out.stderr
+    body = json.loads(out.stdout)
+    assert sorted(m["a"]["id"] for m in body["moved"]) == [1, 3]
+    assert [m["id"] for m in body["missing"]] == [5] and [m["id"] for m in body["added"]] == [200]
+    assert body["registration"]["inliers"] >= 8
+    text = _cli("diff", str(tmp_path / "a.json"), str(tmp_path / "b"))
+    assert "9 kept, 2 moved, 1 missing, 1 added" in text.stdout, text.stdout
+    merged = _cli("merge", str(tmp_path / "a.json"), str(tmp_path / "b"), "--out", str(tmp_path / "c"))
+    assert merged.returncode == 0, merged.stderr
+    assert len(read_map_json(tmp_path / "c" / "map.json")) == len(a) + 3
+
+
+@pytest.mark.parametrize("what", ["unrelated", "too few"])
+def test_cli_refuses_an_uncertain_registration(tmp_path: Path, what: str) -> None:
+    a = _room(0)
+    b = _room(1) if what == "unrelated" else a[:2]
+    write_map_json(tmp_path / "a.json", a)
+    write_map_json(tmp_path / "b.json", b)
+    out = _cli("merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "c"))
+    assert out.returncode == 2 and "cannot register" in out.stderr, out.stderr
+    assert not (tmp_path / "c").exists()
+    same = _cli("diff", str(tmp_path / "a.json"), str(tmp_path / "a.json"), "--same-frame")
+    assert same.returncode == 0 and f"{len(a)} kept, 0 moved, 0 missing, 0 added" in same.stdout
+
+
+def test_cli_refuses_a_map_of_another_version(tmp_path: Path) -> None:
+    write_map_json(tmp_path / "a.json", _room())
+    body = json.loads((tmp_path / "a.json").read_text())
+    body["schema"] = "semmap.map/9"
+    (tmp_path / "b.json").write_text(json.dumps(body))
+    out = _cli("diff", str(tmp_path / "a.json"), str(tmp_path / "b.json"))
+    assert out.returncode == 2 and "newer semmap" in out.stderr

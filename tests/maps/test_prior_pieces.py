@@ -1,0 +1,228 @@
+"""The pieces of `semmap run --map` without a bus: the pose book's turn to the prior frame, the backend's
+rebuild in the prior frame with anchored landmarks, the missing test of prior landmarks, the dataset window,
+the session frame offset and the CLI's checks of --map."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semmap.datasets import open_dataset
+from semmap.datasets.base import DatasetError, WindowDataset
+from semmap.geometry import look_at
+from semmap.map_store import MapStore
+from semmap.messages import (
+    CorrectedPoses,
+    Intrinsics,
+    MapAlignment,
+    Observation,
+    Observations,
+    OdometryPose,
+    TrackedBox,
+)
+from services.associator.landmark_map import LandmarkMap
+from services.associator.prior_map import PriorParams, PriorSession
+from services.associator.service import PoseBook
+from services.backend.pose_graph import PoseGraph
+from services.backend.prior_alignment import PriorAlignment
+from services.odometry.frontends import OdometryError, frame_offset
+
+PROJECT = Path(__file__).resolve().parents[2]
+OFFSET = frame_offset([1.0, -2.0, 0.5, 0.0, 0.0, 30.0])
+
+
+def test_frame_offset() -> None:
+    assert np.allclose(frame_offset([0] * 6), np.eye(4))
+    T = frame_offset([1, 2, 3, 0, 0, 90])
+    assert np.allclose(T[:3, 3], [1, 2, 3]) and np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0])
+    for bad in ([1, 2, 3], "x", [0, 0, 0, 0, 0, float("nan")], [0, 0, 0, 0, 0, "a"]):
+        with pytest.raises(OdometryError):
+            frame_offset(bad)
+
+
+def test_pose_book_turns_to_the_prior_frame() -> None:
+    book = PoseBook()
+    odom = {f: look_at(np.array([0.1 * f, 0.0, 1.0]), np.array([0.1 * f, 2.0, 1.0])) for f in range(10)}
+    book.odometry.update(odom)
+    ids = np.arange(5)
+    book.set_corrected(CorrectedPoses("r", 1, 4, ids, ids / 30.0, np.stack([odom[f] for f in ids])))
+    book.align(OFFSET, from_frame=6)
+    for f in range(10):  # corrected, interpolated and plain odometry all land in the prior frame
+        assert np.allclose(book(f), OFFSET @ odom[f])
+    # a correction the backend sent before it realigned is still in the session frame; one after is not
+    book.set_corrected(CorrectedPoses("r", 2, 5, ids, ids / 30.0, np.stack([odom[f] for f in ids])))
+    assert np.allclose(book(3), OFFSET @ odom[3])
+    book.set_corrected(CorrectedPoses("r", 3, 6, ids, ids / 30.0, np.stack([OFFSET @ odom[f] for f in ids])))
+    assert np.allclose(book(3), OFFSET @ odom[3])
+    restored = PoseBook.from_state(book.to_state())
+    assert np.allclose(restored(9), OFFSET @ odom[9])
+
+
+def _observe(pose: np.ndarray, point: np.ndarray, lid: int) -> Observation:
+    p = pose[:3, :3].T @ (point - pose[:3, 3])
+    return Observation(lid, "cup", (float(p[0]), float(p[1]), float(p[2])), 0.02, 0.1)
+
+
+def test_backend_rebuilds_in_the_prior_frame_and_anchors_pull_the_trajectory() -> None:
+    """The session's odometry is in its own frame; the alignment carries a transform 5 cm / 1 degree off the
+    truth and the prior landmarks' true places: after the rebuild the trajectory sits in the prior frame, and the
+    anchors remove most of what the fit got wrong."""
+    landmarks = {i: np.array(p, float) for i, p in enumerate([(0, 3, 1), (2, 3, 0.5), (-2, 3, 1.5), (1, 4, 2)])}
+    truth = [look_at(np.array([0.05 * f - 1, 0.0, 1.0]), np.array([0.0, 3.0, 1.0])) for f in range(60)]
+    session = [np.linalg.inv(OFFSET) @ p for p in truth]
+    fit_error = frame_offset([0.05, 0.0, 0.0, 0.0, 0.0, 1.0])
+    alignment = MapAlignment(OFFSET @ fit_error, [(i, tuple(p)) for i, p in landmarks.items()], 0.01, 4, 0.03)
+    aligner, graph = PriorAlignment(), PoseGraph()
+    for f, pose in enumerate(session):
+        obs = Observations("r", f, f / 30, [_observe(truth[f], landmarks[i], i) for i in landmarks])
+        if f == 20:
+            obs.alignment = alignment
+            graph = aligner.realign(graph, alignment)
+        aligner.add(graph, OdometryPose("r", f, f / 30, pose, True, 0.001, 0.001, "gt"), obs)
+        graph.update()
+    ids, _, poses = graph.corrected_poses()
+    err = [np.linalg.norm(poses[i][:3, 3] - truth[f][:3, 3]) for i, f in enumerate(ids)]
+    assert max(err) < 0.02, max(err)  # the fit was 5 cm and 1 degree (5 cm at 3 m) off
+    assert graph.counters["anchors"] == 4
+
+
+def _prior(n: int = 3) -> LandmarkMap:
+    m = LandmarkMap()
+    for i in range(n):
+        lm = m.create("cup", 0.0)
+        lm.centroid = np.array([0.4 * i - 0.4, 0.0, 2.0])
+        lm.size = 0.2
+    return m
+
+
+K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def _session(prior: LandmarkMap) -> tuple[PriorSession, object]:
+    from services.associator.mapper import LandmarkMapper
+
+    s = PriorSession(prior, PriorParams(missing_after_frames=3))
+    s.transform = np.eye(4)  # relocalised (identity frame) for the test
+    mapper = LandmarkMapper()
+    mapper.adopt_landmarks(prior.all())
+    for lm in mapper.map.all():  # a view so it counts as a mapped object
+        lm.views = [object()]  # type: ignore[list-item]
+    return s, mapper
+
+
+def test_prior_landmark_in_view_and_undetected_goes_missing_only_after_several_frames() -> None:
+    s, mapper = _session(_prior())
+    camera = np.eye(4)  # looking down +z at the three cups 2 m away
+    seen = [TrackedBox(1, "cup", (140.0, 200.0, 260.0, 280.0), 5, True)]  # a box on the first cup only
+    for frame in range(2):
+        assert s.update(mapper, frame, camera, seen, K, touched=[]) == []
+    assert s.update(mapper, 2, camera, seen, K, touched=[]) == [1, 2]
+    assert s.status == {0: "prior", 1: "missing", 2: "missing"}
+    assert s.update(mapper, 3, camera, seen, K, touched=[2]) == [2]  # associated again: present
+    assert s.status[2] == "present"
+
+
+def test_out_of_view_occluded_or_skipped_frames_never_count() -> None:
+    s, mapper = _session(_prior())
+    away = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, -1.0, 0.0]))  # looking away from them
+    far = np.eye(4)
+    far[2, 3] = -5.0  # 7 m away: beyond missing_max_depth_m
+    for frame in range(10):
+        s.update(mapper, frame, away, [], K, touched=[])
+        s.update(mapper, frame, far, [], K, touched=[])
+        s.update(mapper, frame, np.eye(4), None, K, touched=[])  # a frame the detector skipped
+    assert set(s.status.values()) == {"prior"}
+    # a cup hidden behind a bigger landmark on the line of sight
+    m = _prior(1)
+    front = m.create("tv", 0.0)
+    front.centroid, front.size = np.array([-0.4, 0.0, 1.0]), 0.6
+    s, mapper = _session(m)
+    s.status.pop(front.id)
+    s.streak.pop(front.id)
+    for frame in range(10):
+        s.update(mapper, frame, np.eye(4), [TrackedBox(1, "tv", (0, 0, 640, 480), 5, True)], K, touched=[])
+    assert s.status[0] == "prior"
+
+
+def test_window_dataset() -> None:
+    full = open_dataset("synthetic:frames=20,seed=0,size=64x48,persons=0")
+    window = WindowDataset(full, 12)
+    assert len(window) == 8 and window[0].index == 0 and window[0].stamp == full[12].stamp
+    assert len(window.groundtruth()) == 8 and np.allclose(window.groundtruth()[0][1], full[12].gt_pose)
+    with pytest.raises(DatasetError):
+        WindowDataset(full, 20)
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "semmap.cli", "run", *args, "--quiet"],
+        cwd=PROJECT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_cli_checks_the_prior_map_before_starting(tmp_path: Path) -> None:
+    out = _run("synthetic:frames=5", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "nothing"))
+    assert out.returncode == 2 and "expected a run directory or its map.sqlite" in out.stderr
+    MapStore(tmp_path / "empty" / "map.sqlite")
+    out = _run("synthetic:frames=5", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "empty"))
+    assert out.returncode == 2 and "holds no map" in out.stderr
+    MapStore(tmp_path / "o" / "map.sqlite").save({"version": 1})
+    out = _run("synthetic:frames=5", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "o"))
+    assert out.returncode == 2 and "the output directory's own map" in out.stderr
+    import sqlite3
+
+    db = sqlite3.connect(tmp_path / "o" / "map.sqlite")
+    with db:
+        db.execute("UPDATE meta SET value = 'semmap.mapstore/7'")
+    db.close()
+    out = _run("synthetic:frames=5", "--out", str(tmp_path / "p"), "--map", str(tmp_path / "o"))
+    assert out.returncode == 2 and "newer semmap" in out.stderr
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        "x",
+        {"transform": [1.0] * 16, "anchors": [], "anchor_sigma_m": 0.03, "inliers": 4, "rms_m": 0.01},
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [[1, [0, 0]]],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": 0.01,
+        },
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [[-1, [0, 0, 0]]],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": 0.01,
+        },
+        {"transform": list(np.eye(4).reshape(16)), "anchors": [], "anchor_sigma_m": 0.0, "inliers": 4, "rms_m": 0.01},
+        {
+            "transform": list(np.eye(4).reshape(16)),
+            "anchors": [],
+            "anchor_sigma_m": 0.03,
+            "inliers": 4,
+            "rms_m": float("nan"),
+        },
+    ],
+)
+def test_malformed_alignments_are_refused(bad: object) -> None:
+    from semmap.messages import MessageError
+
+    body = Observations("r", 1, 0.0).to_dict()
+    body["alignment"] = bad
+    with pytest.raises(MessageError):
+        Observations.from_dict(body)
+    good = MapAlignment(OFFSET, [(3, (1.0, 2.0, 3.0))], 0.03, 5, 0.02)
+    back = Observations.decode(Observations("r", 1, 0.0, alignment=good).encode()).alignment
+    assert back is not None and np.allclose(back.transform, OFFSET) and back.anchors == good.anchors

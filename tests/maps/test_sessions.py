@@ -1,0 +1,146 @@
+"""Two sessions of the synthetic room through the real pipeline: the second starts from the first's map.
+
+Session 1 maps the room (300 frames, one camera loop, ground-truth odometry). A day later two table-top objects
+stand elsewhere and one is gone (`moved=2,removed=1`, seeded), and session 2 (150 frames: half the loop, so some
+objects stay out of view) runs in a frame of its own (`odometry.frame_offset`: 1.5 m, 2 m, 0.3 m, 40 degrees
+of yaw and a few of tilt) with `--map` session 1. It must relocalise (the recovered transform close to the
+offset), map no duplicate of a prior landmark, show the moved objects as missing at their old place and present
+at the new, the removed one missing, nothing out of view missing, and its optimised trajectory must lie in the
+prior frame. The same session run without `--map`, merged with session 1 by `semmap merge`, must give the same
+landmarks as the relocalised run, and `semmap diff` must name the changes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semmap.datasets import open_dataset
+from semmap.datasets.synthetic import SyntheticConfig, _build_scene, changed_objects
+from semmap.datasets.trajectory_io import read_tum
+from semmap.map_store import read_map_json
+from semmap.relocalize import rotation_angle_deg
+from services.odometry.frontends import frame_offset
+
+pytestmark = pytest.mark.slow
+PROJECT = Path(__file__).resolve().parents[2]
+SCENE = "synthetic:frames=300,seed=0"
+CHANGED = "synthetic:frames=300,seed=0,moved=2,removed=1"
+OFFSET = [1.5, -2.0, 0.3, 5.0, -3.0, 40.0]
+COMMON = ["--odometry", "gt", "--no-viz"]
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    from tests.conftest import _semmap_run
+
+    root = tmp_path_factory.mktemp("sessions")
+    out = {name: root / name for name in ("day1", "day2", "day2_alone")}
+    offset = ["--set", "odometry.frame_offset=[" + ",".join(str(v) for v in OFFSET) + "]", "--max-frames", "150"]
+    runs = [
+        ("day1", [SCENE, "--out", str(out["day1"]), *COMMON]),
+        ("day2", [CHANGED, "--out", str(out["day2"]), *COMMON, *offset, "--map", str(out["day1"])]),
+        ("day2_alone", [CHANGED, "--out", str(out["day2_alone"]), *COMMON, *offset]),
+    ]
+    for name, args in runs:
+        result = _semmap_run(args, timeout=600)
+        assert result.returncode == 0, f"{name}: {result.stderr[-3000:]}"
+    return out
+
+
+def _truth() -> tuple[dict[int, object], list[int], list[int]]:
+    config = SyntheticConfig(frames=300, seed=0, moved=2, removed=1)
+    moved, removed = changed_objects(config, _build_scene(config))
+    return {o.instance_id: o for o in open_dataset(CHANGED).objects()}, moved, removed
+
+
+def _nearest(lm, objects) -> tuple[int, float]:  # noqa: ANN001
+    best = min((o for o in objects if o.class_name == lm.class_name), key=lambda o: math.dist(o.centroid, lm.centroid))
+    return best.instance_id, math.dist(best.centroid, lm.centroid)
+
+
+def test_second_session_relocalises_and_maps_in_the_prior_frame(sessions: dict[str, Path]) -> None:
+    fit = json.loads((sessions["day2"] / "relocalization.json").read_text())
+    assert fit["inliers"] >= 5 and fit["rms_m"] < 0.1 and fit["runner_up"] < fit["inliers"]
+    D = np.linalg.inv(frame_offset(OFFSET)) @ np.array(fit["transform"]).reshape(4, 4)
+    assert np.linalg.norm(D[:3, 3]) < 0.15 and rotation_angle_deg(D[:3, :3]) < 3.0
+    stats = json.loads((sessions["day2"] / "stats.json").read_text())
+    assert stats["services"]["associator"]["counters"]["relocalised"] == 1
+    # the optimised trajectory is in the prior (dataset) frame, anchored by the prior landmarks
+    gt = {round(t, 4): p for t, p in read_tum(sessions["day2"] / "groundtruth.tum")}
+    opt = read_tum(sessions["day2"] / "trajectory_optimized.tum")
+    err = [np.linalg.norm(p[:3, 3] - gt[round(t, 4)][:3, 3]) for t, p in opt if round(t, 4) in gt]
+    assert len(err) == 150 and math.sqrt(np.mean(np.square(err))) < 0.08
+    # the odometry itself stayed in the session's frame (metres away)
+    odom = read_tum(sessions["day2"] / "trajectory_odometry.tum")
+    assert np.linalg.norm(odom[0][1][:3, 3] - gt[round(odom[0][0], 4)][:3, 3]) > 1.0
+
+
+def test_changes_between_sessions(sessions: dict[str, Path]) -> None:
+    objects, moved, removed = _truth()
+    day1 = read_map_json(sessions["day1"] / "map.json")
+    day2 = read_map_json(sessions["day2"] / "map.json")
+    assert {lm.id for lm in day1} <= {lm.id for lm in day2}  # every prior landmark kept, under its id
+    live = [lm for lm in day2 if lm.status != "missing"]
+    for i, a in enumerate(live):  # no duplicate of a prior landmark (or of anything)
+        for b in live[i + 1 :]:
+            assert not (a.class_name == b.class_name and math.dist(a.centroid, b.centroid) < 0.3), (a, b)
+    missing = [lm for lm in day2 if lm.status == "missing"]
+    before = {o.instance_id: o for o in open_dataset(SCENE).objects()}
+    # what is missing: the removed object and the moved ones' old places, nothing else
+    missing_truth = sorted(_nearest(lm, before.values())[0] for lm in missing)
+    assert missing_truth == sorted(moved + removed), [(lm.id, lm.class_name) for lm in missing]
+    # the moved objects are mapped anew at their new places
+    for oid in moved:
+        new = [
+            lm
+            for lm in live
+            if lm.class_name == objects[oid].class_name and math.dist(lm.centroid, objects[oid].centroid) < 0.1
+        ]
+        assert len(new) == 1 and new[0].id not in {lm.id for lm in day1}
+    # objects out of session 2's view stay `prior` (not missing); seen ones are present
+    assert any(lm.status == "prior" for lm in day2)
+    assert sum(lm.status == "present" for lm in day2) >= 10
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "semmap.cli", *args], cwd=PROJECT, capture_output=True, text=True, timeout=300
+    )
+
+
+def test_diff_names_the_changes(sessions: dict[str, Path]) -> None:
+    _, moved, removed = _truth()
+    out = _cli("diff", str(sessions["day1"]), str(sessions["day2"]), "--json")
+    assert out.returncode == 0, out.stderr
+    body = json.loads(out.stdout)
+    before = {o.instance_id: o for o in open_dataset(SCENE).objects()}
+    day1 = {lm.id: lm for lm in read_map_json(sessions["day1"] / "map.json")}
+    moved_truth = sorted(_nearest(day1[m["a"]["id"]], before.values())[0] for m in body["moved"])
+    assert moved_truth == sorted(moved)
+    assert sorted(_nearest(day1[m["id"]], before.values())[0] for m in body["missing"]) == sorted(removed)
+    assert not body["added"] and body["unseen"]
+
+
+def test_merge_of_two_sessions_equals_the_relocalised_run(sessions: dict[str, Path], tmp_path: Path) -> None:
+    out = _cli("merge", str(sessions["day1"]), str(sessions["day2_alone"]), "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    merged = read_map_json(tmp_path / "map.json")
+    relocalised = read_map_json(sessions["day2"] / "map.json")
+    # the same objects: one-to-one, same class, centroids within 10 cm
+    left = list(relocalised)
+    for lm in merged:
+        match = min(
+            (r for r in left if r.class_name == lm.class_name),
+            key=lambda r: math.dist(r.centroid, lm.centroid),
+            default=None,
+        )
+        assert match is not None and math.dist(match.centroid, lm.centroid) < 0.1, lm
+        left.remove(match)
+    assert not left, left
