@@ -11,6 +11,7 @@ The map is persisted to `DIR/map.sqlite` (atomic) and exported to `DIR/map.json`
 from __future__ import annotations
 
 import argparse
+import bisect
 import time
 from pathlib import Path
 from typing import Any
@@ -51,16 +52,34 @@ def combined(a: MapperStep, b: MapperStep) -> MapperStep:
 
 
 class PoseBook:
-    """Best known camera-to-world pose per frame: corrected by the backend where possible."""
+    """Best known camera-to-world pose per frame: corrected by the backend where possible.
+
+    The backend sends deltas (the poses that moved more than its tolerance, see services/backend/corrections.py):
+    a pose the book already has and the message does not carry stays the same array, so a view's `refresh`
+    sees it unchanged and refinement re-estimates only the landmarks whose observing poses moved.
+    """
 
     def __init__(self) -> None:
         self.odometry: dict[int, np.ndarray] = {}
         self.corrected: dict[int, np.ndarray] = {}
-        self._corrected_ids = np.zeros(0, np.int64)
+        self._corrected_ids: list[int] = []  # sorted keys of `corrected`
+        self._seq = 0
 
     def set_corrected(self, msg: CorrectedPoses) -> None:
-        self.corrected = {int(f): p for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
-        self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
+        """Apply a corrected-poses message: a full one replaces the book's corrections, a delta updates them
+        (a delta older than the last one applied, e.g. a resent one, is ignored)."""
+        if not msg.full and msg.seq <= self._seq:
+            return
+        self._seq = msg.seq
+        if msg.full:
+            self._corrected_ids = []
+        new = [int(f) for f in msg.frame_ids if msg.full or int(f) not in self.corrected]
+        msg.apply_to(self.corrected)
+        if new and (not self._corrected_ids or new[0] > self._corrected_ids[-1]):
+            self._corrected_ids.extend(new)  # the usual case: new frames come after the known ones
+        else:
+            for f in new:
+                bisect.insort(self._corrected_ids, f)
 
     def to_state(self, recent: int = POSES_KEPT) -> dict[str, Any]:
         """What a restarted associator needs to place views as before the crash (replaying its journal, then
@@ -68,7 +87,7 @@ class PoseBook:
         (measurements still waiting for a pose are recent) and the newest corrected frame with its odometry,
         the anchor that moves later odometry onto the optimised estimate."""
         frames = sorted(self.odometry)[-recent:]
-        anchor = next((int(k) for k in self._corrected_ids[::-1] if int(k) in self.odometry), None)
+        anchor = next((k for k in reversed(self._corrected_ids) if k in self.odometry), None)
         if anchor is not None and anchor not in frames:
             frames.append(anchor)
         return {
@@ -85,7 +104,7 @@ class PoseBook:
             return np.frombuffer(raw, np.float64).reshape(4, 4).copy()
         book.odometry = {int(f): pose(b) for f, b in state["odometry"].items()}
         book.corrected = {int(f): pose(b) for f, b in state["corrected"].items()}
-        book._corrected_ids = np.sort(np.fromiter(book.corrected, np.int64, len(book.corrected)))
+        book._corrected_ids = sorted(book.corrected)
         return book
 
     def __call__(self, frame_id: int) -> np.ndarray | None:
@@ -95,9 +114,9 @@ class PoseBook:
         odom = self.odometry.get(frame_id)
         if odom is None:
             return None
-        i = int(np.searchsorted(self._corrected_ids, frame_id)) - 1
+        i = bisect.bisect_left(self._corrected_ids, frame_id) - 1
         while i >= 0:  # the newest corrected frame before this one that we also have odometry for
-            k = int(self._corrected_ids[i])
+            k = self._corrected_ids[i]
             if k in self.odometry:
                 return self.corrected[k] @ np.linalg.inv(self.odometry[k]) @ odom
             i -= 1

@@ -145,6 +145,34 @@ def _inv_rigid(t: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Rows:
+    """A growing stack of equally shaped rows: appends are amortised O(1) (the buffer doubles)."""
+
+    def __init__(self, shape: tuple[int, ...], fill: float) -> None:
+        self._buf = np.full((64, *shape), fill)
+        self._fill = fill
+        self.n = 0
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The rows as a view (valid until the next append or insert)."""
+        return self._buf[: self.n]
+
+    def insert(self, i: int, row: np.ndarray) -> None:
+        if self.n == len(self._buf):
+            grown = np.full((2 * self.n, *self._buf.shape[1:]), self._fill)
+            grown[: self.n] = self._buf
+            self._buf = grown
+        if i < self.n:  # a row in the middle: the rest moves (rare: a frame that became a node late)
+            self._buf[i + 1 : self.n + 1] = self._buf[i : self.n].copy()
+        self._buf[i] = row
+        self.n += 1
+
+    def replace(self, rows: np.ndarray) -> None:
+        self._buf = np.concatenate([rows, np.full((max(64, len(rows)), *rows.shape[1:]), self._fill)])
+        self.n = len(rows)
+
+
 class PoseGraph:
     """Incremental iSAM2 graph of odometry and landmark observations. Not thread-safe: one owner calls it."""
 
@@ -177,12 +205,16 @@ class PoseGraph:
         self._isam_vars: set[int] = set()
         self._pending_vars: list[int] = []
         self._unposed: dict[int, list[Observation]] = {}  # observations that arrived before their odometry
-        self._estimate: gtsam.Values | None = None
+        self._estimate: gtsam.Values | None = None  # the whole estimate, computed only when asked (O(graph))
+        # per-node estimates kept up to date incrementally (see _refresh_estimates), aligned with _isam_nodes
+        self._est = _Rows((4, 4), 0.0)
+        self._ref = _Rows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
+        self._moved_nodes: set[int] = set()  # nodes whose estimate changed since `take_moved_nodes()`
         self.last_update_ms = 0.0
         self.counters: dict[str, int] = {
             "odometry": 0, "observations": 0, "observation_factors": 0, "observations_dropped": 0,
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
-            "factors_replaced": 0, "observations_ignored": 0,
+            "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -317,15 +349,19 @@ class PoseGraph:
         for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
             if tag is not None:
                 self._factor_ids[tag] = int(index)
-        for node in self._pending_nodes:
-            bisect.insort(self._isam_nodes, node)
+        for node in sorted(self._pending_nodes):
+            i = bisect.bisect_left(self._isam_nodes, node)
+            self._isam_nodes.insert(i, node)
+            self._est.insert(i, np.eye(4))  # (read in _refresh_estimates below: its reference delta is NaN)
+            self._ref.insert(i, np.full(6, np.nan))
         self._isam_vars.update(self._pending_vars)
         self._new_factors, self._new_tag_pos, self._remove = [], {}, []
         self._new_values = gtsam.Values()
         self._pending_nodes, self._pending_vars = [], []
-        # the estimate is needed every frame anyway (new nodes start from it, the service publishes it); its
-        # cost is iSAM2's deferred back-substitution, so it belongs to the update's time
-        self._estimate = self._isam.calculateEstimate()
+        self._estimate = None
+        # the nodes' estimates are needed every frame (new nodes start from them, the service publishes them);
+        # reading them is iSAM2's deferred back-substitution, so it belongs to the update's time
+        self._refresh_estimates()
         self.counters["updates"] += 1
         self.last_update_ms = (time.perf_counter() - start) * 1e3
 
@@ -342,11 +378,7 @@ class PoseGraph:
         if not self._isam_nodes:
             return ids, stamps, odom.copy()
         node_ids = np.array(self._isam_nodes, dtype=np.int64)
-        rows = gtsam.utilities.extractPose3(self._values())  # key order == frame order (only X are Pose3)
-        corrected_nodes = np.zeros((len(rows), 4, 4))
-        corrected_nodes[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-        corrected_nodes[:, :3, 3] = rows[:, 9:]
-        corrected_nodes[:, 3, 3] = 1.0
+        corrected_nodes = self._est.rows
         k = np.clip(np.searchsorted(node_ids, ids, side="right") - 1, 0, None)
         odom_nodes = odom[np.searchsorted(ids, node_ids)]
         correction = corrected_nodes @ _inv_rigid(odom_nodes)  # per node: corrected <- odometry frame
@@ -364,7 +396,7 @@ class PoseGraph:
             return self._odom[frame_id].pose.copy()
         i = max(bisect.bisect_right(self._isam_nodes, frame_id) - 1, 0)
         node = self._isam_nodes[i]
-        corrected = self._values().atPose3(X(node)).matrix()
+        corrected = self._est.rows[i].copy()
         if node == frame_id:
             return corrected
         return corrected @ _inv_rigid(self._odom[node].pose) @ self._odom[frame_id].pose
@@ -385,8 +417,8 @@ class PoseGraph:
         items = sorted((lid, var) for lid, var in self._var.items() if var in self._isam_vars)
         if not items:
             return np.zeros(0, np.int64), np.zeros((0, 3))
-        values = self._values()
-        positions = np.array([values.atPoint3(L(var)) for _, var in items], dtype=np.float64).reshape(-1, 3)
+        positions = np.array([self._isam.calculateEstimatePoint3(L(var)) for _, var in items],
+                             dtype=np.float64).reshape(-1, 3)
         return np.array([lid for lid, _ in items], dtype=np.int64), positions
 
     def resolve_landmark(self, landmark_id: int) -> int:
@@ -411,6 +443,61 @@ class PoseGraph:
         if self._estimate is None:  # only before the first update
             self._estimate = self._isam.calculateEstimate()
         return self._estimate
+
+    def take_moved_nodes(self) -> list[int]:
+        """The nodes (frame ids, ascending) whose estimate changed since the last call: new nodes and those iSAM2
+        moved (relinearised or re-solved). Frames between two nodes ride on the earlier one."""
+        moved, self._moved_nodes = sorted(self._moved_nodes), set()
+        return moved
+
+    def node_ids(self) -> list[int]:
+        """Frame ids of the pose nodes in iSAM2, ascending (a view: do not modify)."""
+        return self._isam_nodes
+
+    def _refresh_estimates(self) -> None:
+        """Bring the per-node estimates up to date, reading only the nodes whose iSAM2 delta changed.
+
+        Why: the whole estimate (`calculateEstimate`) costs O(graph) every frame (27 ms at 10,000 poses here),
+        although iSAM2 leaves settled parts alone. An estimate is the linearisation point retracted by the delta,
+        and a relinearised node gets a new delta too, so a node whose delta is unchanged has an unchanged
+        estimate. The delta comes as one vector ordered by key (landmarks 'l' before poses 'x'); comparing it to
+        the delta each node had when last read is a vectorised pass, and only the nodes that moved (by more than
+        a hundredth of the relinearisation threshold, accumulated) are read. When many moved (a loop closed)
+        one whole read is cheaper than many single ones.
+        """
+        n = len(self._isam_nodes)
+        if n == 0:
+            return
+        vec = self._isam.getDelta().vector()
+        start = 3 * len(self._isam_vars)
+        if len(vec) != start + 6 * n:  # another kind of variable in the graph: read everything
+            self._read_all_nodes(None)
+            return
+        delta = vec[start:].reshape(n, 6)
+        tol = 0.01 * self.params.relinearize_threshold
+        with np.errstate(invalid="ignore"):
+            stale = np.flatnonzero(~(np.abs(delta - self._ref.rows).max(axis=1) <= tol))  # NaN: a new node
+        if len(stale) > max(64, n // 8):
+            self._read_all_nodes(delta)
+            return
+        est = self._est.rows
+        for k in stale:
+            est[k] = self._isam.calculateEstimatePose3(X(self._isam_nodes[k])).matrix()
+        self._ref.rows[stale] = delta[stale]
+        self._moved_nodes.update(self._isam_nodes[k] for k in stale)
+        self.counters["estimates_read"] += len(stale)
+
+    def _read_all_nodes(self, delta: np.ndarray | None) -> None:
+        self._estimate = self._isam.calculateEstimate()
+        rows = gtsam.utilities.extractPose3(self._estimate)  # key order == frame order (only X are Pose3)
+        est = np.zeros((len(rows), 4, 4))
+        est[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        est[:, :3, 3] = rows[:, 9:]
+        est[:, 3, 3] = 1.0
+        self._est.replace(est)
+        self._ref.replace(delta.copy() if delta is not None else np.full((len(rows), 6), np.nan))
+        self._moved_nodes.update(self._isam_nodes)
+        self.counters["estimate_full_reads"] += 1
 
     def _root(self, landmark_id: int) -> int:
         root = landmark_id
@@ -437,7 +524,7 @@ class PoseGraph:
         key = X(node)
         if self._new_values.exists(key):
             return self._new_values.atPose3(key).matrix()
-        return self._values().atPose3(key).matrix()
+        return self._est.rows[bisect.bisect_left(self._isam_nodes, node)].copy()
 
     def _ensure_node(self, frame_id: int) -> None:
         if frame_id in self._node_set:
