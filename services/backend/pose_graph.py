@@ -145,7 +145,7 @@ def _inv_rigid(t: np.ndarray) -> np.ndarray:
     return out
 
 
-class _Rows:
+class GrowingRows:
     """A growing stack of equally shaped rows: appends are amortised O(1) (the buffer doubles)."""
 
     def __init__(self, shape: tuple[int, ...], fill: float) -> None:
@@ -186,6 +186,10 @@ class PoseGraph:
         self._odom: dict[int, _Odometry] = {}
         self._frames: list[int] = []
         self._table = _OdometryTable()
+        # prefix sums of the per-frame odometry variances over _frames, valid for the first _cum_valid frames
+        self._cum_var_t: list[float] = [0.0]
+        self._cum_var_r: list[float] = [0.0]
+        self._cum_valid = 0
         # pose nodes (in iSAM2 or pending) and those already in iSAM2 (what the estimate holds)
         self._nodes: list[int] = []
         self._node_set: set[int] = set()
@@ -207,8 +211,8 @@ class PoseGraph:
         self._unposed: dict[int, list[Observation]] = {}  # observations that arrived before their odometry
         self._estimate: gtsam.Values | None = None  # the whole estimate, computed only when asked (O(graph))
         # per-node estimates kept up to date incrementally (see _refresh_estimates), aligned with _isam_nodes
-        self._est = _Rows((4, 4), 0.0)
-        self._ref = _Rows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
+        self._est = GrowingRows((4, 4), 0.0)
+        self._ref = GrowingRows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
         self._moved_nodes: set[int] = set()  # nodes whose estimate changed since `take_moved_nodes()`
         self.last_update_ms = 0.0
         self.counters: dict[str, int] = {
@@ -239,6 +243,7 @@ class PoseGraph:
         self.counters["odometry"] += 1
         if not known:
             bisect.insort(self._frames, frame_id)
+        self._cum_valid = min(self._cum_valid, bisect.bisect_left(self._frames, frame_id))  # sums from here on
         self._table.put(frame_id, float(stamp), pose, appended=not known and frame_id == self._frames[-1])
         if frame_id in self._node_set:
             self._rebuild_chains(frame_id)
@@ -387,6 +392,27 @@ class PoseGraph:
         poses[is_node] = corrected_nodes[k[is_node]]
         return ids, stamps, poses
 
+    def frame_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frame_ids, stamps) of every frame with odometry, ascending (views: do not modify)."""
+        ids, stamps, _ = self._table.arrays(self._frames, self._odom)
+        return ids, stamps
+
+    def corrected_rows(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 4, 4) corrected poses of the frames at these rows of `frame_table()`, as
+        `corrected_poses` computes them, at a cost in the number of rows (not of frames)."""
+        ids, _, odom = self._table.arrays(self._frames, self._odom)
+        rows = np.asarray(rows, dtype=np.int64)
+        if not self._isam_nodes:
+            return odom[rows].copy()
+        nodes = self._isam_nodes
+        k = [max(bisect.bisect_right(nodes, int(f)) - 1, 0) for f in ids[rows]]
+        node_rows = np.searchsorted(ids, [nodes[i] for i in k])
+        est = self._est.rows[k]
+        poses = est @ _inv_rigid(odom[node_rows]) @ odom[rows]
+        is_node = node_rows == rows
+        poses[is_node] = est[is_node]
+        return poses
+
     def corrected_pose(self, frame_id: int) -> np.ndarray:
         """The corrected 4x4 of one frame (KeyError if it never had odometry)."""
         frame_id = int(frame_id)
@@ -405,12 +431,20 @@ class PoseGraph:
         """(m, rad) sigmas the front end declares for the motion from frame a to frame b (a < b, both with
         odometry): per-frame variances add up; frames without odometry count with b's sigmas."""
         i0, i1 = bisect.bisect_right(self._frames, a), bisect.bisect_right(self._frames, b)
-        between = [self._odom[f] for f in self._frames[i0:i1]]
-        missing = (b - a) - len(between)
+        # prefix sums of the variances, extended lazily: O(log frames) for any span (a loop closure's spans
+        # over thousands of frames, once per candidate, made this the loop-closure step's growing cost)
+        cum_t, cum_r = self._cum_var_t, self._cum_var_r
+        del cum_t[self._cum_valid + 1 :], cum_r[self._cum_valid + 1 :]
+        for f in self._frames[len(cum_t) - 1 : i1]:
+            o = self._odom[f]
+            cum_t.append(cum_t[-1] + o.sigma_translation**2)
+            cum_r.append(cum_r[-1] + o.sigma_rotation**2)
+        self._cum_valid = len(cum_t) - 1
+        missing = (b - a) - (i1 - i0)
         last = self._odom[b]
-        var_t = sum(o.sigma_translation**2 for o in between) + missing * last.sigma_translation**2
-        var_r = sum(o.sigma_rotation**2 for o in between) + missing * last.sigma_rotation**2
-        return math.sqrt(var_t), math.sqrt(var_r)
+        var_t = cum_t[i1] - cum_t[i0] + missing * last.sigma_translation**2
+        var_r = cum_r[i1] - cum_r[i0] + missing * last.sigma_rotation**2
+        return math.sqrt(max(var_t, 0.0)), math.sqrt(max(var_r, 0.0))
 
     def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids int64 (M,), positions (M,3)) of landmarks in the graph, by surviving id (absorbed ids omitted)."""
