@@ -32,6 +32,15 @@ from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
 STEPS = ("update", "loop_closure", "publish")
 
 
+HEADER = (f"{'frames':>7} {'nodes':>6} " + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
+          + f" {'B/msg':>8} {'clouds MB':>9}")
+
+
+def print_row(r: dict) -> None:
+    print(f"{r['frames']:>7} {r['nodes']:>6} " + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
+          + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}", flush=True)
+
+
 def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
     config = load_config(None, overrides)
     graph = PoseGraph(BackendParams.from_config(config.get("backend")))
@@ -66,6 +75,7 @@ def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
                 a = np.asarray(values) if values else np.zeros(1)
                 row[step] = (float(np.percentile(a, 50)), float(np.percentile(a, 95)))
             rows.append(row)
+            print_row(row)
             samples = {s: [] for s in STEPS}
             sizes = []
     return rows
@@ -83,15 +93,11 @@ def main() -> int:
     profiler = cProfile.Profile() if args.profile else None
     if profiler is not None:
         profiler.enable()
-    rows = replay(args.out_dir, args.overrides, args.block)
+    print(HEADER, flush=True)
+    replay(args.out_dir, args.overrides, args.block)
     if profiler is not None:
         profiler.disable()
         pstats.Stats(profiler).sort_stats("cumulative").print_stats(25)
-    print(f"{'frames':>7} {'nodes':>6} " + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
-          + f" {'B/msg':>8} {'clouds MB':>9}")
-    for r in rows:
-        print(f"{r['frames']:>7} {r['nodes']:>6} " + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
-              + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}")
     return 0
 
 
