@@ -32,13 +32,20 @@ from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
 STEPS = ("update", "loop_closure", "publish")
 
 
-HEADER = (f"{'frames':>7} {'nodes':>6} " + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
-          + f" {'B/msg':>8} {'clouds MB':>9}")
+HEADER = (
+    f"{'frames':>7} {'nodes':>6} "
+    + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
+    + f" {'B/msg':>8} {'clouds MB':>9}"
+)
 
 
 def print_row(r: dict) -> None:
-    print(f"{r['frames']:>7} {r['nodes']:>6} " + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
-          + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}", flush=True)
+    print(
+        f"{r['frames']:>7} {r['nodes']:>6} "
+        + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
+        + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}",
+        flush=True,
+    )
 
 
 def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
@@ -62,15 +69,20 @@ def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
             samples["loop_closure"].append((time.perf_counter() - t1) * 1e3)
         t2 = time.perf_counter()
         delta = publisher.next(graph)
-        payload = CorrectedPoses("robot1", n, frame_id, *delta.arrays(), full=delta.full,
-                                 num_frames=delta.num_frames).encode()
+        payload = CorrectedPoses(
+            "robot1", n, frame_id, *delta.arrays(), full=delta.full, num_frames=delta.num_frames
+        ).encode()
         t3 = time.perf_counter()
         samples["update"].append((t1 - t0) * 1e3)
         samples["publish"].append((t3 - t2) * 1e3)
         sizes.append(len(payload))
         if n % block == 0:
-            row = {"frames": n, "nodes": graph.num_nodes, "kept_clouds_mb": closer.nbytes / 1e6,
-                   "bytes_per_msg": float(np.mean(sizes))}
+            row = {
+                "frames": n,
+                "nodes": graph.num_nodes,
+                "kept_clouds_mb": closer.nbytes / 1e6,
+                "bytes_per_msg": float(np.mean(sizes)),
+            }
             for step, values in samples.items():
                 a = np.asarray(values) if values else np.zeros(1)
                 row[step] = (float(np.percentile(a, 50)), float(np.percentile(a, 95)))

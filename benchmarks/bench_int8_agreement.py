@@ -40,8 +40,10 @@ def iou(a: DetectedBox, b: DetectedBox) -> float:
 
 def matches(ref: list[DetectedBox], other: list[DetectedBox]) -> int:
     """Greedy one-to-one matches of the same class with IoU >= IOU_MATCH, best pairs first."""
-    pairs = sorted(((iou(a, b), i, j) for i, a in enumerate(ref) for j, b in enumerate(other)
-                    if a.class_name == b.class_name), reverse=True)
+    pairs = sorted(
+        ((iou(a, b), i, j) for i, a in enumerate(ref) for j, b in enumerate(other) if a.class_name == b.class_name),
+        reverse=True,
+    )
     used_a, used_b, n = set(), set(), 0
     for value, i, j in pairs:
         if value < IOU_MATCH:
@@ -119,8 +121,7 @@ def main() -> int:
             m = sum(matches(r, o) for r, o in zip(ref, out, strict=True))
             recall, precision = m / max(n_ref, 1), m / max(n_out, 1)
             f1 = 2 * recall * precision / max(recall + precision, 1e-9)
-            print(f"| {dataset} ({len(images)}) | {name} | {n_out} | {m} | {recall:.2f} | {precision:.2f} | "
-                  f"{f1:.2f} |")
+            print(f"| {dataset} ({len(images)}) | {name} | {n_out} | {m} | {recall:.2f} | {precision:.2f} | {f1:.2f} |")
     return 0
 
 

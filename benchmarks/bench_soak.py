@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -39,9 +40,13 @@ from semmap.datasets import find_data_root  # noqa: E402
 from semmap.messages import CorrectedPoses, MapUpdate, MessageError  # noqa: E402
 
 SETTINGS = ["detector.precision=int8", "detector.every_n_frames=3"]
-STAGES = (("update", "backend update (iSAM2)"), ("loop_closure", "loop-closure step (keyframes)"),
-          ("publish", "corrected-poses delta"), ("refine", "associator refinement"),
-          ("end_to_end", "end to end"))
+STAGES = (
+    ("update", "backend update (iSAM2)"),
+    ("loop_closure", "loop-closure step (keyframes)"),
+    ("publish", "corrected-poses delta"),
+    ("refine", "associator refinement"),
+    ("end_to_end", "end to end"),
+)
 BUS_LINE = re.compile(r"bus: (tcp/[0-9.]+:[0-9]+)")
 
 
@@ -62,7 +67,7 @@ class Listener:
 
     def _on_sample(self, sample) -> None:  # noqa: ANN001 - zenoh.Sample
         now = time.time()
-        key = str(sample.key_expr)[len(self.prefix):]
+        key = str(sample.key_expr)[len(self.prefix) :]
         payload = sample.payload.to_bytes()
         with self.lock:
             self.first_at = self.first_at or now
@@ -105,9 +110,12 @@ def blocks(frames: dict[int, dict[str, float]], size: int) -> list[dict]:
     for start in range(0, (max(frames) + 1) if frames else 0, size):
         rows = [frames[f] for f in range(start, start + size) if f in frames]
         received = sorted(r["received"] for r in rows if "received" in r)
-        block = {"frames": f"{start}-{start + size - 1}", "n": len(rows),
-                 "fps": (len(received) - 1) / (received[-1] - received[0]) if len(received) > 1 else 0.0,
-                 "corrected_bytes_per_frame": float(np.mean([r.get("corrected_bytes", 0) for r in rows]))}
+        block = {
+            "frames": f"{start}-{start + size - 1}",
+            "n": len(rows),
+            "fps": (len(received) - 1) / (received[-1] - received[0]) if len(received) > 1 else 0.0,
+            "corrected_bytes_per_frame": float(np.mean([r.get("corrected_bytes", 0) for r in rows])),
+        }
         for stage, _ in STAGES:
             block[stage] = percentiles([r[stage] for r in rows if stage in r])
         out.append(block)
@@ -121,7 +129,12 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="the run's output folder (default: a temporary one)")
     ap.add_argument("--json-out", type=Path, default=None)
     ap.add_argument("--set", dest="overrides", action="append", default=[])
-    ap.add_argument("--timeout", type=float, default=6 * 3600.0, help="give up after this many seconds")
+    ap.add_argument(
+        "--budget",
+        type=float,
+        default=6 * 3600.0,
+        help="stop the run (Ctrl-C, outputs kept) after this many seconds and print what it measured",
+    )
     args = ap.parse_args()
     root = find_data_root()
     data = root / "7scenes-redkitchen" if root is not None else None
@@ -130,8 +143,20 @@ def main() -> int:
         return 0
     out = args.out or Path(tempfile.mkdtemp(prefix="semmap-soak-"))
     settings = [*SETTINGS, f"run.loops={args.loops}", *args.overrides]
-    cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--out", str(out), "--odometry", "gt+drift",
-           "--lockstep", "--no-viz", "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "semmap.cli",
+        "run",
+        str(data),
+        "--out",
+        str(out),
+        "--odometry",
+        "gt+drift",
+        "--lockstep",
+        "--no-viz",
+        "--quiet",
+    ]
     for s in settings:
         cmd += ["--set", s]
     print("running:", " ".join(cmd[2:]), file=sys.stderr)
@@ -139,6 +164,10 @@ def main() -> int:
     proc = subprocess.Popen(cmd, cwd=PROJECT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     listener = None
     tail: list[str] = []
+    interrupted = False
+    # over budget (or Ctrl-C here): stop the run as Ctrl-C does (every service writes what it has), then report
+    timer = threading.Timer(args.budget, lambda: proc.send_signal(signal.SIGINT))
+    timer.start()
     try:
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -146,30 +175,43 @@ def main() -> int:
             m = BUS_LINE.search(line)
             if m and listener is None:
                 listener = Listener(m.group(1), "robot1")
-            if time.monotonic() - t0 > args.timeout:
-                proc.kill()
-                break
+        rc = proc.wait()
+    except KeyboardInterrupt:
+        proc.send_signal(signal.SIGINT)
         rc = proc.wait()
     finally:
+        timer.cancel()
         if proc.poll() is None:
             proc.kill()
         if listener is not None:
             listener.close()
     wall = time.monotonic() - t0
-    if rc != 0 or listener is None:
+    stats_path = out / "stats.json"
+    interrupted = stats_path.exists() and json.loads(stats_path.read_text()).get("outcome") == "interrupted"
+    if (rc != 0 and not interrupted) or listener is None:
         print("".join(tail), file=sys.stderr)
         print(f"the run failed (exit {rc})" if rc else "never saw the run's bus endpoint", file=sys.stderr)
         return 1
-    stats = json.loads((out / "stats.json").read_text())
+    stats = json.loads(stats_path.read_text())
     table = blocks(dict(listener.frames), args.block)
     span = max(listener.last_at - (listener.first_at or listener.last_at), 1e-9)
-    result = {"loops": args.loops, "settings": settings, "wall_s": wall, "fps": stats.get("fps"),
-              "frames": stats.get("frames"), "blocks": table,
-              "bytes_per_s": {k: v / span for k, v in sorted(listener.bytes.items())},
-              "rss_mb": {name: {"peak": s.get("peak_rss_mb"), "early": s.get("rss_early_mb"),
-                                "late": s.get("rss_late_mb")} for name, s in stats.get("services", {}).items()},
-              "undecodable": listener.undecodable}
-    print(f"\n7-Scenes x{args.loops} ({sum(1 for _ in listener.frames)} frames), lockstep, {', '.join(settings)}")
+    result = {
+        "loops": args.loops,
+        "interrupted": interrupted,
+        "settings": settings,
+        "wall_s": wall,
+        "fps": stats.get("fps"),
+        "frames": stats.get("frames"),
+        "blocks": table,
+        "bytes_per_s": {k: v / span for k, v in sorted(listener.bytes.items())},
+        "rss_mb": {
+            name: {"peak": s.get("peak_rss_mb"), "early": s.get("rss_early_mb"), "late": s.get("rss_late_mb")}
+            for name, s in stats.get("services", {}).items()
+        },
+        "undecodable": listener.undecodable,
+    }
+    note = " (stopped early: over budget)" if interrupted else ""
+    print(f"\n7-Scenes x{args.loops}{note} ({len(listener.frames)} frames), lockstep, {', '.join(settings)}")
     print(f"wall {wall:.0f} s, {stats.get('fps')} fps overall\n")
     head = f"| frames | fps | {' | '.join(label + ' p50 / p95 ms' for _, label in STAGES)} | poses/corrected B/frame |"
     print(head)

@@ -98,13 +98,21 @@ class CorrectionPublisher:
         lids, lpos = graph.landmark_positions()
         return self._delta(ids, stamps, candidates, graph.corrected_rows, lids, lpos)
 
-    def delta(self, ids: np.ndarray, stamps: np.ndarray, poses: np.ndarray, lids: np.ndarray,
-              lpos: np.ndarray) -> CorrectionDelta:
+    def delta(
+        self, ids: np.ndarray, stamps: np.ndarray, poses: np.ndarray, lids: np.ndarray, lpos: np.ndarray
+    ) -> CorrectionDelta:
         """The delta from what was sent before to this estimate (every frame's pose, ascending ids)."""
         return self._delta(ids, stamps, np.arange(len(ids)), lambda rows: poses[rows], lids, lpos)
 
-    def _delta(self, ids: np.ndarray, stamps: np.ndarray, candidates: np.ndarray,
-               poses_of: Callable[[np.ndarray], np.ndarray], lids: np.ndarray, lpos: np.ndarray) -> CorrectionDelta:
+    def _delta(
+        self,
+        ids: np.ndarray,
+        stamps: np.ndarray,
+        candidates: np.ndarray,
+        poses_of: Callable[[np.ndarray], np.ndarray],
+        lids: np.ndarray,
+        lpos: np.ndarray,
+    ) -> CorrectionDelta:
         p = self.params
         n_old, n = self._n, len(ids)
         self.counters["messages"] += 1
@@ -141,9 +149,15 @@ class CorrectionPublisher:
         self._n, self._last_id = n, int(ids[n - 1]) if n else -1
         self.counters["poses_sent"] += len(send)
         lpos = np.asarray(lpos, np.float64).reshape(-1, 3)
-        keep_lm = np.array([full or int(i) not in self._landmarks
-                            or float(np.linalg.norm(self._landmarks[int(i)] - x)) > p.tolerance_m
-                            for i, x in zip(lids, lpos, strict=True)], dtype=bool)
+        keep_lm = np.array(
+            [
+                full
+                or int(i) not in self._landmarks
+                or float(np.linalg.norm(self._landmarks[int(i)] - x)) > p.tolerance_m
+                for i, x in zip(lids, lpos, strict=True)
+            ],
+            dtype=bool,
+        )
         for i, x in zip(lids[keep_lm], lpos[keep_lm], strict=True):
             self._landmarks[int(i)] = x.copy()
         return CorrectionDelta(full, ids[send], stamps[send], poses, lids[keep_lm], lpos[keep_lm], n)

@@ -72,8 +72,9 @@ def test_deltas_keep_a_consumer_within_tolerance_with_bounded_messages() -> None
             graph.add_observations(i, scene.observations[i])
         graph.update()
         delta = publisher.next(graph)
-        message = CorrectedPoses.decode(CorrectedPoses("r", i + 1, i, *delta.arrays(), full=delta.full,
-                                                       num_frames=delta.num_frames).encode())
+        message = CorrectedPoses.decode(
+            CorrectedPoses("r", i + 1, i, *delta.arrays(), full=delta.full, num_frames=delta.num_frames).encode()
+        )
         assert message.full == (i == 0)
         book.set_corrected(message)
         if i >= 100:
@@ -93,8 +94,9 @@ def test_deltas_keep_a_consumer_within_tolerance_with_bounded_messages() -> None
 def test_an_out_of_order_frame_starts_over_with_a_full_message() -> None:
     publisher = CorrectionPublisher(CorrectionsParams(refresh_frames=0))
     eye = np.eye(4)[None]
-    d1 = publisher.delta(np.array([0, 2]), np.array([0.0, 0.1]), np.repeat(eye, 2, 0), np.zeros(0, np.int64),
-                         np.zeros((0, 3)))
+    d1 = publisher.delta(
+        np.array([0, 2]), np.array([0.0, 0.1]), np.repeat(eye, 2, 0), np.zeros(0, np.int64), np.zeros((0, 3))
+    )
     d2 = publisher.delta(np.array([0, 2, 3]), np.zeros(3), np.repeat(eye, 3, 0), np.array([5]), np.ones((1, 3)))
     assert d1.full and not d2.full and d2.frame_ids.tolist() == [3] and d2.landmark_ids.tolist() == [5]
     d3 = publisher.delta(np.array([0, 1, 2, 3]), np.zeros(4), np.repeat(eye, 4, 0), np.array([5]), np.ones((1, 3)))
