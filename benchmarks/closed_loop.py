@@ -55,6 +55,7 @@ from semmap.messages import (  # noqa: E402
 )
 from services.associator.mapper import LandmarkMapper, MapperParams  # noqa: E402
 from services.associator.service import SERVICE_DEFAULTS, PoseBook  # noqa: E402
+from services.backend.corrections import CorrectionPublisher, CorrectionsParams  # noqa: E402
 from services.backend.loop_closure import LoopCloser, LoopClosureParams  # noqa: E402
 from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
 from services.odometry.frontends import OdometryInput, make_frontend  # noqa: E402
@@ -259,6 +260,7 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
     tracker = IouTracker(TrackerParams(**config["tracker"]))
     graph = PoseGraph(BackendParams.from_config(config.get("backend")))
     closer = LoopCloser(LoopClosureParams.from_config(config.get("loop_closure")))
+    corrections = CorrectionPublisher(CorrectionsParams.from_config(config.get("corrections")))
     poses = PoseBook()
     pending_merges: list[tuple[int, int]] = []
     n_obs = n_merges = 0
@@ -303,9 +305,9 @@ def run_loop(rec: Recording, config: dict, odometry: str, odometry_poses: list[n
             closer.close(graph, closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx,
                                                         k.cy))
         backend_ms.append((time.perf_counter() - t0) * 1e3)
-        ids, stamps, corrected = graph.corrected_poses()
-        lids, lpos = graph.landmark_positions()
-        poses.set_corrected(CorrectedPoses(ROBOT, seq, i, ids, stamps, corrected, lids, lpos))
+        delta = corrections.next(graph)  # the deltas the backend service sends
+        poses.set_corrected(CorrectedPoses(ROBOT, seq, i, *delta.arrays(), full=delta.full,
+                                           num_frames=delta.num_frames))
         # associator, after the backend's answer
         if i % refine_every == 0 and len(mapper.landmarks()) > 0:
             t0 = time.perf_counter()

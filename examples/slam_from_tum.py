@@ -51,9 +51,8 @@ def main(argv: list[str] | None = None) -> int:
                                 sigma_rotation=math.radians(args.sigma_rotation_deg))
             client.wait_frame_done(i)
         client.end_of_stream(total - 1, total)
-        corrected = client.latest_corrected()
-        print(f"sent {total} frames; backend corrected {0 if corrected is None else len(corrected.poses)} poses",
-              file=sys.stderr)
+        corrected = client.corrected_trajectory()
+        print(f"sent {total} frames; backend corrected {len(corrected)} poses", file=sys.stderr)
     return 0
 
 

@@ -8,7 +8,7 @@
             client.publish_pose(i, stamp, pose)
             client.wait_frame_done(i)             # lockstep; leave out to stream in real time
         client.end_of_stream(i)
-        corrected = client.latest_corrected()     # semmap.corrected_poses/1
+        poses = client.corrected_trajectory()     # {frame_id: 4x4}, from the semmap.corrected_poses/2 deltas
 
 Everything here is plain `semmap.messages` on `semmap.keys`: a SLAM in another language does the same with its
 own Zenoh and msgpack bindings (docs/INTERFACE.md).
@@ -59,6 +59,8 @@ class SemmapClient:
         self._progress: dict[str, int] = {}
         self._running: dict[str, set[str]] = {}
         self._corrected: CorrectedPoses | None = None
+        self._trajectory: dict[int, np.ndarray] = {}  # the corrected deltas applied, frame id -> pose
+        self._landmarks: dict[int, np.ndarray] = {}
         self._callbacks: dict[str, list[Callable]] = {"corrected": [], "observations": [], "map": [], "tags": []}
         self.bus.subscribe(self.bus.keys.progress_all, Progress, self._on_progress)
         self.bus.subscribe(self.bus.keys.status_all, ServiceStatus, self._on_status)
@@ -86,6 +88,7 @@ class SemmapClient:
     def _on_corrected(self, msg: CorrectedPoses) -> None:
         with self._cv:
             self._corrected = msg
+            msg.apply_to(self._trajectory, self._landmarks)
         self._emit("corrected", msg)
 
     def on_corrected_poses(self, callback: Callable[[CorrectedPoses], None]) -> None:
@@ -103,8 +106,19 @@ class SemmapClient:
         self._callbacks["map"].append(callback)
 
     def latest_corrected(self) -> CorrectedPoses | None:
+        """The newest message as received: a delta (the poses that moved), see `corrected_trajectory`."""
         with self._cv:
             return self._corrected
+
+    def corrected_trajectory(self) -> dict[int, np.ndarray]:
+        """Every frame's corrected camera-to-world pose received so far (the deltas applied; a copy)."""
+        with self._cv:
+            return dict(self._trajectory)
+
+    def corrected_landmarks(self) -> dict[int, np.ndarray]:
+        """Every landmark's position in the backend's graph received so far (a copy)."""
+        with self._cv:
+            return dict(self._landmarks)
 
     # -- outbound ---------------------------------------------------------------------------------------------
     def wait_ready(self, services: Iterable[str] = PIPELINE_SERVICES, timeout: float = 60.0) -> None:

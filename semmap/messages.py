@@ -827,22 +827,32 @@ class MapUpdate(Message):
 
 @dataclass
 class CorrectedPoses(Message):
-    """The backend's current estimate after processing `frame_id`: every pose node and landmark position."""
+    """The backend's estimate after processing `frame_id`, as a delta: the frames whose corrected pose moved by
+    more than the backend's tolerance since its previous message (new frames always), and the landmarks whose
+    position did. Every `full` message (the first, then periodically, for late joiners) carries every frame and
+    landmark instead. `num_frames`: how many frames the backend holds, so a consumer can tell it is complete.
 
-    SCHEMA: ClassVar[str] = "semmap.corrected_poses/1"
+    Why deltas: the whole trajectory every frame grows without bound (an hour at 30 fps is 108,000 poses, 14 MB
+    a message); a consumer keeps a pose per frame and applies each message with `apply_to`.
+    """
+
+    SCHEMA: ClassVar[str] = "semmap.corrected_poses/2"
     robot: str
     seq: int
     frame_id: int
-    frame_ids: np.ndarray  # int64 (N,)
+    frame_ids: np.ndarray  # int64 (N,), ascending
     stamps: np.ndarray  # float64 (N,)
     poses: np.ndarray  # float64 (N, 4, 4)
     landmark_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     landmark_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     timing_ms: dict[str, float] = field(default_factory=dict)
     sent_at: float = 0.0
+    full: bool = True
+    num_frames: int = 0
 
     def to_dict(self) -> dict:
-        return {"robot": self.robot, "seq": self.seq, "frame_id": self.frame_id,
+        return {"robot": self.robot, "seq": self.seq, "frame_id": self.frame_id, "full": self.full,
+                "num_frames": int(self.num_frames or len(self.frame_ids)),
                 "frame_ids": encode_array(np.asarray(self.frame_ids, np.int64)),
                 "stamps": encode_array(np.asarray(self.stamps, np.float64)),
                 "poses": encode_array(np.asarray(self.poses, np.float64)),
@@ -859,13 +869,32 @@ class CorrectedPoses(Message):
         lpos = decode_array(d.get("landmark_positions"), "landmark_positions", ndim=2, dtype="float64")
         if not (len(ids) == len(stamps) == len(poses)) or poses.shape[1:] != (4, 4):
             raise MessageError("frame_ids, stamps and poses must have the same length and poses be Nx4x4")
+        if len(ids) > 1 and not np.all(np.diff(ids) > 0):
+            raise MessageError("frame_ids must be strictly ascending")
         if len(lids) != len(lpos) or lpos.shape[1] != 3:
             raise MessageError("landmark_ids and landmark_positions must match (Nx3)")
         bad = _non_rigid(poses)
         if bad.size:
             raise MessageError(f"poses[{int(bad[0])}] is not a rigid transform")
+        full = _get(d, "full", bool)
+        num_frames = _non_negative_int(d, "num_frames")
+        if num_frames < len(ids) or (full and num_frames != len(ids)):
+            raise MessageError(f"num_frames {num_frames} does not fit {len(ids)} poses (full: {full})")
         return cls(_robot(d), _non_negative_int(d, "seq"), _non_negative_int(d, "frame_id"), ids, stamps, poses,
-                   lids, lpos, _timings(d), _get(d, "sent_at", float))
+                   lids, lpos, _timings(d), _get(d, "sent_at", float), full, num_frames)
+
+    def apply_to(self, poses: dict[int, np.ndarray], landmarks: dict[int, np.ndarray] | None = None) -> list[int]:
+        """Bring a consumer's pose per frame (and landmark positions) up to this message: a `full` one replaces
+        them, a delta overwrites the frames it carries. Returns the frame ids that changed, ascending."""
+        if self.full:
+            poses.clear()
+            if landmarks is not None:
+                landmarks.clear()
+        changed = [int(f) for f in self.frame_ids]
+        poses.update(zip(changed, self.poses, strict=True))
+        if landmarks is not None:
+            landmarks.update((int(i), p) for i, p in zip(self.landmark_ids, self.landmark_positions, strict=True))
+        return changed
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -351,8 +351,21 @@ class Orchestrator:
         width = 30
         frac = processed / total if total else 0.0
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
+        detected = self._counter_sum("frames_detected")
+        cadence = self._detection_cadence()
+        every = f" (one every {cadence['p50']:.0f} ms of video)" if cadence else ""
         return (f"[{bar}] {processed}/{total or '?'} frames processed, {published} published, "
-                f"{fps:5.1f} fps, {dropped} dropped, {elapsed:5.1f} s")
+                f"{fps:5.1f} fps, {detected} detected{every}, {dropped} dropped, {elapsed:5.1f} s")
+
+    def _detection_cadence(self) -> dict[str, float] | None:
+        """Video time between detected frames (p50 / p95 / max ms) with one detector; None with replicas (each
+        reports its own share) or before two detections."""
+        with self.lock:
+            detectors = [s for s in self.statuses.values() if s.service == "detector"]
+        if len(detectors) != 1 or "detect_interval_ms" not in detectors[0].timings:
+            return None
+        t = detectors[0].timings["detect_interval_ms"]
+        return {k: float(t[k]) for k in ("p50", "p95", "max") if k in t}
 
     @property
     def _total_frames(self) -> int:
@@ -401,6 +414,7 @@ class Orchestrator:
                  "frames": {"published": published, "processed": processed, "detected": detected,
                             "dropped": dropped, "unreadable": unreadable},
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
+                 "detection_interval_ms": self._detection_cadence(),
                  "services": services}
         path = self.plan.out_dir / "stats.json"
         atomic_write_text(path, json.dumps(stats, indent=2))

@@ -100,6 +100,7 @@ def validate_sections(config: dict[str, Any]) -> None:
     """Check the sections owned by parameter dataclasses now, before any process starts."""
     from services.associator.params import MapperParams
     from services.associator.service import PRIOR_KEYS, SERVICE_DEFAULTS
+    from services.backend.corrections import CorrectionsParams
     from services.backend.loop_closure import LoopClosureParams
     from services.backend.pose_graph import BackendParams
 
@@ -114,6 +115,7 @@ def validate_sections(config: dict[str, Any]) -> None:
                                 if k not in SERVICE_DEFAULTS and k not in PRIOR_KEYS})
         BackendParams.from_config(config["backend"])
         LoopClosureParams.from_config(config["loop_closure"])
+        CorrectionsParams.from_config(config["corrections"])
     except (TypeError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
 

@@ -11,6 +11,7 @@ The map is persisted to `DIR/map.sqlite` (atomic) and exported to `DIR/map.json`
 from __future__ import annotations
 
 import argparse
+import bisect
 import dataclasses
 import json
 import time
@@ -58,12 +59,18 @@ def combined(a: MapperStep, b: MapperStep) -> MapperStep:
 
 
 class PoseBook:
-    """Best known camera-to-world pose per frame: corrected by the backend where possible."""
+    """Best known camera-to-world pose per frame: corrected by the backend where possible.
+
+    The backend sends deltas (the poses that moved more than its tolerance, see services/backend/corrections.py):
+    a pose the book already has and the message does not carry stays the same array, so a view's `refresh`
+    sees it unchanged and refinement re-estimates only the landmarks whose observing poses moved.
+    """
 
     def __init__(self) -> None:
         self.odometry: dict[int, np.ndarray] = {}
         self.corrected: dict[int, np.ndarray] = {}
-        self._corrected_ids = np.zeros(0, np.int64)
+        self._corrected_ids: list[int] = []  # sorted keys of `corrected`
+        self._seq = 0
         # relocalised against a prior map: odometry frame -> prior frame, and the first frame the backend
         # answers in the prior frame (earlier corrections are still in the odometry's)
         self.alignment: np.ndarray | None = None
@@ -75,10 +82,24 @@ class PoseBook:
         self.corrected = {f: self.alignment @ p for f, p in self.corrected.items()}
 
     def set_corrected(self, msg: CorrectedPoses) -> None:
-        late = self.alignment is not None and msg.frame_id < self.aligned_from  # sent before the alignment
-        self.corrected = {int(f): (self.alignment @ p if late else p)
-                          for f, p in zip(msg.frame_ids, msg.poses, strict=True)}
-        self._corrected_ids = np.sort(np.asarray(msg.frame_ids, np.int64))
+        """Apply a corrected-poses message: a full one replaces the book's corrections, a delta updates them
+        (a delta older than the last one applied, e.g. a resent one, is ignored). A message sent before the
+        relocalisation is brought into the prior map's frame."""
+        if not msg.full and msg.seq <= self._seq:
+            return
+        self._seq = msg.seq
+        if msg.full:
+            self._corrected_ids = []
+        new = [int(f) for f in msg.frame_ids if msg.full or int(f) not in self.corrected]
+        changed = msg.apply_to(self.corrected)
+        if self.alignment is not None and msg.frame_id < self.aligned_from:  # sent before the alignment
+            for f in changed:
+                self.corrected[f] = self.alignment @ self.corrected[f]
+        if new and (not self._corrected_ids or new[0] > self._corrected_ids[-1]):
+            self._corrected_ids.extend(new)  # the usual case: new frames come after the known ones
+        else:
+            for f in new:
+                bisect.insort(self._corrected_ids, f)
 
     def to_state(self, recent: int = POSES_KEPT) -> dict[str, Any]:
         """What a restarted associator needs to place views as before the crash (replaying its journal, then
@@ -86,7 +107,7 @@ class PoseBook:
         (measurements still waiting for a pose are recent) and the newest corrected frame with its odometry,
         the anchor that moves later odometry onto the optimised estimate."""
         frames = sorted(self.odometry)[-recent:]
-        anchor = next((int(k) for k in self._corrected_ids[::-1] if int(k) in self.odometry), None)
+        anchor = next((k for k in reversed(self._corrected_ids) if k in self.odometry), None)
         if anchor is not None and anchor not in frames:
             frames.append(anchor)
         return {
@@ -105,7 +126,7 @@ class PoseBook:
             return np.frombuffer(raw, np.float64).reshape(4, 4).copy()
         book.odometry = {int(f): pose(b) for f, b in state["odometry"].items()}
         book.corrected = {int(f): pose(b) for f, b in state["corrected"].items()}
-        book._corrected_ids = np.sort(np.fromiter(book.corrected, np.int64, len(book.corrected)))
+        book._corrected_ids = sorted(book.corrected)
         if state.get("alignment") is not None:
             book.alignment, book.aligned_from = pose(state["alignment"]), int(state["aligned_from"])
         return book
@@ -117,9 +138,9 @@ class PoseBook:
         odom = self.odometry.get(frame_id)
         if odom is None:
             return None
-        i = int(np.searchsorted(self._corrected_ids, frame_id)) - 1
+        i = bisect.bisect_left(self._corrected_ids, frame_id) - 1
         while i >= 0:  # the newest corrected frame before this one that we also have odometry for
-            k = int(self._corrected_ids[i])
+            k = self._corrected_ids[i]
             if k in self.odometry:
                 return self.corrected[k] @ np.linalg.inv(self.odometry[k]) @ odom
             i -= 1

@@ -297,12 +297,14 @@ class LoopCloser:
         me = self._lookup(frame_ids, cloud.frame_id)
         if me is None:
             return None
-        old, rows = [], []  # earlier keyframes with a pose, and its row
-        for kf in self.keyframes.values():
-            row = self._lookup(frame_ids, kf.frame_id) if kf.stamp <= cloud.stamp - p.min_gap_s else None
-            if row is not None:
-                old.append(kf)
-                rows.append(row)
+        # earlier keyframes with a pose, and its row (vectorised: up to max_keyframes of them every keyframe)
+        kept = list(self.keyframes.values())
+        kf_ids = np.fromiter((kf.frame_id for kf in kept), np.int64, len(kept))
+        kf_old = np.fromiter((kf.stamp <= cloud.stamp - p.min_gap_s for kf in kept), bool, len(kept))
+        found = np.minimum(np.searchsorted(frame_ids, kf_ids), max(len(frame_ids) - 1, 0))
+        has = kf_old & (frame_ids[found] == kf_ids) if len(frame_ids) else kf_old & False
+        old = [kept[i] for i in np.flatnonzero(has)]
+        rows = found[has]
         if not old:
             return None
         their = poses[rows]
@@ -352,8 +354,12 @@ class LoopCloser:
     def close(self, graph: PoseGraph, cloud: KeyframeCloud) -> LoopClosure | None:
         """After `graph.update()` for `cloud`'s frame: look for a closure and, if one is found, add it to the
         graph and update again (so the published poses include it)."""
-        ids, _, poses = graph.corrected_poses()
-        closure = self.process(cloud, ids, poses, graph.odometry_sigmas_between)
+        # only the poses it looks at (the kept keyframes' and its own), not the whole trajectory
+        ids, _ = graph.frame_table()
+        wanted = np.array(sorted({*self.keyframes, cloud.frame_id}), dtype=np.int64)
+        rows = np.minimum(np.searchsorted(ids, wanted), max(len(ids) - 1, 0))
+        ok = ids[rows] == wanted if len(ids) else np.zeros(len(wanted), bool)
+        closure = self.process(cloud, wanted[ok], graph.corrected_rows(rows[ok]), graph.odometry_sigmas_between)
         if closure is not None:
             self.add_to(graph, closure)
         return closure

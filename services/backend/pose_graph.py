@@ -145,6 +145,34 @@ def _inv_rigid(t: np.ndarray) -> np.ndarray:
     return out
 
 
+class GrowingRows:
+    """A growing stack of equally shaped rows: appends are amortised O(1) (the buffer doubles)."""
+
+    def __init__(self, shape: tuple[int, ...], fill: float) -> None:
+        self._buf = np.full((64, *shape), fill)
+        self._fill = fill
+        self.n = 0
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The rows as a view (valid until the next append or insert)."""
+        return self._buf[: self.n]
+
+    def insert(self, i: int, row: np.ndarray) -> None:
+        if self.n == len(self._buf):
+            grown = np.full((2 * self.n, *self._buf.shape[1:]), self._fill)
+            grown[: self.n] = self._buf
+            self._buf = grown
+        if i < self.n:  # a row in the middle: the rest moves (rare: a frame that became a node late)
+            self._buf[i + 1 : self.n + 1] = self._buf[i : self.n].copy()
+        self._buf[i] = row
+        self.n += 1
+
+    def replace(self, rows: np.ndarray) -> None:
+        self._buf = np.concatenate([rows, np.full((max(64, len(rows)), *rows.shape[1:]), self._fill)])
+        self.n = len(rows)
+
+
 class PoseGraph:
     """Incremental iSAM2 graph of odometry and landmark observations. Not thread-safe: one owner calls it."""
 
@@ -158,6 +186,10 @@ class PoseGraph:
         self._odom: dict[int, _Odometry] = {}
         self._frames: list[int] = []
         self._table = _OdometryTable()
+        # prefix sums of the per-frame odometry variances over _frames, valid for the first _cum_valid frames
+        self._cum_var_t: list[float] = [0.0]
+        self._cum_var_r: list[float] = [0.0]
+        self._cum_valid = 0
         # pose nodes (in iSAM2 or pending) and those already in iSAM2 (what the estimate holds)
         self._nodes: list[int] = []
         self._node_set: set[int] = set()
@@ -177,7 +209,11 @@ class PoseGraph:
         self._isam_vars: set[int] = set()
         self._pending_vars: list[int] = []
         self._unposed: dict[int, list[Observation]] = {}  # observations that arrived before their odometry
-        self._estimate: gtsam.Values | None = None
+        self._estimate: gtsam.Values | None = None  # the whole estimate, computed only when asked (O(graph))
+        # per-node estimates kept up to date incrementally (see _refresh_estimates), aligned with _isam_nodes
+        self._est = GrowingRows((4, 4), 0.0)
+        self._ref = GrowingRows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
+        self._moved_nodes: set[int] = set()  # nodes whose estimate changed since `take_moved_nodes()`
         self.last_update_ms = 0.0
         # (m, rad) of the first pose's prior instead of the params': a session relocalised against a prior map
         # holds its start only as well as the fit knew it, and lets the anchored landmarks place it
@@ -185,7 +221,7 @@ class PoseGraph:
         self.counters: dict[str, int] = {
             "odometry": 0, "observations": 0, "observation_factors": 0, "observations_dropped": 0,
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
-            "factors_replaced": 0, "observations_ignored": 0,
+            "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -210,6 +246,7 @@ class PoseGraph:
         self.counters["odometry"] += 1
         if not known:
             bisect.insort(self._frames, frame_id)
+        self._cum_valid = min(self._cum_valid, bisect.bisect_left(self._frames, frame_id))  # sums from here on
         self._table.put(frame_id, float(stamp), pose, appended=not known and frame_id == self._frames[-1])
         if frame_id in self._node_set:
             self._rebuild_chains(frame_id)
@@ -334,15 +371,19 @@ class PoseGraph:
         for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
             if tag is not None:
                 self._factor_ids[tag] = int(index)
-        for node in self._pending_nodes:
-            bisect.insort(self._isam_nodes, node)
+        for node in sorted(self._pending_nodes):
+            i = bisect.bisect_left(self._isam_nodes, node)
+            self._isam_nodes.insert(i, node)
+            self._est.insert(i, np.eye(4))  # (read in _refresh_estimates below: its reference delta is NaN)
+            self._ref.insert(i, np.full(6, np.nan))
         self._isam_vars.update(self._pending_vars)
         self._new_factors, self._new_tag_pos, self._remove = [], {}, []
         self._new_values = gtsam.Values()
         self._pending_nodes, self._pending_vars = [], []
-        # the estimate is needed every frame anyway (new nodes start from it, the service publishes it); its
-        # cost is iSAM2's deferred back-substitution, so it belongs to the update's time
-        self._estimate = self._isam.calculateEstimate()
+        self._estimate = None
+        # the nodes' estimates are needed every frame (new nodes start from them, the service publishes them);
+        # reading them is iSAM2's deferred back-substitution, so it belongs to the update's time
+        self._refresh_estimates()
         self.counters["updates"] += 1
         self.last_update_ms = (time.perf_counter() - start) * 1e3
 
@@ -359,11 +400,7 @@ class PoseGraph:
         if not self._isam_nodes:
             return ids, stamps, odom.copy()
         node_ids = np.array(self._isam_nodes, dtype=np.int64)
-        rows = gtsam.utilities.extractPose3(self._values())  # key order == frame order (only X are Pose3)
-        corrected_nodes = np.zeros((len(rows), 4, 4))
-        corrected_nodes[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-        corrected_nodes[:, :3, 3] = rows[:, 9:]
-        corrected_nodes[:, 3, 3] = 1.0
+        corrected_nodes = self._est.rows
         k = np.clip(np.searchsorted(node_ids, ids, side="right") - 1, 0, None)
         odom_nodes = odom[np.searchsorted(ids, node_ids)]
         correction = corrected_nodes @ _inv_rigid(odom_nodes)  # per node: corrected <- odometry frame
@@ -371,6 +408,27 @@ class PoseGraph:
         is_node = node_ids[k] == ids
         poses[is_node] = corrected_nodes[k[is_node]]
         return ids, stamps, poses
+
+    def frame_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frame_ids, stamps) of every frame with odometry, ascending (views: do not modify)."""
+        ids, stamps, _ = self._table.arrays(self._frames, self._odom)
+        return ids, stamps
+
+    def corrected_rows(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 4, 4) corrected poses of the frames at these rows of `frame_table()`, as
+        `corrected_poses` computes them, at a cost in the number of rows (not of frames)."""
+        ids, _, odom = self._table.arrays(self._frames, self._odom)
+        rows = np.asarray(rows, dtype=np.int64)
+        if not self._isam_nodes:
+            return odom[rows].copy()
+        nodes = self._isam_nodes
+        k = [max(bisect.bisect_right(nodes, int(f)) - 1, 0) for f in ids[rows]]
+        node_rows = np.searchsorted(ids, [nodes[i] for i in k])
+        est = self._est.rows[k]
+        poses = est @ _inv_rigid(odom[node_rows]) @ odom[rows]
+        is_node = node_rows == rows
+        poses[is_node] = est[is_node]
+        return poses
 
     def corrected_pose(self, frame_id: int) -> np.ndarray:
         """The corrected 4x4 of one frame (KeyError if it never had odometry)."""
@@ -381,7 +439,7 @@ class PoseGraph:
             return self._odom[frame_id].pose.copy()
         i = max(bisect.bisect_right(self._isam_nodes, frame_id) - 1, 0)
         node = self._isam_nodes[i]
-        corrected = self._values().atPose3(X(node)).matrix()
+        corrected = self._est.rows[i].copy()
         if node == frame_id:
             return corrected
         return corrected @ _inv_rigid(self._odom[node].pose) @ self._odom[frame_id].pose
@@ -390,20 +448,28 @@ class PoseGraph:
         """(m, rad) sigmas the front end declares for the motion from frame a to frame b (a < b, both with
         odometry): per-frame variances add up; frames without odometry count with b's sigmas."""
         i0, i1 = bisect.bisect_right(self._frames, a), bisect.bisect_right(self._frames, b)
-        between = [self._odom[f] for f in self._frames[i0:i1]]
-        missing = (b - a) - len(between)
+        # prefix sums of the variances, extended lazily: O(log frames) for any span (a loop closure's spans
+        # over thousands of frames, once per candidate, made this the loop-closure step's growing cost)
+        cum_t, cum_r = self._cum_var_t, self._cum_var_r
+        del cum_t[self._cum_valid + 1 :], cum_r[self._cum_valid + 1 :]
+        for f in self._frames[len(cum_t) - 1 : i1]:
+            o = self._odom[f]
+            cum_t.append(cum_t[-1] + o.sigma_translation**2)
+            cum_r.append(cum_r[-1] + o.sigma_rotation**2)
+        self._cum_valid = len(cum_t) - 1
+        missing = (b - a) - (i1 - i0)
         last = self._odom[b]
-        var_t = sum(o.sigma_translation**2 for o in between) + missing * last.sigma_translation**2
-        var_r = sum(o.sigma_rotation**2 for o in between) + missing * last.sigma_rotation**2
-        return math.sqrt(var_t), math.sqrt(var_r)
+        var_t = cum_t[i1] - cum_t[i0] + missing * last.sigma_translation**2
+        var_r = cum_r[i1] - cum_r[i0] + missing * last.sigma_rotation**2
+        return math.sqrt(max(var_t, 0.0)), math.sqrt(max(var_r, 0.0))
 
     def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids int64 (M,), positions (M,3)) of landmarks in the graph, by surviving id (absorbed ids omitted)."""
         items = sorted((lid, var) for lid, var in self._var.items() if var in self._isam_vars)
         if not items:
             return np.zeros(0, np.int64), np.zeros((0, 3))
-        values = self._values()
-        positions = np.array([values.atPoint3(L(var)) for _, var in items], dtype=np.float64).reshape(-1, 3)
+        positions = np.array([self._isam.calculateEstimatePoint3(L(var)) for _, var in items],
+                             dtype=np.float64).reshape(-1, 3)
         return np.array([lid for lid, _ in items], dtype=np.int64), positions
 
     def resolve_landmark(self, landmark_id: int) -> int:
@@ -428,6 +494,61 @@ class PoseGraph:
         if self._estimate is None:  # only before the first update
             self._estimate = self._isam.calculateEstimate()
         return self._estimate
+
+    def take_moved_nodes(self) -> list[int]:
+        """The nodes (frame ids, ascending) whose estimate changed since the last call: new nodes and those iSAM2
+        moved (relinearised or re-solved). Frames between two nodes ride on the earlier one."""
+        moved, self._moved_nodes = sorted(self._moved_nodes), set()
+        return moved
+
+    def node_ids(self) -> list[int]:
+        """Frame ids of the pose nodes in iSAM2, ascending (a view: do not modify)."""
+        return self._isam_nodes
+
+    def _refresh_estimates(self) -> None:
+        """Bring the per-node estimates up to date, reading only the nodes whose iSAM2 delta changed.
+
+        Why: the whole estimate (`calculateEstimate`) costs O(graph) every frame (27 ms at 10,000 poses here),
+        although iSAM2 leaves settled parts alone. An estimate is the linearisation point retracted by the delta,
+        and a relinearised node gets a new delta too, so a node whose delta is unchanged has an unchanged
+        estimate. The delta comes as one vector ordered by key (landmarks 'l' before poses 'x'); comparing it to
+        the delta each node had when last read is a vectorised pass, and only the nodes that moved (by more than
+        a hundredth of the relinearisation threshold, accumulated) are read. When many moved (a loop closed)
+        one whole read is cheaper than many single ones.
+        """
+        n = len(self._isam_nodes)
+        if n == 0:
+            return
+        vec = self._isam.getDelta().vector()
+        start = 3 * len(self._isam_vars)
+        if len(vec) != start + 6 * n:  # another kind of variable in the graph: read everything
+            self._read_all_nodes(None)
+            return
+        delta = vec[start:].reshape(n, 6)
+        tol = 0.01 * self.params.relinearize_threshold
+        with np.errstate(invalid="ignore"):
+            stale = np.flatnonzero(~(np.abs(delta - self._ref.rows).max(axis=1) <= tol))  # NaN: a new node
+        if len(stale) > max(64, n // 8):
+            self._read_all_nodes(delta)
+            return
+        est = self._est.rows
+        for k in stale:
+            est[k] = self._isam.calculateEstimatePose3(X(self._isam_nodes[k])).matrix()
+        self._ref.rows[stale] = delta[stale]
+        self._moved_nodes.update(self._isam_nodes[k] for k in stale)
+        self.counters["estimates_read"] += len(stale)
+
+    def _read_all_nodes(self, delta: np.ndarray | None) -> None:
+        self._estimate = self._isam.calculateEstimate()
+        rows = gtsam.utilities.extractPose3(self._estimate)  # key order == frame order (only X are Pose3)
+        est = np.zeros((len(rows), 4, 4))
+        est[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        est[:, :3, 3] = rows[:, 9:]
+        est[:, 3, 3] = 1.0
+        self._est.replace(est)
+        self._ref.replace(delta.copy() if delta is not None else np.full((len(rows), 6), np.nan))
+        self._moved_nodes.update(self._isam_nodes)
+        self.counters["estimate_full_reads"] += 1
 
     def _root(self, landmark_id: int) -> int:
         root = landmark_id
@@ -454,7 +575,7 @@ class PoseGraph:
         key = X(node)
         if self._new_values.exists(key):
             return self._new_values.atPose3(key).matrix()
-        return self._values().atPose3(key).matrix()
+        return self._est.rows[bisect.bisect_left(self._isam_nodes, node)].copy()
 
     def _ensure_node(self, frame_id: int) -> None:
         if frame_id in self._node_set:

@@ -18,6 +18,7 @@ from semmap.journal import FrameJournal
 from semmap.messages import Control, CorrectedPoses, Frame, MessageError, Observations, OdometryPose
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import Service, service_main
+from services.backend.corrections import CorrectionPublisher, CorrectionsParams
 from services.backend.loop_closure import (
     KeyframeCloud,
     LoopCloser,
@@ -45,6 +46,7 @@ class BackendService(Service):
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
         self.pub = self.publisher(self.bus.keys.corrected_poses)
+        self.corrections = CorrectionPublisher(CorrectionsParams.from_config(self.config.get("corrections")))
         # real time: odometry of a dropped frame never comes; give up on it after a few later ones
         self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(
             max_pending=100_000 if self.lockstep else REALTIME_MAX_PENDING)
@@ -119,14 +121,17 @@ class BackendService(Service):
             with self.metrics.timer("update_ms") as timer:
                 self._add(pose, obs)
                 self.graph.update()
+            timing = {"update": timer.ms}
             if cloud is not None:
-                self._close_loop(cloud)
-            with self.metrics.timer("publish_ms"):
-                ids, stamps, poses = self.graph.corrected_poses()
-                lids, lpos = self.graph.landmark_positions()
+                timing["loop_closure"] = self._close_loop(cloud)
+            with self.metrics.timer("publish_ms") as publish:
+                delta = self.corrections.next(self.graph)
                 self.seq += 1
-                self.emit(self.pub, CorrectedPoses(self.robot, self.seq, pose.frame_id, ids, stamps, poses, lids,
-                                                   lpos, {"update": timer.ms}), pose.frame_id)
+                message = CorrectedPoses(self.robot, self.seq, pose.frame_id, *delta.arrays(), timing,
+                                         full=delta.full, num_frames=delta.num_frames)
+            timing["publish"] = publish.ms  # (the message holds this dict: it goes out; encoding not counted)
+            self.emit(self.pub, message, pose.frame_id)
+            self.metrics.count("corrected_poses_sent", len(delta.frame_ids))
             self.metrics.count("frames")
             self.metrics.count("observations", len(obs.observations))
             self.report_progress(pose.frame_id)
@@ -156,8 +161,9 @@ class BackendService(Service):
         # depth arrives long before the observations, and a dropped one only means no closure from that frame
         return not (self.lockstep and self.closer.wants(frame_id)) or frame_id in self.clouds
 
-    def _close_loop(self, cloud: KeyframeCloud) -> None:
-        with self.metrics.timer("loop_closure_ms"):
+    def _close_loop(self, cloud: KeyframeCloud) -> float:
+        """Search (and maybe add) a loop closure from a keyframe; returns the time it took (ms)."""
+        with self.metrics.timer("loop_closure_ms") as timer:
             closure = self.closer.close(self.graph, cloud)
         if self.journal is not None:
             self.journal.append_extra(cloud.frame_id, encode_keyframe(cloud, closure))
@@ -171,6 +177,7 @@ class BackendService(Service):
             self.metrics.counters[f"loop_{name}"] = self.closer.counters[name]
         self.metrics.counters["loop_kept_keyframes"] = len(self.closer.keyframes)
         self.metrics.counters["loop_kept_kb"] = self.closer.nbytes // 1024
+        return timer.ms
 
     def _restore(self) -> None:
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""

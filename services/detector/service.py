@@ -72,6 +72,7 @@ class DetectorService(Service):
             self.bus.keys.detector_replicas_all, self._on_liveliness, history=True
         )
         self.last_mine = -1
+        self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
         self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg["queue"])))
@@ -145,6 +146,9 @@ class DetectorService(Service):
                 for b, d in kept
             ]
         self.metrics.count("frames_detected")
+        if self._last_detected_stamp is not None and frame.stamp > self._last_detected_stamp:
+            self.metrics.time_ms("detect_interval_ms", (frame.stamp - self._last_detected_stamp) * 1e3)
+        self._last_detected_stamp = frame.stamp
         self.metrics.count("detections", len(detections))
         self.metrics.count("depth_gated", len(boxes) - len(kept))
         queue_ms = max(0.0, (started - frame.sent_at) * 1e3) if frame.sent_at else 0.0

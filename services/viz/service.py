@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import colorsys
 import os
+import time
 import uuid
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from semmap.messages import (
 )
 from semmap.service import Service, service_main
 
+OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
 TRACK_COLORS = {"tentative": (160, 160, 160), "candidate": (40, 200, 90), "rejected": (230, 40, 40)}
 
 
@@ -86,7 +88,8 @@ class VizService(Service):
         rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.landmarks: dict[int, Landmark] = {}
         self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
-        self.optimized: np.ndarray | None = None
+        self.optimized: dict[int, np.ndarray] = {}  # frame id -> corrected pose (the backend sends deltas)
+        self.optimized_drawn_at = 0.0
         self.correction: np.ndarray | None = None
         self.map_frame = -1
         self.rejected: set[int] = set()  # track ids of rejected candidates
@@ -145,17 +148,26 @@ class VizService(Service):
             rr.log("world/trajectory/odometry", rr.LineStrips3D([path], colors=[(230, 120, 30)], radii=0.005))
 
     def on_corrected(self, poses: CorrectedPoses) -> None:
+        poses.apply_to(self.optimized)
         if len(poses.poses) == 0:
             return
         self._at(poses.frame_id)
-        self.optimized = poses.poses[:, :3, 3]
-        self.rr.log("world/trajectory/optimized", self.rr.LineStrips3D([self.optimized], colors=[(40, 140, 255)],
-                                                                       radii=0.006))
+        # the whole path is O(trajectory) to draw: at most twice a second (and whenever a full message comes)
+        now = time.monotonic()
+        if poses.full or now - self.optimized_drawn_at >= OPTIMIZED_DRAW_PERIOD_S:
+            self.optimized_drawn_at = now
+            self._draw_optimized()
         last_id = int(poses.frame_ids[-1])
         if last_id in self.odometry:
             self.correction = poses.poses[-1] @ np.linalg.inv(self.odometry[last_id])
         for name, ms in poses.timing_ms.items():
             self.rr.log(f"timings/backend/{name}", self.rr.Scalars(ms))
+
+    def _draw_optimized(self) -> None:
+        if self.optimized:
+            path = np.array([self.optimized[f][:3, 3] for f in sorted(self.optimized)])
+            self.rr.log("world/trajectory/optimized", self.rr.LineStrips3D([path], colors=[(40, 140, 255)],
+                                                                           radii=0.006))
 
     def on_detections(self, det: Detections) -> None:
         rr = self.rr
@@ -228,6 +240,8 @@ class VizService(Service):
 
     def on_end_of_stream(self, control) -> None:  # noqa: ANN001 - Control
         frames_done = self.last_frame_id >= control.last_frame_id
+        if frames_done:
+            self._draw_optimized()  # the newest path, whatever the redraw period left out
         if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
             self.finish()
 

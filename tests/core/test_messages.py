@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import msgpack
 import numpy as np
@@ -90,7 +91,7 @@ def test_every_message_kind_has_a_sample_and_a_versioned_schema() -> None:
     kinds = {type(m) for m in _samples()}
     assert kinds == set(ALL_MESSAGES)
     for kind in ALL_MESSAGES:
-        assert kind.SCHEMA.startswith("semmap.") and kind.SCHEMA.endswith("/1")
+        assert re.fullmatch(r"semmap\.[a-z_]+/[1-9][0-9]*", kind.SCHEMA)
 
 
 def test_frame_images_survive_the_trip() -> None:
@@ -178,3 +179,29 @@ def test_corrected_poses_must_be_rigid() -> None:
     sample.poses[1, 0, 0] = 3.0
     with pytest.raises(MessageError, match="poses\\[1\\]"):
         CorrectedPoses.decode(sample.encode())
+
+
+def test_corrected_poses_are_deltas_applied_onto_a_copy_and_the_old_version_is_refused() -> None:
+    poses: dict[int, np.ndarray] = {}
+    landmarks: dict[int, np.ndarray] = {}
+    full = CorrectedPoses("robot1", 1, 7, np.array([0, 7]), np.array([0.0, 0.25]), np.stack([_pose(), _pose(0.1)]),
+                          np.array([4]), np.array([[1.0, 2.0, 0.8]]))
+    assert CorrectedPoses.decode(full.encode()).apply_to(poses, landmarks) == [0, 7]
+    delta = CorrectedPoses.decode(CorrectedPoses("robot1", 2, 8, np.array([8]), np.array([0.3]), _pose(0.2)[None],
+                                                 full=False, num_frames=3).encode())
+    assert (delta.full, delta.num_frames) == (False, 3)
+    assert delta.apply_to(poses, landmarks) == [8]
+    assert sorted(poses) == [0, 7, 8] and np.allclose(poses[7], _pose(0.1)) and sorted(landmarks) == [4]
+    full.frame_ids, full.stamps, full.poses = np.array([3]), np.array([0.1]), _pose()[None]
+    full.landmark_ids, full.landmark_positions = np.zeros(0, np.int64), np.zeros((0, 3))
+    full.apply_to(poses, landmarks)  # a full one replaces everything
+    assert sorted(poses) == [3] and not landmarks
+    body = msgpack.unpackb(full.encode())
+    for bad, match in (({"schema": "semmap.corrected_poses/1"}, "unsupported version"),
+                       ({"num_frames": 0}, "num_frames"), ({"full": True, "num_frames": 5}, "num_frames")):
+        with pytest.raises(MessageError, match=match):
+            CorrectedPoses.decode(msgpack.packb({**body, **bad}))
+    unsorted = CorrectedPoses("robot1", 2, 8, np.array([8, 7]), np.array([0.3, 0.2]), np.stack([_pose(), _pose()]),
+                              full=False, num_frames=9)
+    with pytest.raises(MessageError, match="ascending"):
+        CorrectedPoses.decode(unsorted.encode())

@@ -72,6 +72,9 @@ def test_7scenes_run_through_separate_processes(tmp_path: Path, data_root: Path,
                          "--lockstep", "--max-frames", "60"], timeout=400)
     assert result.returncode == 0, result.stderr[-3000:]
     _assert_outputs(tmp_path, 60)
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    # every frame detected (lockstep, every_n_frames 1): one detection per 1/30 s of video
+    assert abs(stats["detection_interval_ms"]["max"] - 1000 / 30) < 1.0
     gt = read_tum(tmp_path / "groundtruth.tum")
     assert [round(t, 6) for t, _ in gt[:3]] == [0.0, round(1 / 30, 6), round(2 / 30, 6)]
 

@@ -1,0 +1,117 @@
+"""Backend cost as the graph grows, replayed offline from a run's journal (no bus, no detector: seconds per
+thousand frames instead of minutes, and a profile of where the time goes).
+
+    .venv/bin/python benchmarks/bench_backend_growth.py OUT_DIR [--block 1000] [--profile] [--set section.key=value]
+
+OUT_DIR is a `semmap run` output folder (its `backend.sqlite` journal holds every handled frame's odometry,
+observations and keyframe cloud). Each frame goes through the backend's own steps (PoseGraph update, loop-closure
+search and ICP on keyframes, the corrected-poses delta and its encoding) and the script prints p50 / p95 per
+step for each block of frames, the bytes per `poses/corrected` message and the kept keyframe-cloud memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from semmap.config import load_config  # noqa: E402
+from semmap.journal import FrameJournal  # noqa: E402
+from semmap.messages import CorrectedPoses, Observations, OdometryPose  # noqa: E402
+from services.backend.corrections import CorrectionPublisher, CorrectionsParams  # noqa: E402
+from services.backend.loop_closure import LoopCloser, LoopClosureParams, decode_keyframe  # noqa: E402
+from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
+
+STEPS = ("update", "loop_closure", "publish")
+
+
+HEADER = (
+    f"{'frames':>7} {'nodes':>6} "
+    + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
+    + f" {'B/msg':>8} {'clouds MB':>9}"
+)
+
+
+def print_row(r: dict) -> None:
+    print(
+        f"{r['frames']:>7} {r['nodes']:>6} "
+        + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
+        + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}",
+        flush=True,
+    )
+
+
+def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
+    config = load_config(None, overrides)
+    graph = PoseGraph(BackendParams.from_config(config.get("backend")))
+    closer = LoopCloser(LoopClosureParams.from_config(config.get("loop_closure")))
+    publisher = CorrectionPublisher(CorrectionsParams.from_config(config.get("corrections")))
+    journal = FrameJournal(out_dir / "backend.sqlite")
+    rows: list[dict] = []
+    samples: dict[str, list[float]] = {s: [] for s in STEPS}
+    sizes: list[int] = []
+    for n, (frame_id, odometry, observations, keyframe) in enumerate(journal.frames(), start=1):
+        t0 = time.perf_counter()
+        graph.add_odometry_message(OdometryPose.decode(odometry))
+        graph.add_observations_message(Observations.decode(observations))
+        graph.update()
+        t1 = time.perf_counter()
+        if keyframe is not None:
+            cloud, _ = decode_keyframe(keyframe)
+            closer.close(graph, cloud)  # the search and ICP again, as the live backend does
+            samples["loop_closure"].append((time.perf_counter() - t1) * 1e3)
+        t2 = time.perf_counter()
+        delta = publisher.next(graph)
+        payload = CorrectedPoses(
+            "robot1", n, frame_id, *delta.arrays(), full=delta.full, num_frames=delta.num_frames
+        ).encode()
+        t3 = time.perf_counter()
+        samples["update"].append((t1 - t0) * 1e3)
+        samples["publish"].append((t3 - t2) * 1e3)
+        sizes.append(len(payload))
+        if n % block == 0:
+            row = {
+                "frames": n,
+                "nodes": graph.num_nodes,
+                "kept_clouds_mb": closer.nbytes / 1e6,
+                "bytes_per_msg": float(np.mean(sizes)),
+            }
+            for step, values in samples.items():
+                a = np.asarray(values) if values else np.zeros(1)
+                row[step] = (float(np.percentile(a, 50)), float(np.percentile(a, 95)))
+            rows.append(row)
+            print_row(row)
+            samples = {s: [] for s in STEPS}
+            sizes = []
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--block", type=int, default=1000)
+    parser.add_argument("--profile", action="store_true", help="print the 25 most expensive calls")
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    args = parser.parse_args()
+    if not (args.out_dir / "backend.sqlite").exists():
+        parser.error(f"{args.out_dir} has no backend.sqlite journal")
+    profiler = cProfile.Profile() if args.profile else None
+    if profiler is not None:
+        profiler.enable()
+    print(HEADER, flush=True)
+    replay(args.out_dir, args.overrides, args.block)
+    if profiler is not None:
+        profiler.disable()
+        pstats.Stats(profiler).sort_stats("cumulative").print_stats(25)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
