@@ -51,12 +51,11 @@ def scene_for(gt: list[np.ndarray], seed: int, odometry: list[np.ndarray], sigma
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_landmarks_cut_drift_by_at_least_30_percent(gt: list[np.ndarray], seed: int) -> None:
     scene = scene_for(gt, seed, drifting(gt, seed), (0.003, math.radians(math.hypot(0.3, 0.05))))
-    graph, times = run_graph(scene)
+    graph, _ = run_graph(scene)  # (per-update cost: benchmarks/bench_perf.py, not a timed test)
     before = ate_rmse(scene.stamped_gt, scene.stamped_odometry)
     after = ate_rmse(scene.stamped_gt, optimized(graph))
     assert before > 0.08  # measured 0.10-0.19 m
     assert after < 0.7 * before  # measured 83-91 % lower (0.016-0.018 m)
-    assert np.median(times) < 10.0  # ms per iSAM2 update + estimate; measured 2.6-3.2 ms p50 on 2 busy cores
 
 
 def test_ground_truth_odometry_with_tight_covariance_stays_below_1cm(gt: list[np.ndarray]) -> None:
