@@ -22,7 +22,7 @@ from semmap.service import REPLAY_FRAMES, Service, service_main
 from services.tracker.iou_tracker import IouTracker, TrackerParams
 
 TRACK_ID_BLOCK = 10_000_000
-JOURNAL_TRIM_EVERY = 100  # frames
+JOURNAL_TRIM_EVERY = 10  # frames: the journal keeps at most this many rows more than a restart reads
 
 
 class TrackerService(Service):
