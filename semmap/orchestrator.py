@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import fmean
 
-from semmap.bus import Bus, BusConfig
+from semmap.bus import Bus, BusConfig, BusError
 from semmap.messages import Control, Progress, ServiceStatus
 
 log = logging.getLogger("semmap.run")
@@ -29,6 +29,7 @@ log = logging.getLogger("semmap.run")
 STOP_GRACE_S = 15.0
 MAX_RESTARTS = 5
 RESTART_BACKOFF_S = 0.5
+HUB_BIND_TRIES = 5  # ports tried for the bus this run hosts
 EXTERNAL = "external"  # `semmap run external`: no player, no odometry; a SLAM feeds the bus (semmap.client)
 
 
@@ -118,7 +119,23 @@ class Orchestrator:
         self.rss: dict[str, list[float]] = {}  # per instance, one sample a second (status period)
 
     # -- bus --------------------------------------------------------------------------------------------------
-    def _bus_config(self) -> tuple[BusConfig, list[str]]:
+    def _open_bus(self) -> tuple[Bus, list[str]]:
+        """The orchestrator's bus and the flags its children get. Hosting the bus: the port found free can be taken
+        before Zenoh binds it (another run starting at the same moment on this machine); then any other free
+        port is tried."""
+        preferred = DEFAULT_PORT
+        for attempt in range(HUB_BIND_TRIES):
+            bus_cfg, child_args = self._bus_config(preferred)
+            try:
+                return Bus(bus_cfg, self.plan.robot), child_args
+            except BusError as exc:
+                if self.plan.connect or attempt == HUB_BIND_TRIES - 1:
+                    raise
+                log.warning("bus: %s; trying another port", exc)
+                preferred = 0
+        raise AssertionError("unreachable")
+
+    def _bus_config(self, preferred: int = DEFAULT_PORT) -> tuple[BusConfig, list[str]]:
         """The orchestrator's own bus config and the flags its children get."""
         if self.plan.connect:
             cfg = BusConfig.from_env(self.plan.connect, self.plan.zenoh_mode or "client")
@@ -126,7 +143,7 @@ class Orchestrator:
             if self.plan.zenoh_mode:
                 child += ["--zenoh-mode", self.plan.zenoh_mode]
             return cfg, child
-        port = free_loopback_port(DEFAULT_PORT)
+        port = free_loopback_port(preferred)
         hub = f"tcp/127.0.0.1:{port}"
         self.endpoint = hub
         return BusConfig(mode="peer", listen=[hub]), ["--zenoh-mode", "peer", "--connect", hub,
@@ -304,8 +321,7 @@ class Orchestrator:
     def run(self) -> int:
         plan = self.plan
         plan.out_dir.mkdir(parents=True, exist_ok=True)
-        bus_cfg, child_args = self._bus_config()
-        bus = Bus(bus_cfg, plan.robot)
+        bus, child_args = self._open_bus()
         if self.endpoint:
             log.info("bus: %s (robot %s); e.g. semmap query --connect %s", self.endpoint, plan.robot, self.endpoint)
         bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
