@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # semmap developer entry point. On a fresh Debian 12 machine with Python 3.11:
 #   ./dev.sh demo   set everything up, then run the pipeline on the built-in synthetic scene (out/demo)
-#   ./dev.sh test   set everything up, then run the test suite (what CI runs)
+#   ./dev.sh test   set everything up, then run the test suite, slow tests included (what CI runs);
+#                   extra arguments go to pytest (docs/TESTING.md: which command runs what, and how long)
+#   ./dev.sh repeat N [pytest args]   run the tests N times in a row, stop at the first failure (flake catcher;
+#                   default: the reliability tests, slow included)
 #   ./dev.sh setup  only set up: system libraries, .venv/ with pinned packages, the detector model
 #   ./dev.sh container-base  the local Debian base image of the container test (podman; made once, then kept)
 # Set-up is idempotent and reuses .venv/ and the model cache (~/.cache/semmap/models or $SEMMAP_MODEL_DIR).
@@ -123,12 +126,45 @@ setup() {
   compose_schema
 }
 
+# what `./dev.sh test` selects: the default and the slow tests; soaks (too long for CI) only when asked for
+TEST_MARKERS="not soak"
+
+pytest_run() {
+  # pytest's exit code 5 (no test selected) is a failure here, with a clear word, never a silent pass
+  local rc=0
+  .venv/bin/python -m pytest "$@" || rc=$?
+  [ "$rc" -eq 5 ] && echo "dev.sh: no test was selected by: pytest $*" >&2
+  return "$rc"
+}
+
+repeat() {
+  local n=$1
+  shift
+  [ $# -gt 0 ] || set -- -m "$TEST_MARKERS" tests/reliability
+  local i rc start=$SECONDS t0
+  for ((i = 1; i <= n; i++)); do
+    echo "dev.sh repeat: run $i of $n: pytest $*"
+    t0=$SECONDS
+    rc=0
+    pytest_run "$@" || rc=$?
+    if [ "$rc" -ne 0 ]; then
+      echo "dev.sh repeat: $((i - 1))/$n passed; run $i failed (pytest exit $rc) after $((SECONDS - t0)) s" >&2
+      exit 1
+    fi
+    echo "dev.sh repeat: run $i passed in $((SECONDS - t0)) s"
+  done
+  echo "dev.sh repeat: $n/$n passed in $((SECONDS - start)) s"
+}
+
 cmd=${1:-help}
 shift || true
 case "$cmd" in
   setup) setup ;;
   demo) setup; exec .venv/bin/semmap run synthetic --out out/demo "$@" ;;
-  test) setup; exec .venv/bin/python -m pytest "$@" ;;
+  test) setup; pytest_run -m "$TEST_MARKERS" "$@" ;;
+  repeat)
+    case "${1:-}" in ''|*[!0-9]*|0) echo "usage: ./dev.sh repeat N [pytest args]" >&2; exit 2 ;; esac
+    setup; repeat "$@" ;;
   container-base) container_base ;;
-  *) sed -n '2,7p' "$0"; exit 2 ;;
+  *) sed -n '2,10p' "$0"; exit 2 ;;
 esac

@@ -38,6 +38,17 @@ class FrameJournal:
         yield from self.db.execute("SELECT f.frame_id, f.a, f.b, e.body FROM frames f "
                                    "LEFT JOIN extras e ON e.frame_id = f.frame_id ORDER BY f.frame_id")
 
+    def last(self, n: int) -> list[tuple[int, bytes, bytes, bytes | None]]:
+        """The newest `n` rows, in frame order (what a restart needs of a journal that only continues a state)."""
+        rows = self.db.execute("SELECT f.frame_id, f.a, f.b, e.body FROM frames f LEFT JOIN extras e "
+                               "ON e.frame_id = f.frame_id ORDER BY f.frame_id DESC LIMIT ?", (n,)).fetchall()
+        return rows[::-1]
+
+    def trim(self, before_frame_id: int) -> None:
+        """Forget the rows of frames before `before_frame_id` (a newer row holds all a restart needs)."""
+        self.db.execute("DELETE FROM frames WHERE frame_id < ?", (before_frame_id,))
+        self.db.execute("DELETE FROM extras WHERE frame_id < ?", (before_frame_id,))
+
     def clear(self) -> None:
         self.db.execute("DELETE FROM frames")
         self.db.execute("DELETE FROM extras")

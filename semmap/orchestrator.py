@@ -38,6 +38,7 @@ STOP_GRACE_S = 15.0
 INTERRUPT_GRACE_S = 8.0  # after Ctrl-C / SIGTERM: children get SIGTERM at once, and SIGKILL after this
 MAX_RESTARTS = 5
 RESTART_BACKOFF_S = 0.5
+HUB_BIND_TRIES = 5  # ports tried for the bus this run hosts
 EXTERNAL = "external"  # `semmap run external`: no player, no odometry; a SLAM feeds the bus (semmap.client)
 
 
@@ -152,7 +153,23 @@ class Orchestrator:
         self._bus_rejected: dict[str, int] = {}
 
     # -- bus --------------------------------------------------------------------------------------------------
-    def _bus_config(self) -> tuple[BusConfig, list[str]]:
+    def _open_bus(self) -> tuple[Bus, list[str]]:
+        """The orchestrator's bus and the flags its children get. Hosting the bus: the port found free can be taken
+        before Zenoh binds it (another run starting at the same moment on this machine); then any other free
+        port is tried."""
+        preferred = DEFAULT_PORT
+        for attempt in range(HUB_BIND_TRIES):
+            bus_cfg, child_args = self._bus_config(preferred)
+            try:
+                return Bus(bus_cfg, self.plan.robot, self.trust), child_args
+            except BusError as exc:
+                if self.plan.connect or attempt == HUB_BIND_TRIES - 1:
+                    raise
+                log.warning("bus: %s; trying another port", exc)
+                preferred = 0
+        raise AssertionError("unreachable")
+
+    def _bus_config(self, preferred: int = DEFAULT_PORT) -> tuple[BusConfig, list[str]]:
         """The orchestrator's own bus config and the flags its children get (`--zenoh-config` is per child)."""
         own_file = zenoh_config_for(self.plan.zenoh_config, "orchestrator")
         if self.plan.connect:
@@ -161,7 +178,7 @@ class Orchestrator:
             if self.plan.zenoh_mode:
                 child += ["--zenoh-mode", self.plan.zenoh_mode]
             return cfg, child
-        port = free_loopback_port(DEFAULT_PORT)
+        port = free_loopback_port(preferred)
         hub = f"tcp/127.0.0.1:{port}"
         self.endpoint = hub
         cfg = BusConfig(mode="peer", listen=[hub], config_file=own_file)
@@ -438,8 +455,7 @@ class Orchestrator:
             signal.signal(sig, self._on_signal)
         try:
             plan.out_dir.mkdir(parents=True, exist_ok=True)
-            bus_cfg, child_args = self._bus_config()
-            bus = Bus(bus_cfg, plan.robot, self.trust)
+            bus, child_args = self._open_bus()
             if self.endpoint:
                 log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,
                          self.run_id, self.endpoint)

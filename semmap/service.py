@@ -265,6 +265,12 @@ class Service:
         for old in [f for f in self._sent if f < frame_id - REPLAY_FRAMES]:
             del self._sent[old]
 
+    def remember(self, publisher: Publisher, message: Message, frame_id: int) -> None:
+        """An output of frame `frame_id` that went out before a crash (read back from a journal): a restarted
+        service answers that frame again with it when the frame comes again (the old process may have died
+        before its output or its progress left), instead of staying silent and stalling a lockstep run."""
+        self._sent.setdefault(frame_id, []).append((publisher, message))
+
     def replay(self, frame_id: int) -> bool:
         """A frame's input came again (the player resends a frame that got lost, e.g. in a crashed service):
         send what it produced again, and the progress. False if it is too old to remember."""

@@ -116,14 +116,16 @@ class BackendService(Service):
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
             cloud = self.clouds.pop(pose.frame_id, None)
-            if self.journal is not None:
-                self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             with self.metrics.timer("update_ms") as timer:
                 self._add(pose, obs)
                 self.graph.update()
             timing = {"update": timer.ms}
             if cloud is not None:
                 timing["loop_closure"] = self._close_loop(cloud)
+            if self.journal is not None:
+                # after the frame's closure (journalled as its extra): a frame journalled is a frame complete, so
+                # a crash in between loses no closure; one before it means the frame is handled again
+                self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             with self.metrics.timer("publish_ms") as publish:
                 delta = self.corrections.next(self.graph)
                 self.seq += 1
@@ -153,6 +155,11 @@ class BackendService(Service):
                           obs.frame_id, obs.alignment.inliers, 100 * obs.alignment.rms_m, len(obs.alignment.anchors))
             self.metrics.counters["relocalised_at_frame"] = obs.frame_id
         self.aligner.add(self.graph, pose, obs)
+
+    def _corrected(self, frame_id: int, timing_ms: dict[str, float]) -> CorrectedPoses:
+        ids, stamps, poses = self.graph.corrected_poses()
+        lids, lpos = self.graph.landmark_positions()
+        return CorrectedPoses(self.robot, self.seq, frame_id, ids, stamps, poses, lids, lpos, timing_ms)
 
     def _ready(self, frame_id: int) -> bool:
         if frame_id not in self.observations:
@@ -190,7 +197,11 @@ class BackendService(Service):
             self.odometry.mark_done(frame_id)
             self.last_frame_id = frame_id
             n += 1
+        self.seq = n  # one correction went out per frame
         if n:
+            # the old process may have journalled its last frame and died before that frame's correction left:
+            # the associator sends the frame's observations again and must get it (the same message)
+            self.remember(self.pub, self._corrected(self.last_frame_id, {}), self.last_frame_id)
             self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
 
     def on_end_of_stream(self, control: Control) -> None:

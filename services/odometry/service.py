@@ -11,7 +11,7 @@ import numpy as np
 from semmap.datasets.trajectory_io import write_tum
 from semmap.journal import FrameJournal
 from semmap.messages import Frame, OdometryPose
-from semmap.service import Service, service_main
+from semmap.service import REPLAY_FRAMES, Service, service_main
 from services.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
 
 
@@ -27,13 +27,13 @@ class OdometryService(Service):
         self.to_session = np.linalg.inv(frame_offset(cfg.get("frame_offset", [0.0] * 6)))
         self.keyframe_every = max(1, int(cfg["keyframe_every"]))
         self.trajectory: list[tuple[float, object]] = []
+        self.pose_pub = self.publisher(self.bus.keys.odometry)
         self.journal = FrameJournal(self.out_dir / "odometry.sqlite") if self.out_dir is not None else None
         if self.journal is not None:
             if self.resume:
                 self._restore()
             else:
                 self.journal.clear()
-        self.pose_pub = self.publisher(self.bus.keys.odometry)
         # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
         self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=4)
 
@@ -61,12 +61,16 @@ class OdometryService(Service):
         self.report_progress(frame.frame_id)
 
     def _restore(self) -> None:
-        """Continue the trajectory after a crash: earlier poses from the journal, the front end's state."""
+        """Continue the trajectory after a crash: earlier poses from the journal, the front end's state. The
+        newest poses are remembered as sent: the old process may have journalled a frame and died before its pose
+        or its progress left, and the player then sends that frame again; it must be answered, not ignored."""
         state = None
         for frame_id, pose_bytes, state_bytes, _ in self.journal.frames():
             pose = OdometryPose.decode(pose_bytes)
             self.trajectory.append((pose.stamp, pose.pose))
             self.last_frame_id, state = frame_id, state_bytes
+        for frame_id, pose_bytes, _, _ in self.journal.last(REPLAY_FRAMES):
+            self.remember(self.pose_pub, OdometryPose.decode(pose_bytes), frame_id)
         if state is not None:
             self.frontend.restore(msgpack.unpackb(state))
             self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))

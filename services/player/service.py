@@ -41,6 +41,9 @@ def parse_wait_for(spec: str) -> dict[str, int]:
 
 
 RETRY_AFTER_S = 5.0
+# a waited-for service whose status (sent every second) has not come for this long is down, e.g. being restarted
+# after a crash: lockstep's frame timeout does not run while it is (a restart is not a stuck pipeline)
+DOWN_AFTER_S = 3.0
 
 
 class PlayerService(Service):
@@ -67,6 +70,8 @@ class PlayerService(Service):
         self.start_timeout_s = float(run["start_timeout_s"])
         self.progress: dict[str, int] = {}
         self.running: dict[str, set[str]] = {name: set() for name in self.start_after}
+        self.last_status: dict[str, float] = {}  # waited-for service -> when its last status came (monotonic)
+        self.down_since: float | None = None
         self.next_index = max(0, int(self.args.start_at))
         self.last_sent = 0.0
         self.last_message: Frame | None = None
@@ -91,6 +96,32 @@ class PlayerService(Service):
     def _on_status(self, s: ServiceStatus) -> None:
         if s.service in self.running and s.state == "running":
             self.running[s.service].add(s.instance)
+        if s.service in self.wait_for:
+            self.last_status[s.service] = time.monotonic()
+
+    def _down(self) -> list[str]:
+        """Waited-for services that have gone silent (crashed, being restarted)."""
+        now = time.monotonic()
+        return [n for n, t in self.last_status.items() if now - t > DOWN_AFTER_S]
+
+    def _frame_clock(self) -> float:
+        """Seconds the current frame has waited on a live pipeline: time while a waited-for service was down
+        does not count, so a slow restart on a loaded machine does not fail the run; a service down for longer
+        than start_timeout_s does."""
+        now = time.monotonic()
+        down = self._down()
+        if down:
+            if self.down_since is None:
+                self.down_since = now
+                self.log.warning("%s silent for %.0f s (restarting?): frame timeout paused", ", ".join(down),
+                                 DOWN_AFTER_S)
+            elif now - self.down_since > self.start_timeout_s:
+                self.fail(f"{', '.join(down)} silent for {now - self.down_since:.0f} s")
+            return 0.0
+        if self.down_since is not None:  # back: the frame's clock starts again
+            self.waiting_since = max(self.waiting_since, now)
+            self.down_since = None
+        return now - self.waiting_since
 
     def _pipeline_ready(self) -> bool:
         ready = all(len(self.running[n]) >= count for n, count in self.start_after.items())
@@ -115,7 +146,7 @@ class PlayerService(Service):
                 self.control_pub.put(Control(self.robot, "end_of_stream", self.last_frame_id, self.total))
                 self.log.info("end of stream after %d frames", self.total)
                 self.finish()
-            elif time.monotonic() - self.waiting_since > self.frame_timeout_s:
+            elif self._frame_clock() > self.frame_timeout_s:
                 self.fail(f"lockstep: the last frame was not processed within {self.frame_timeout_s:.0f} s")
             return
         if self.started_at is None:
@@ -126,7 +157,9 @@ class PlayerService(Service):
             self.log.info("pipeline ready: %s", ", ".join(f"{n} x{len(i)}" for n, i in self.running.items()) or "-")
         if self.lockstep:
             if self._lockstep_done() < self.last_frame_id:  # (the newest frame read and sent)
-                waited = time.monotonic() - self.waiting_since
+                waited = self._frame_clock()
+                if self.state == "failed":
+                    return
                 if time.monotonic() - self.last_sent > RETRY_AFTER_S:
                     # a frame lost in a crashed service (or between two detector replicas while their membership
                     # changes): resend it; services answer a repeated frame with what it produced before

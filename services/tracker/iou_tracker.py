@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from semmap.messages import CandidateUpdate, Detection, Intrinsics, Measurement, TrackedBox
+from semmap.messages import CandidateUpdate, Detection, Intrinsics, Measurement, MessageError, TrackedBox
 
 
 @dataclass
@@ -90,6 +90,36 @@ class IouTracker:
     @property
     def active_count(self) -> int:
         return len(self._active)
+
+    def state(self) -> dict:
+        """Everything later frames depend on, as plain data (msgpack-able): a restarted tracker that restores it
+        continues every tracklet with the same ids, lengths and unsent measurements, as if it never stopped."""
+        return {
+            "next_id": self._next_id,
+            "class_ids": dict(self._class_ids),
+            "active": [
+                {"track_id": t.track_id, "class": t.class_name, "class_id": t.class_id, "box": list(t.box),
+                 "last_stamp": t.last_stamp, "length": t.length, "candidate": t.candidate,
+                 "pending": [m.to_dict() for m in t.pending]}
+                for t in self._active
+            ],
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, params: TrackerParams | None = None) -> IouTracker:
+        """The tracker `state()` described (a MessageError if it is not one)."""
+        try:
+            tracker = cls(params, first_track_id=int(state["next_id"]))
+            tracker._class_ids = {str(k): int(v) for k, v in state["class_ids"].items()}
+            tracker._active = [
+                _Tracklet(int(t["track_id"]), str(t["class"]), int(t["class_id"]),
+                          tuple(float(v) for v in t["box"]), float(t["last_stamp"]), int(t["length"]),
+                          bool(t["candidate"]), [Measurement.from_dict(m) for m in t["pending"]])
+                for t in state["active"]
+            ]
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise MessageError(f"not a tracker state: {type(exc).__name__}: {exc}") from None
+        return tracker
 
     def _age(self, stamp: float) -> list[int]:
         """End tracklets not detected for more than max_age_s; the ids of ended candidates."""

@@ -2,19 +2,27 @@
 
 Detections may arrive out of order (several detector replicas) or twice (a replica set that changed): they
 are re-ordered by frame id and duplicates dropped, so the tracker sees each frame once, in order.
+
+Every handled frame is journalled (`DIR/tracker.sqlite`: its output and the tracker's state after it). A tracker
+restarted with --resume continues every tracklet where it was: a restart that began new tracklets would cut each
+object's history in two (the associator keeps the old candidate, never ended, and must validate a new one from
+scratch), which delays, moves or drops landmarks.
 """
 
 from __future__ import annotations
 
 import time
 
+import msgpack
+
+from semmap.journal import FrameJournal
 from semmap.messages import Detections, Tracks
-from semmap.outputs import atomic_write_text
 from semmap.reorder import FrameReorderBuffer
-from semmap.service import Service, service_main
+from semmap.service import REPLAY_FRAMES, Service, service_main
 from services.tracker.iou_tracker import IouTracker, TrackerParams
 
 TRACK_ID_BLOCK = 10_000_000
+JOURNAL_TRIM_EVERY = 10  # frames: the journal keeps at most this many rows more than a restart reads
 
 
 class TrackerService(Service):
@@ -23,25 +31,36 @@ class TrackerService(Service):
     name = "tracker"
 
     def setup(self) -> None:
-        self.tracker = IouTracker(TrackerParams(**self.config["tracker"]), first_track_id=self._first_track_id())
+        self.params = TrackerParams(**self.config["tracker"])
+        # track ids must never repeat within a run (the associator keys candidates by them): without a journal to
+        # continue from, a restarted tracker starts a clock-based block of ids
+        first_id = int(time.time()) * TRACK_ID_BLOCK if self.resume and self.out_dir is None else 0
+        self.tracker = IouTracker(self.params, first_track_id=first_id)
         self.pub = self.publisher(self.bus.keys.tracks)
         self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
+        self.journal = FrameJournal(self.out_dir / "tracker.sqlite") if self.out_dir is not None else None
+        if self.journal is not None:
+            if self.resume:
+                self._restore()
+            else:
+                self.journal.clear()
         self.listen(self.bus.keys.detections, Detections, self.on_detections)
 
-    def _first_track_id(self) -> int:
-        """Track ids must never repeat within a run: the associator keys candidates by them. A restarted tracker
-        starts a new block of ids (one per restart, counted in DIR/tracker.epoch)."""
-        path = self.out_dir / "tracker.epoch" if self.out_dir is not None else None
-        if not self.resume:
-            epoch = 0
-        elif path is not None:
-            epoch = (int(path.read_text()) if path.is_file() else 0) + 1
-        else:
-            epoch = int(time.time())  # no run directory: a clock-based block
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(path, str(epoch))
-        return epoch * TRACK_ID_BLOCK
+    def _restore(self) -> None:
+        """Continue after a crash: the tracker's state after the last journalled frame; the outputs of the last
+        few frames are remembered, so a frame sent again (its output may have died with the old process) is
+        answered as before."""
+        assert self.journal is not None
+        rows = self.journal.last(REPLAY_FRAMES)
+        if not rows:
+            return
+        for frame_id, tracks, _, _ in rows:
+            self.remember(self.pub, Tracks.decode(tracks), frame_id)
+        frame_id, _, state, _ = rows[-1]
+        self.tracker = IouTracker.from_state(msgpack.unpackb(state), self.params)
+        self.last_frame_id = frame_id
+        self.reorder.mark_done(frame_id)
+        self.log.info("resumed after frame %d (%d tracklets)", frame_id, self.tracker.active_count)
 
     def on_detections(self, message: Detections) -> None:
         if not self.reorder.push(message.frame_id, message):
@@ -69,8 +88,14 @@ class TrackerService(Service):
                 candidates, ended, boxes = out.candidates, out.ended, out.boxes
         self.metrics.count("frames")
         self.metrics.count("candidates_proposed", sum(1 for c in candidates if c.first))
-        self.emit(self.pub, Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
-                                   {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at), det.frame_id)
+        tracks = Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
+                        {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at)
+        self.emit(self.pub, tracks, det.frame_id)
+        if self.journal is not None:
+            with self.metrics.timer("journal_ms"):
+                self.journal.append(det.frame_id, tracks.encode(), msgpack.packb(self.tracker.state()))
+                if det.frame_id % JOURNAL_TRIM_EVERY == 0:  # only the newest rows are ever read back
+                    self.journal.trim(det.frame_id - REPLAY_FRAMES)
         self.report_progress(det.frame_id)
 
 
