@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
 
-from semmap.map_query import MapQuery, QueryError, run_query
+from semmap.map_query import MapQuery, QueryError, class_counts, run_query
 from semmap.map_store import MAP_SCHEMA, landmark_json, read_map_json
 from semmap.messages import Landmark, MessageError
 
@@ -44,20 +45,33 @@ def _query(args: argparse.Namespace) -> int:
             "class": args.class_name, "near": args.near, "radius": None if args.radius is None else str(args.radius),
             "id": args.id}.items() if v is not None})
         if args.map:
-            found = run_query(query, read_map_json(_map_path(args.map)))
+            everything = read_map_json(_map_path(args.map))
+            found = run_query(query, everything)
         else:
             found = _query_live(query, args.robot, args.connect, args.timeout)
+            everything = None
+        if not found and query.class_name is not None:  # say what the map does hold
+            if everything is None:
+                everything = _query_live(MapQuery(), args.robot, args.connect, args.timeout)
+            known = ", ".join(f"{name} ({n})" for name, n in class_counts(everything).items()) or "none"
+            print(f"no landmark of class {query.class_name!r}; classes in this map: {known}", file=sys.stderr)
     except (QueryError, MessageError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in found]}, indent=1))
-    else:
-        for lm in found:
-            x, y, z = lm.centroid
-            print(f"#{lm.id:<4} {lm.class_name:<14} ({x:7.3f}, {y:7.3f}, {z:7.3f})  r={lm.radius:.3f} m  "
-                  f"obs={lm.observations}")
-        print(f"{len(found)} landmark(s)", file=sys.stderr)
+        return 0
+    near = query.near
+    print(f"{'id':>5}  {'class':<14} {'x':>7} {'y':>7} {'z':>7}  {'radius':>6}  {'obs':>4}"
+          + ("  distance" if near is not None else ""))
+    for lm in found:
+        x, y, z = lm.centroid
+        line = f"{lm.id:>5}  {lm.class_name:<14} {x:7.3f} {y:7.3f} {z:7.3f}  {lm.radius:6.3f}  {lm.observations:>4}"
+        if near is not None:
+            line += f"  {math.dist(lm.centroid, near):8.3f}"
+        print(line)
+    print(f"{len(found)} landmark(s); world frame, metres" + (", nearest first" if near is not None else ""),
+          file=sys.stderr)
     return 0
 
 
@@ -103,9 +117,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Landmarks by class, near a point, by id, or all. Without MAP, asks the live run "
                                    "over Zenoh (key semmap/v1/<robot>/map/query).")
     q.add_argument("map", nargs="?", help="a run directory or map.json (default: ask the live run)")
-    q.add_argument("--class", dest="class_name", help="only this class, e.g. cup")
-    q.add_argument("--near", help="x,y,z (with --radius)")
-    q.add_argument("--radius", type=float, help="metres around --near")
+    q.add_argument("--class", dest="class_name", help="only this class, e.g. cup (case-insensitive)")
+    q.add_argument("--near", help="x,y,z in the world frame (m): results nearest first, with their distance")
+    q.add_argument("--radius", type=float, help="with --near: only landmarks within this many metres")
     q.add_argument("--id", help="landmark id(s), comma-separated")
     q.add_argument("--json", action="store_true", help="print a semmap.map/1 JSON document")
     q.add_argument("--robot", default="robot1")

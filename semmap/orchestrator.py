@@ -345,6 +345,8 @@ class Orchestrator:
             stats = self.write_stats(wall, outcome)
             bus.close()
             signal.signal(signal.SIGINT, previous)
-        if code == 0 and not plan.quiet:
-            print(f"done in {wall:.1f} s: outputs in {plan.out_dir} ({stats.name}, logs/)", file=sys.stderr)
+        if code in (0, 130):  # what was mapped and where it is, also after Ctrl-C (services wrote what they had)
+            from semmap.summary import run_summary
+
+            print(run_summary(plan.out_dir, json.loads(stats.read_text())), flush=True)
         return code

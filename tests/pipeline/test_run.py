@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from semmap.datasets.trajectory_io import read_tum
+from tests.pipeline.test_first_hour import check_summary
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -40,6 +41,8 @@ def test_synthetic_run_writes_every_output(tmp_path: Path, semmap_run) -> None:
     body = _assert_outputs(tmp_path, 90)
     assert len(body["landmarks"]) >= 5
     assert "bus: tcp/127.0.0.1:" in result.stderr
+    summary = check_summary(result.stdout, tmp_path)  # what `./dev.sh demo` ends with
+    assert summary["ate"] is not None and "90 processed of 90 published" in summary["frames"]
     _assert_recording(tmp_path / "run.rrd", body)
 
 
