@@ -53,10 +53,12 @@ def _rerun(*args: str) -> subprocess.CompletedProcess:
 
 
 def _assert_recording(rrd: Path, body: dict) -> None:
-    """The recording loads, and holds landmark spheres labelled `class #id`, trajectories, camera and timings."""
+    """The recording loads, and holds landmark boxes, centre spheres and labels `class #id`, trajectories, camera and timings."""
     assert _rerun("rrd", "verify", str(rrd)).returncode == 0
     summary = _rerun("rrd", "print", str(rrd)).stdout
-    for entity, archetype in [("/world/landmarks ", "Ellipsoids3D:half_sizes"),
+    for entity, archetype in [("/world/landmarks ", "Boxes3D:half_sizes"),
+                              ("/world/landmarks/centres", "Ellipsoids3D:half_sizes"),
+                              ("/world/landmarks/labels", "Points3D:"),
                               ("/world/trajectory/odometry", "LineStrips3D:strips"),
                               ("/world/trajectory/optimized", "LineStrips3D:strips"),
                               ("/world/camera/image ", "EncodedImage:blob"),
