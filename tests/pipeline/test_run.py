@@ -53,7 +53,7 @@ def _rerun(*args: str) -> subprocess.CompletedProcess:
 
 
 def _assert_recording(rrd: Path, body: dict) -> None:
-    """The recording loads, and holds landmark boxes, centre spheres and labels `class #id`, trajectories, camera and timings."""
+    """The recording loads and holds landmark boxes, centre spheres, labels `class #id`, trajectories, timings."""
     assert _rerun("rrd", "verify", str(rrd)).returncode == 0
     summary = _rerun("rrd", "print", str(rrd)).stdout
     for entity, archetype in [("/world/landmarks ", "Boxes3D:half_sizes"),
