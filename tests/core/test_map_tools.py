@@ -99,7 +99,7 @@ def test_ply_export(saved: Path, spheres: bool) -> None:
     ply = saved / "map.ply"
     args = ["export", str(saved), "--out", str(ply)] + (["--spheres"] if spheres else [])
     out = subprocess.run([sys.executable, "-m", "semmap.cli", *args], cwd=PROJECT, capture_output=True, text=True,
-                         timeout=60)
+                         timeout=300)  # imports Open3D: slow on a loaded machine
     assert out.returncode == 0, out.stderr
     if spheres:
         mesh = o3d.io.read_triangle_mesh(str(ply))
@@ -108,6 +108,13 @@ def test_ply_export(saved: Path, spheres: bool) -> None:
     else:
         cloud = o3d.io.read_point_cloud(str(ply))
         assert len(cloud.points) == 3 and cloud.has_colors()
+    # the classes round-trip: every vertex names its landmark's class through the legend beside the file
+    from semmap.map_cli import read_ply_classes
+
+    classes = {lm.id: lm.class_name for lm in LANDMARKS}
+    pairs = read_ply_classes(ply)
+    assert len(pairs) >= 3 and all(classes[i] == name for i, name in pairs)
+    assert {i for i, _ in pairs} == set(classes)
 
 
 def test_map_store_survives_reopening(tmp_path: Path) -> None:
