@@ -225,7 +225,7 @@ class VizService(Service):
                       for b in tracks.boxes]
             rr.log("world/camera/image/tracks", rr.Boxes2D(
                 array=[b.box for b in tracks.boxes], array_format=rr.Box2DFormat.XYXY,
-                labels=[f"{b.class_name} t{b.track_id} ({s})" for b, s in zip(tracks.boxes, states, strict=True)],
+                labels=[f"{b.class_name} t{b.track_id}" for b in tracks.boxes],  # the state is the colour
                 colors=[TRACK_COLORS[s] for s in states]))
         else:
             rr.log("world/camera/image/tracks", rr.Clear(recursive=False))
