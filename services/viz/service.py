@@ -292,8 +292,18 @@ class VizService(Service):
         if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
             self.finish()
 
+    def _frame_the_map(self) -> None:
+        """Point the top-down view at the whole map (its bounding box, from high enough to see all of it)."""
+        if not self.landmarks:
+            return
+        centres = np.array([lm.centroid for lm in self.landmarks.values()], float)
+        lo, hi = centres.min(axis=0), centres.max(axis=0)
+        span = max(2.0, 1.3 * float(np.linalg.norm(hi - lo)))
+        self.rr.send_blueprint(blueprint(self.up, (lo + hi) / 2, span))
+
     def write_outputs(self) -> None:
-        """After a restart: merge the earlier parts and this one into run.rrd."""
+        """Frame the map in the top-down view; after a restart, merge the earlier parts and this one into run.rrd."""
+        self._frame_the_map()
         if not self.parts or self.out_dir is None:
             return
         import shutil
