@@ -51,7 +51,8 @@ def make_figure(run_dir: Path, out: Path, title: str) -> Path:
     for lm in sorted(landmarks, key=lambda lm: -np.prod(lm["extent"])):  # big ones first, small ones on top
         c = np.asarray(lm["centroid"]) @ basis
         corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * np.asarray(
-            lm["extent"]) / 2 + np.asarray(lm["centroid"])
+            lm["extent"]
+        ) / 2 + np.asarray(lm["centroid"])
         flat = corners @ basis
         lo, hi = flat.min(axis=0), flat.max(axis=0)
         colour = np.array(landmark_color(lm["id"])) / 255
@@ -61,8 +62,15 @@ def make_figure(run_dir: Path, out: Path, title: str) -> Path:
         while any(np.linalg.norm(label - q) < 0.12 for q in placed):  # stack labels that would overlap
             label = label + np.array([0.0, 0.1])
         placed.append(label)
-        ax.annotate(lm["class"], c, label, fontsize=8, color=colour * 0.7, ha="center",
-                    arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.6} if label[1] - c[1] > 0.05 else None)
+        ax.annotate(
+            lm["class"],
+            c,
+            label,
+            fontsize=8,
+            color=colour * 0.7,
+            ha="center",
+            arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.6} if label[1] - c[1] > 0.05 else None,
+        )
     ax.set_aspect("equal")
     ax.set_xlabel("m (level, across the first view)")
     ax.set_ylabel("m (level, along the first view)")

@@ -14,23 +14,42 @@ COVERAGE: list[tuple[str, list[str], list[str]]] = [
     (r"^\./dev\.sh test$", ["CI"], []),
     # `./dev.sh demo` is `semmap run synthetic --out out/demo` after the set-up that `./dev.sh test` runs in CI
     (r"^\./dev\.sh demo$", ["tests/pipeline/test_run.py::test_synthetic_run_writes_every_output"], ["synthetic"]),
-    (r"^semmap run \S*7scenes-redkitchen --out \S+$",
-     ["tests/pipeline/test_run.py::test_7scenes_run_through_separate_processes",
-      "tests/pipeline/test_first_hour.py::test_official_7scenes_layout_runs_and_ends_with_the_summary"], ["--out"]),
-    (r"^semmap view \S+ --web$",
-     ["tests/viz/test_web_viewer_screenshot.py::test_web_viewer_screenshot_shows_the_landmark_spheres"], ["--web"]),
-    (r"^semmap query \S+ --class \S+$",
-     ["tests/core/test_map_tools.py::test_query_class_is_case_insensitive_and_a_miss_lists_the_classes"], ["--class"]),
-    (r"^semmap run \S+ --out \S+ --odometry file:\S+ --time-offset \S+$",
-     ["tests/pipeline/test_first_hour.py::test_a_trajectory_on_another_clock_is_refused_and_time_offset_fixes_it",
-      "tests/pipeline/test_first_hour.py::test_tum_folder_with_camera_yaml_and_a_slam_trajectory_runs"],
-     ["--time-offset", "file:", "camera.yaml"]),
-    (r"^semmap run external --out \S+$",
-     ["tests/pipeline/test_external_slam.py::test_example_client_gives_the_same_map_as_the_builtin_front_end"],
-     ['"external"']),
-    (r"^pip install \./clients/python$",
-     ["tests/client/test_light_client.py::test_light_client_installs_without_the_heavy_stack_and_talks_to_the_bus"],
-     ['"clients" / "python"', "pip"]),
+    (
+        r"^semmap run \S*7scenes-redkitchen --out \S+$",
+        [
+            "tests/pipeline/test_run.py::test_7scenes_run_through_separate_processes",
+            "tests/pipeline/test_first_hour.py::test_official_7scenes_layout_runs_and_ends_with_the_summary",
+        ],
+        ["--out"],
+    ),
+    (
+        r"^semmap view \S+ --web$",
+        ["tests/viz/test_web_viewer_screenshot.py::test_web_viewer_screenshot_shows_the_landmark_spheres"],
+        ["--web"],
+    ),
+    (
+        r"^semmap query \S+ --class \S+$",
+        ["tests/core/test_map_tools.py::test_query_class_is_case_insensitive_and_a_miss_lists_the_classes"],
+        ["--class"],
+    ),
+    (
+        r"^semmap run \S+ --out \S+ --odometry file:\S+ --time-offset \S+$",
+        [
+            "tests/pipeline/test_first_hour.py::test_a_trajectory_on_another_clock_is_refused_and_time_offset_fixes_it",
+            "tests/pipeline/test_first_hour.py::test_tum_folder_with_camera_yaml_and_a_slam_trajectory_runs",
+        ],
+        ["--time-offset", "file:", "camera.yaml"],
+    ),
+    (
+        r"^semmap run external --out \S+$",
+        ["tests/pipeline/test_external_slam.py::test_example_client_gives_the_same_map_as_the_builtin_front_end"],
+        ['"external"'],
+    ),
+    (
+        r"^pip install \./clients/python$",
+        ["tests/client/test_light_client.py::test_light_client_installs_without_the_heavy_stack_and_talks_to_the_bus"],
+        ['"clients" / "python"', "pip"],
+    ),
 ]
 
 
@@ -78,7 +97,10 @@ def test_the_set_up_commands_and_the_demo_are_what_dev_sh_does() -> None:
 
 def test_readme_links_resolve() -> None:
     readme = (PROJECT / "README.md").read_text()
-    missing = [link for link in re.findall(r"\]\(([^)#]+)\)", readme)
-               if not link.startswith("http") and not (PROJECT / link).exists()]
+    missing = [
+        link
+        for link in re.findall(r"\]\(([^)#]+)\)", readme)
+        if not link.startswith("http") and not (PROJECT / link).exists()
+    ]
     # docs/ROS2.md comes with the ROS 2 work merged beside this one
     assert set(missing) <= {"docs/ROS2.md"}, missing
