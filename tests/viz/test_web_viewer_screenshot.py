@@ -68,7 +68,7 @@ def find_spheres(image_bgr: np.ndarray, landmark_ids: list[int]) -> dict[int, li
     return found
 
 
-MIN_COLOUR_AREA = 12  # pixels of one landmark's colour: an outline's stretch, a centre sphere, a label
+MIN_COLOUR_AREA = 5  # pixels of one landmark's colour (outline, centre sphere, label); a cup under labels: 7
 
 
 def colour_areas(image_bgr: np.ndarray, landmark_ids: list[int]) -> dict[int, int]:
