@@ -34,6 +34,8 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
         elif name == "associator":
             extra = (["--await-backend"] if "backend" in chosen else []) + (
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
+        elif name == "backend" and data == "external":  # no odometry service: record the SLAM's input poses
+            extra = ["--write-odometry"]
         elif name == "viz":
             extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
         specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
@@ -49,6 +51,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out", help="output directory (default: out)")
     p.add_argument("--odometry", default=None, help="gt | gt+drift | rgbd | file:PATH (default from config)")
     p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
+    p.add_argument("--time-offset", type=float, default=None, metavar="SECONDS",
+                   help="with --odometry file:PATH: added to the trajectory's stamps before matching them to frames")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", dest="mode", action="store_const", const="lockstep",
                       help="wait for the pipeline after every frame: deterministic (default)")
@@ -113,6 +117,8 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+    if args.time_offset is not None:
+        overrides.append(f"odometry.file_time_offset_s={args.time_offset}")
     try:
         config = load_config(args.config, overrides)
         validate_sections(config)
@@ -129,6 +135,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
         return 2
+    mode = str(config["odometry"]["mode"])
+    if mode.startswith("file:") and args.data != "external":
+        message = _check_file_odometry(args.data, mode[5:], config)
+        if message.startswith("error:"):
+            print(message, file=sys.stderr)
+            return 2
+        print(f"semmap: {message}", file=sys.stderr)
     only = [s.strip() for s in args.only.split(",")] if args.only else None
     unknown = sorted(set(only or []) - set(PIPELINE))
     if unknown:
@@ -201,6 +214,25 @@ def _check_bag(data: str, config: dict) -> str | None:
     except DatasetError as exc:
         return str(exc)
     return None
+
+
+def _check_file_odometry(data: str, path: str, config: dict) -> str:
+    """Match a `file:` trajectory's stamps against the frames' before starting anything: a report, or 'error: ...'
+    when too few frames find a pose (two clocks that do not overlap)."""
+    from semmap.datasets import DatasetError, open_dataset
+    from services.odometry.frontends import OdometryError, check_trajectory_overlap
+
+    if not Path(path).is_file():
+        return f"error: trajectory file {path} does not exist"
+    try:
+        dataset = open_dataset(data)
+        stamps = dataset.stamps()
+        limit = config["run"].get("max_frames")
+        if limit:
+            stamps = stamps[: int(limit)]
+        return check_trajectory_overlap(path, stamps, float(config["odometry"]["file_time_offset_s"]))
+    except (DatasetError, OdometryError) as exc:
+        return f"error: {exc}"
 
 
 def _add_view(sub: argparse._SubParsersAction) -> None:
@@ -376,6 +408,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `semmap query ... | head`: the reader left; say nothing more
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python flushes stdout at exit: into /dev/null, not a traceback
+        return 141
     finally:
         if argv is None:  # a process of its own: Zenoh's threads must not keep it alive past its end
             from semmap.service import exit_backstop

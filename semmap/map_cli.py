@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
 
-from semmap.map_query import MapQuery, QueryError, run_query
+from semmap.map_query import MapQuery, QueryError, class_counts, run_query
 from semmap.map_store import MAP_SCHEMA, landmark_json, read_map_json
 from semmap.messages import Landmark, MessageError
 
@@ -44,46 +45,88 @@ def _query(args: argparse.Namespace) -> int:
             "class": args.class_name, "near": args.near, "radius": None if args.radius is None else str(args.radius),
             "id": args.id}.items() if v is not None})
         if args.map:
-            found = run_query(query, read_map_json(_map_path(args.map)))
+            everything = read_map_json(_map_path(args.map))
+            found = run_query(query, everything)
         else:
             found = _query_live(query, args.robot, args.connect, args.timeout)
+            everything = None
+        if not found and query.class_name is not None:  # say what the map does hold
+            if everything is None:
+                everything = _query_live(MapQuery(), args.robot, args.connect, args.timeout)
+            known = ", ".join(f"{name} ({n})" for name, n in class_counts(everything).items()) or "none"
+            print(f"no landmark of class {query.class_name!r}; classes in this map: {known}", file=sys.stderr)
     except (QueryError, MessageError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in found]}, indent=1))
-    else:
-        for lm in found:
-            x, y, z = lm.centroid
-            print(f"#{lm.id:<4} {lm.class_name:<14} ({x:7.3f}, {y:7.3f}, {z:7.3f})  r={lm.radius:.3f} m  "
-                  f"obs={lm.observations}")
-        print(f"{len(found)} landmark(s)", file=sys.stderr)
+        return 0
+    near = query.near
+    print(f"{'id':>5}  {'class':<14} {'x':>7} {'y':>7} {'z':>7}  {'radius':>6}  {'obs':>4}"
+          + ("  distance" if near is not None else ""))
+    for lm in found:
+        x, y, z = lm.centroid
+        line = f"{lm.id:>5}  {lm.class_name:<14} {x:7.3f} {y:7.3f} {z:7.3f}  {lm.radius:6.3f}  {lm.observations:>4}"
+        if near is not None:
+            line += f"  {math.dist(lm.centroid, near):8.3f}"
+        print(line)
+    print(f"{len(found)} landmark(s); world frame, metres" + (", nearest first" if near is not None else ""),
+          file=sys.stderr)
     return 0
 
 
-def export_ply(landmarks: list[Landmark], path: Path, spheres: bool) -> None:
-    """Centroids as coloured points, or each landmark as a sphere of its radius, in one PLY file."""
+def class_legend(landmarks: list[Landmark]) -> dict[str, int]:
+    """{class name: class id} for the export: ids in order of the sorted class names (stable for one map)."""
+    return {name: i for i, name in enumerate(sorted({lm.class_name for lm in landmarks}))}
+
+
+def export_ply(landmarks: list[Landmark], path: Path, spheres: bool) -> Path:
+    """Centroids as coloured points, or each landmark as a sphere of its radius, in one ASCII PLY file whose
+    vertices carry `class_id` and `landmark_id` (extra vertex properties that MeshLab, CloudCompare and Open3D
+    read or skip); the legend (class id -> name) goes to `<path>.classes.json`. Returns the legend's path."""
     import numpy as np
     import open3d as o3d
 
     from services.viz.service import landmark_color
 
-    if spheres:
-        mesh = o3d.geometry.TriangleMesh()
-        for lm in landmarks:
+    legend = class_legend(landmarks)
+    verts, faces = [], []  # (x, y, z, r, g, b, class_id, landmark_id), (i, j, k)
+    for lm in landmarks:
+        r, g, b = landmark_color(lm.id)
+        if spheres:
             sphere = o3d.geometry.TriangleMesh.create_sphere(radius=max(lm.radius, 0.01), resolution=12)
             sphere.translate(np.asarray(lm.centroid, float))
-            sphere.paint_uniform_color(np.asarray(landmark_color(lm.id)) / 255.0)
-            mesh += sphere
-        ok = o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=True)
-    else:
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([lm.centroid for lm in landmarks])
-                                                                 .reshape(-1, 3)))
-        cloud.colors = o3d.utility.Vector3dVector(np.array([landmark_color(lm.id) for lm in landmarks],
-                                                           float).reshape(-1, 3) / 255.0)
-        ok = o3d.io.write_point_cloud(str(path), cloud, write_ascii=True)
-    if not ok:
-        raise OSError(f"could not write {path}")
+            base = len(verts)
+            verts += [(*p, r, g, b, legend[lm.class_name], lm.id) for p in np.asarray(sphere.vertices)]
+            faces += [tuple(int(i) + base for i in t) for t in np.asarray(sphere.triangles)]
+        else:
+            verts.append((*lm.centroid, r, g, b, legend[lm.class_name], lm.id))
+    header = ["ply", "format ascii 1.0", "comment semmap map export: class_id names in the .classes.json beside it",
+              f"element vertex {len(verts)}", "property double x", "property double y", "property double z",
+              "property uchar red", "property uchar green", "property uchar blue", "property int class_id",
+              "property int landmark_id"]
+    if spheres:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    lines = [*header, "end_header"]
+    lines += [f"{x:.6f} {y:.6f} {z:.6f} {r} {g} {b} {c} {i}" for x, y, z, r, g, b, c, i in verts]
+    lines += [f"3 {i} {j} {k}" for i, j, k in faces]
+    Path(path).write_text("\n".join(lines) + "\n")
+    legend_path = Path(f"{path}.classes.json")
+    legend_path.write_text(json.dumps({"schema": "semmap.classes/1", "classes": {str(i): name for name, i in
+                                                                                 legend.items()}}, indent=1))
+    return legend_path
+
+
+def read_ply_classes(path: Path) -> list[tuple[int, str]]:
+    """(landmark id, class name) of every vertex of an exported PLY, through its legend: the round trip."""
+    legend = json.loads(Path(f"{path}.classes.json").read_text())["classes"]
+    lines = Path(path).read_text().splitlines()
+    header_end = lines.index("end_header")
+    names = [ln.split()[-1] for ln in lines[:header_end] if ln.startswith("property") and "list" not in ln]
+    count = next(int(ln.split()[-1]) for ln in lines if ln.startswith("element vertex"))
+    c_col, l_col = names.index("class_id"), names.index("landmark_id")
+    rows = [ln.split() for ln in lines[header_end + 1 : header_end + 1 + count]]
+    return [(int(r[l_col]), legend[r[c_col]]) for r in rows]
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -93,8 +136,9 @@ def _export(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    export_ply(landmarks, out, spheres=args.spheres)
-    print(f"wrote {len(landmarks)} landmark(s) to {out}", file=sys.stderr)
+    legend = export_ply(landmarks, out, spheres=args.spheres)
+    print(f"wrote {len(landmarks)} landmark(s) to {out} (vertex property class_id; names in {legend})",
+          file=sys.stderr)
     return 0
 
 
@@ -103,9 +147,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Landmarks by class, near a point, by id, or all. Without MAP, asks the live run "
                                    "over Zenoh (key semmap/v1/<robot>/map/query).")
     q.add_argument("map", nargs="?", help="a run directory or map.json (default: ask the live run)")
-    q.add_argument("--class", dest="class_name", help="only this class, e.g. cup")
-    q.add_argument("--near", help="x,y,z (with --radius)")
-    q.add_argument("--radius", type=float, help="metres around --near")
+    q.add_argument("--class", dest="class_name", help="only this class, e.g. cup (case-insensitive)")
+    q.add_argument("--near", help="x,y,z in the world frame (m): results nearest first, with their distance")
+    q.add_argument("--radius", type=float, help="with --near: only landmarks within this many metres")
     q.add_argument("--id", help="landmark id(s), comma-separated")
     q.add_argument("--json", action="store_true", help="print a semmap.map/2 JSON document")
     q.add_argument("--robot", default="robot1")

@@ -1,6 +1,7 @@
 """Map queries, shared by the associator's Zenoh queryable and `semmap query` on a saved map.json.
 
-A query is a set of optional filters: class, a sphere (near + radius), ids. Over Zenoh it travels as selector
+A query is a set of optional filters: class (case-insensitive), a point (near: results nearest first; with a
+radius, only those within it), ids. Over Zenoh it travels as selector
 parameters: `semmap/v1/<robot>/map/query?class=cup;near=1.0,0.5,0.8;radius=0.5;id=3,7`; the reply is a
 `semmap.map/2` document (the same layout as map.json), as JSON.
 """
@@ -41,8 +42,8 @@ class MapQuery:
             raise QueryError(f"malformed query: {exc}") from None
         if near is not None and (len(near) != 3 or not all(math.isfinite(v) for v in near)):
             raise QueryError("near must be three finite numbers x,y,z")
-        if (near is None) != (radius is None):
-            raise QueryError("near and radius go together")
+        if radius is not None and near is None:
+            raise QueryError("radius needs near=x,y,z")
         if radius is not None and not (math.isfinite(radius) and radius >= 0):
             raise QueryError("radius must be a finite number >= 0")
         return cls(params.get("class") or None, near, radius, ids)  # type: ignore[arg-type]
@@ -53,13 +54,14 @@ class MapQuery:
             parts.append(f"class={self.class_name}")
         if self.near is not None:
             parts.append("near=" + ",".join(f"{v:g}" for v in self.near))
-            parts.append(f"radius={self.radius:g}")
+            if self.radius is not None:
+                parts.append(f"radius={self.radius:g}")
         if self.ids:
             parts.append("id=" + ",".join(str(i) for i in sorted(self.ids)))
         return ";".join(parts)
 
     def matches(self, lm: Landmark) -> bool:
-        if self.class_name is not None and lm.class_name != self.class_name:
+        if self.class_name is not None and lm.class_name.casefold() != self.class_name.casefold():
             return False
         if self.ids is not None and lm.id not in self.ids:
             return False
@@ -74,6 +76,14 @@ def run_query(query: MapQuery, landmarks: Iterable[Landmark]) -> list[Landmark]:
     if query.near is not None:
         found.sort(key=lambda lm: math.dist(lm.centroid, query.near))
     return found
+
+
+def class_counts(landmarks: Iterable[Landmark]) -> dict[str, int]:
+    """{class: number of landmarks}, most frequent first: what to suggest when a class filter finds nothing."""
+    counts: dict[str, int] = {}
+    for lm in landmarks:
+        counts[lm.class_name] = counts.get(lm.class_name, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def reply_document(landmarks: Iterable[Landmark]) -> bytes:

@@ -504,6 +504,8 @@ class Orchestrator:
                 bus.close()
             for sig in (signal.SIGINT, signal.SIGTERM):  # from here on a signal just ends the process
                 signal.signal(sig, signal.SIG_DFL)
-        if code == 0 and not plan.quiet and stats is not None:
-            print(f"done in {wall:.1f} s: outputs in {plan.out_dir} ({stats.name}, logs/)", file=sys.stderr)
+        if code in (0, 130) and stats is not None:  # what was mapped and where it is, also after Ctrl-C
+            from semmap.summary import run_summary
+
+            print(run_summary(plan.out_dir, json.loads(stats.read_text())), flush=True)
         return code

@@ -91,7 +91,7 @@ register("synthetic", _open_synthetic, "synthetic[:frames=N,seed=S,size=WxH,...]
 register(
     "7scenes",
     _open_sevenscenes,
-    "7-Scenes: a folder with frame-NNNNNN.color.jpg/.depth.png/.pose.txt (+ camera-intrinsics.txt)",
+    "7-Scenes: a folder with frame-NNNNNN.color.png (or .jpg)/.depth.png/.pose.txt (+ camera-intrinsics.txt)",
     is_sevenscenes_dir,
 )
 register("tum", _open_tum, "TUM RGB-D: a folder with rgb.txt, depth.txt (+ groundtruth.txt)", is_tum_dir)
@@ -202,6 +202,11 @@ def open_dataset(spec: str | Path, **options: Any) -> Dataset:
         detected = detect_format(path)
         fmt = _REGISTRY[detected] if detected else None
         if fmt is None:
+            from .sevenscenes import sequence_folders
+
+            seqs = sequence_folders(path)
+            if seqs:
+                raise _unsupported(text, f"{path} is a 7-Scenes scene: give one sequence folder, e.g. {seqs[0]}")
             raise _unsupported(text, f"{path} matches no known layout")
     try:
         return fmt.opener(path, **options)

@@ -89,6 +89,10 @@ class Dataset(ABC):
     def has_groundtruth(self) -> bool:
         return False
 
+    def stamps(self) -> list[float]:
+        """Every frame's stamp (s), in frame order; readers override this to avoid decoding images."""
+        return [self[i].stamp for i in range(len(self))]
+
     def groundtruth(self) -> list[tuple[float, np.ndarray]]:
         """(stamp, 4x4 camera-to-world) for every frame that has ground truth; empty where there is none."""
         return []

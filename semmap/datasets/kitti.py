@@ -180,6 +180,9 @@ class KittiDataset(Dataset):
                 return candidate
         return None
 
+    def stamps(self) -> list[float]:
+        return list(self._stamps)
+
     def __len__(self) -> int:
         return len(self._names)
 

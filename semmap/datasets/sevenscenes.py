@@ -1,6 +1,8 @@
-"""Microsoft 7-Scenes reader: one folder of frame-NNNNNN.{color.jpg,depth.png,pose.txt} per sequence.
+"""Microsoft 7-Scenes reader: one folder of frame-NNNNNN.{color.png,depth.png,pose.txt} per sequence.
 
-The files carry no timestamps; the Kinect ran at 30 Hz, so frame n is stamped n/30 s.
+The official download (redkitchen.zip -> seq-01.zip -> seq-01/) holds `frame-NNNNNN.color.png`; converted copies
+(like ../shared/data/7scenes-redkitchen) may hold `.color.jpg`: both are read. The files carry no timestamps;
+the Kinect ran at 30 Hz, so frame n is stamped n/30 s.
 """
 
 from __future__ import annotations
@@ -21,8 +23,13 @@ INVALID_DEPTH = 65535  # the Kinect "no reading" marker in 7-Scenes; mapped to 0
 
 
 def is_sevenscenes_dir(path: Path) -> bool:
-    """A folder with frame-*.color.jpg files (camera-intrinsics.txt optional)."""
-    return path.is_dir() and any(path.glob("frame-*.color.jpg"))
+    """A folder with frame-*.color.png (official) or .color.jpg files (camera-intrinsics.txt optional)."""
+    return path.is_dir() and any(_FRAME_RE.match(p.name) for p in path.glob("frame-*.color.*"))
+
+
+def sequence_folders(path: Path) -> list[Path]:
+    """The seq-NN/ folders of an unpacked 7-Scenes scene (redkitchen/seq-01, ...): one of them is a dataset."""
+    return sorted(p for p in path.glob("seq-*") if is_sevenscenes_dir(p)) if path.is_dir() else []
 
 
 def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -52,7 +59,9 @@ class SevenScenesDataset(Dataset):
             if match:
                 frames.append((int(match.group(1)), path.name))
         if not frames:
-            raise DatasetError(f"no frame-NNNNNN.color.jpg files in {self.root}")
+            seqs = sequence_folders(self.root)
+            hint = f" (a scene folder: run one sequence, e.g. {seqs[0]})" if seqs else ""
+            raise DatasetError(f"no frame-NNNNNN.color.png/.jpg files in {self.root}{hint}")
         frames.sort()
         self._numbers = [n for n, _ in frames]
         self._color_names = [name for _, name in frames]
@@ -74,6 +83,9 @@ class SevenScenesDataset(Dataset):
 
     def stamp(self, index: int) -> float:
         return self._numbers[index] / self.rate_hz
+
+    def stamps(self) -> list[float]:
+        return [n / self.rate_hz for n in self._numbers]
 
     def _pose(self, index: int) -> np.ndarray | None:
         path = self.root / f"{self._stem(index)}.pose.txt"

@@ -484,6 +484,9 @@ class SyntheticDataset(Dataset):
     def stamp(self, index: int) -> float:
         return index / self.rate_hz
 
+    def stamps(self) -> list[float]:
+        return [self.stamp(i) for i in range(len(self))]
+
     def camera_pose(self, index: int) -> np.ndarray:
         """Camera-to-world at frame `index`: one loop round the table, the last frame back at the start pose."""
         c = self.config

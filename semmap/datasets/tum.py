@@ -182,6 +182,9 @@ class TumDataset(Dataset):
     def __len__(self) -> int:
         return len(self._stamps)
 
+    def stamps(self) -> list[float]:
+        return list(self._stamps)
+
     def __getitem__(self, index: int) -> FrameData:
         if not -len(self) <= index < len(self):
             raise IndexError(f"frame index {index} out of range 0..{len(self) - 1}")

@@ -6,6 +6,10 @@ its views with the new poses instead of carrying the drift it was built with. At
 when one more arrives, the view whose camera position is closest to another stored view's goes (it adds the
 least new viewpoint), so a landmark seen for minutes keeps a spread of viewpoints at bounded cost.
 
+Class: a detector's class for one object flips between views (a laptop seen as tv or microwave). A landmark
+keeps a histogram of the classes of the measurements that fed it (`class_votes`); its reported class is the
+majority (ties keep the current one), and candidates of any class it has been voted for may join it.
+
 Derived state (MAP centroid, inlier views, voxelised world cloud, robust extent, KD-tree) is recomputed by
 `LandmarkMapper` when views or poses change; the KD-tree is cached per cloud version, rebuilt lazily.
 `to_state()` holds plain lists, numbers and bytes (msgpack / SQLite friendly); `from_state()` restores a map
@@ -38,6 +42,7 @@ class LandmarkState:
     tracks: list[int] = field(default_factory=list)  # track ids that fed it, in order
     frames: set[int] = field(default_factory=set)  # every frame id it was measured in (co-visibility)
     measurements: int = 0
+    class_votes: dict[str, int] = field(default_factory=dict)  # measurements per detected class
     first_seen: float = 0.0
     last_seen: float = 0.0
     last_assoc: float = 0.0  # stamp of the last association / feed (the gate's dt runs from here)
@@ -95,6 +100,23 @@ class LandmarkState:
         d[-1, :] = d[:, -1] = np.inf  # keep the newest view
         i, j = np.unravel_index(int(np.argmin(d)), d.shape)
         del self.views[min(i, j)]
+
+    def vote(self, class_name: str, count: int) -> None:
+        """Count `count` measurements of `class_name`; the class becomes the majority (ties keep the current)."""
+        if count <= 0:
+            return
+        self.class_votes[class_name] = self.class_votes.get(class_name, 0) + count
+        self._elect()
+
+    def absorb_votes(self, other: dict[str, int]) -> None:
+        for name, n in other.items():
+            self.class_votes[name] = self.class_votes.get(name, 0) + n
+        self._elect()
+
+    def _elect(self) -> None:
+        best = max(sorted(self.class_votes), key=lambda c: self.class_votes[c])  # sorted: ties by name
+        if self.class_votes[best] > self.class_votes.get(self.class_name, 0):
+            self.class_name = best
 
     def remove_track(self, track_id: int) -> None:
         """Forget the views of one track (it turned out to be a moving object)."""
@@ -156,6 +178,10 @@ class LandmarkMap:
 
     def of_class(self, class_name: str) -> list[LandmarkState]:
         return [lm for lm in self.all() if lm.class_name == class_name]
+
+    def voted_for(self, class_name: str) -> list[LandmarkState]:
+        """Landmarks reported as `class_name` or fed by measurements of it (a class that flips between views)."""
+        return [lm for lm in self.all() if lm.class_name == class_name or class_name in lm.class_votes]
 
     def landmarks(self) -> list[Landmark]:
         """Every landmark as its wire message, in id order."""
@@ -244,6 +270,7 @@ def _landmark_state(lm: LandmarkState) -> dict[str, Any]:
         "tracks": list(lm.tracks),
         "frames": sorted(lm.frames),
         "measurements": lm.measurements,
+        "class_votes": dict(sorted(lm.class_votes.items())),
         "first_seen": lm.first_seen,
         "last_seen": lm.last_seen,
         "last_assoc": lm.last_assoc,
@@ -267,6 +294,9 @@ def _landmark_from_state(d: dict[str, Any]) -> LandmarkState:
     lm.tracks = [int(t) for t in d["tracks"]]
     lm.frames = {int(f) for f in d["frames"]}
     lm.measurements = int(d["measurements"])
+    # maps saved before class histograms existed: every measurement voted for the one class
+    votes = d.get("class_votes") or {lm.class_name: lm.measurements}
+    lm.class_votes = {str(k): int(v) for k, v in votes.items()}
     lm.first_seen, lm.last_seen, lm.last_assoc = (
         float(d["first_seen"]),
         float(d["last_seen"]),

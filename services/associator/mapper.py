@@ -45,7 +45,7 @@ import numpy as np
 
 from semmap.messages import CandidateUpdate, Intrinsics, Landmark, Measurement, Observation, TrackedBox
 
-from .association import decide, trimmed_mean
+from .association import decide, gate_floor, trimmed_mean
 from .candidate import (
     MapProblem,
     PoseLookup,
@@ -70,6 +70,20 @@ __all__ = ["LandmarkMapper", "MapperParams", "MapperStep", "PoseLookup"]
 
 STATE_VERSION = 1
 TIMING_KEYS = ("proposal", "association", "pointcloud", "update_merge")
+
+
+def _confusable(a: LandmarkState, b: LandmarkState, groups: str) -> bool:
+    """Whether the two landmarks' classes (or any class they were voted for) share a confusable group
+    (`confusable_classes`: groups separated by ';', classes within a group by '|')."""
+    names_a = {a.class_name, *a.class_votes}
+    names_b = {b.class_name, *b.class_votes}
+    if names_a & names_b:
+        return True
+    for group in groups.split(";"):
+        members = {c.strip() for c in group.split("|") if c.strip()}
+        if names_a & members and names_b & members:
+            return True
+    return False
 
 
 @dataclass
@@ -179,6 +193,7 @@ class LandmarkMapper:
             if lm is not None:
                 lm.add_views(new_views, p.max_views)
                 lm.measurements += cand.skipped
+                lm.vote(cand.class_name, len(new_views) + cand.skipped)
                 cand.skipped = 0
                 lm.last_assoc = max(lm.last_assoc, stamp)
                 touched.setdefault(lm.id, []).extend(new_views)
@@ -371,7 +386,7 @@ class LandmarkMapper:
             size,
             cand.frames,
             cloud_fn,
-            self.map.of_class(cand.class_name),
+            self.map.voted_for(cand.class_name),
             stamp,
             len(cand.views),
             p,
@@ -394,6 +409,7 @@ class LandmarkMapper:
             self._dirty.add(lm.id)
         lm.add_views(cand.views, p.max_views)
         lm.measurements += cand.skipped
+        lm.vote(cand.class_name, len(cand.views) + cand.skipped)
         cand.skipped = 0
         lm.frames |= cand.frames
         lm.last_assoc = max(lm.last_assoc, stamp)
@@ -486,28 +502,45 @@ class LandmarkMapper:
         db, _ = a.tree().query(b.cloud, k=1, distance_upper_bound=tol)
         return max(float(np.mean(np.isfinite(da))), float(np.mean(np.isfinite(db))))
 
+    def _same_object_other_class(self, a: LandmarkState, b: LandmarkState) -> bool:
+        """Two landmarks of confusable classes that are one object: the detector's class flipped between
+        views (a laptop as tv or microwave; with class-wise NMS even two boxes in one frame, so co-visibility
+        says nothing here). Co-located (centroids within the gate floor of the smaller) and overlapping clouds;
+        two different objects side by side (a keyboard in front of a screen) do not overlap."""
+        p = self.params
+        if not p.class_merge or not _confusable(a, b, p.confusable_classes):
+            return False
+        if float(np.linalg.norm(a.centroid - b.centroid)) > gate_floor(min(a.size, b.size), p):
+            return False
+        return self._overlap(a, b) >= p.merge_overlap_min
+
     def _merge_pass(
         self, ids: list[int], stamp: float, step: MapperStep, touched: dict[int, list[View]]
     ) -> None:
-        """Merge each listed landmark with overlapping same-class ones into the older id (repeatedly)."""
+        """Merge each listed landmark with overlapping same-class ones into the older id (repeatedly), and with
+        a co-located, overlapping landmark of a confusable class (the class becomes the majority vote)."""
         p = self.params
         queue = sorted(set(ids))
         while queue:
             a = self.map.get(queue.pop(0))
             if a is None:
                 continue
-            for b in self.map.of_class(a.class_name):
+            for b in self.map.all():
                 if b.id == a.id or float(np.linalg.norm(a.centroid - b.centroid)) > a.radius + b.radius:
                     continue
-                covis = len(a.frames & b.frames)
-                if covis >= p.covis_veto_frames and p.merge_overlap_contained > 1.0:
-                    continue
-                overlap = self._overlap(a, b)
-                if not (
-                    (overlap >= p.merge_overlap_min and covis < p.covis_veto_frames)
-                    or overlap >= p.merge_overlap_contained
-                ):
-                    continue
+                if b.class_name != a.class_name:
+                    if not self._same_object_other_class(a, b):
+                        continue
+                else:
+                    covis = len(a.frames & b.frames)
+                    if covis >= p.covis_veto_frames and p.merge_overlap_contained > 1.0:
+                        continue
+                    overlap = self._overlap(a, b)
+                    if not (
+                        (overlap >= p.merge_overlap_min and covis < p.covis_veto_frames)
+                        or overlap >= p.merge_overlap_contained
+                    ):
+                        continue
                 keep, gone = (a, b) if a.id < b.id else (b, a)
                 self._absorb(keep, gone)
                 step.merges.append((gone.id, keep.id))
@@ -526,6 +559,7 @@ class LandmarkMapper:
         keep.tracks.extend(t for t in gone.tracks if t not in keep.tracks)
         keep.frames |= gone.frames
         keep.measurements += gone.measurements
+        keep.absorb_votes(gone.class_votes)
         keep.first_seen = min(keep.first_seen, gone.first_seen)
         keep.last_seen = max(keep.last_seen, gone.last_seen)
         keep.last_assoc = max(keep.last_assoc, gone.last_assoc)

@@ -91,6 +91,12 @@ class MapperParams:
     merge_tol_size_factor: float = 0.1
     merge_overlap_min: float = 0.5  # overlapping share of the smaller cloud that merges two landmarks
     merge_overlap_contained: float = 0.85  # ... that merges them even when they were seen side by side
+    class_merge: bool = True  # one object whose detected class flips between views becomes one landmark ...
+    # ... when the classes are confusable (groups ';'-separated, classes '|'-separated), the centroids lie within
+    # the gate floor of the smaller and the clouds overlap by merge_overlap_min; the class is the majority vote
+    confusable_classes: str = (
+        "laptop|tv|microwave|keyboard|oven;cup|bowl|vase|wine glass|bottle;chair|couch|bench;book|cell phone|remote"
+    )
 
     # --- negative evidence (opt-in; needs the tracker's boxes of detected frames; see mapper._absence)
     absence_removal: bool = False
@@ -141,6 +147,8 @@ class MapperParams:
                 )
             elif isinstance(default, int):
                 values[key] = int(raw)
+            elif isinstance(default, str):
+                values[key] = str(raw)
             else:
                 values[key] = float(raw)
         return cls(**values)

@@ -13,6 +13,8 @@ depth too, so a replay closes the same loops.
 
 from __future__ import annotations
 
+import argparse
+
 from semmap.datasets.trajectory_io import write_tum
 from semmap.journal import FrameJournal
 from semmap.messages import Control, CorrectedPoses, Frame, MessageError, Observations, OdometryPose
@@ -53,6 +55,9 @@ class BackendService(Service):
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
         self.seq = 0
+        # `semmap run external`: no odometry service writes the SLAM's input, so the backend does
+        self.write_odometry = bool(getattr(self.args, "write_odometry", False))
+        self.input_trajectory: list[tuple[float, object]] = []
         self.journal = FrameJournal(self.out_dir / "backend.sqlite") if self.out_dir is not None else None
         if self.journal is not None:
             if self.resume:
@@ -116,6 +121,7 @@ class BackendService(Service):
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
             cloud = self.clouds.pop(pose.frame_id, None)
+            self.input_trajectory.append((pose.stamp, pose.pose))
             with self.metrics.timer("update_ms") as timer:
                 self._add(pose, obs)
                 self.graph.update()
@@ -190,7 +196,9 @@ class BackendService(Service):
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
         n = 0
         for frame_id, odometry, observations, keyframe in self.journal.frames():
-            self._add(OdometryPose.decode(odometry), Observations.decode(observations))
+            pose = OdometryPose.decode(odometry)
+            self.input_trajectory.append((pose.stamp, pose.pose))
+            self._add(pose, Observations.decode(observations))
             self.graph.update()
             if keyframe is not None:
                 self.closer.restore(self.graph, *decode_keyframe(keyframe))
@@ -213,7 +221,14 @@ class BackendService(Service):
             return
         ids, stamps, poses = self.graph.corrected_poses()
         write_tum(self.out_dir / "trajectory_optimized.tum", zip(stamps.tolist(), poses, strict=True))
+        if self.write_odometry and self.input_trajectory:
+            write_tum(self.out_dir / "trajectory_odometry.tum", self.input_trajectory)
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--write-odometry", action="store_true",
+                        help="also write the odometry it received as trajectory_odometry.tum (external runs)")
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main(BackendService, argv)
+    return service_main(BackendService, argv, _arguments)

@@ -181,23 +181,61 @@ class RgbdOdometry(FrontEnd):
         self._pose = _unflat(state["pose"], (4, 4))
 
 
-class FileOdometry(FrontEnd):
-    """Poses from a TUM trajectory file, matched to each frame by the nearest timestamp."""
+FILE_MATCH_S = 0.05  # a frame and a trajectory pose further apart than this do not match
+FILE_MIN_MATCHED = 0.5  # fewer matched frames than this fraction: the two clocks disagree, refuse the run
 
-    def __init__(self, path: str | Path, sigma_translation_m: float, sigma_rotation_deg: float) -> None:
-        poses = read_tum(path)
+
+def match_trajectory(traj_stamps: np.ndarray, frame_stamps: np.ndarray, offset_s: float = 0.0,
+                     max_difference_s: float = FILE_MATCH_S) -> tuple[np.ndarray, np.ndarray]:
+    """For each frame, the index of the trajectory pose nearest in time (trajectory stamp + offset_s) and
+    whether it lies within `max_difference_s`. `traj_stamps` sorted ascending."""
+    shifted = np.asarray(traj_stamps, float) + offset_s
+    frames = np.asarray(frame_stamps, float)
+    right = np.clip(np.searchsorted(shifted, frames), 0, len(shifted) - 1)
+    left = np.clip(right - 1, 0, len(shifted) - 1)
+    nearest = np.where(np.abs(shifted[left] - frames) <= np.abs(shifted[right] - frames), left, right)
+    return nearest, np.abs(shifted[nearest] - frames) <= max_difference_s
+
+
+def check_trajectory_overlap(path: str | Path, frame_stamps: list[float], offset_s: float = 0.0,
+                             max_difference_s: float = FILE_MATCH_S, min_fraction: float = FILE_MIN_MATCHED) -> str:
+    """Refuse a trajectory file whose stamps do not cover the frames (a TUM file in Unix time on a dataset
+    timed from 0 would otherwise give every frame the same nearest pose). Returns a one-line report."""
+    poses = read_tum(path)
+    if not poses:
+        raise OdometryError(f"trajectory file {path} holds no poses")
+    stamps = np.sort(np.array([t for t, _ in poses]))
+    _, matched = match_trajectory(stamps, np.asarray(frame_stamps, float), offset_s, max_difference_s)
+    n, total = int(matched.sum()), len(frame_stamps)
+    if total and n < max(1, min_fraction * total):
+        lo, hi = stamps[0] + offset_s, stamps[-1] + offset_s
+        raise OdometryError(
+            f"trajectory {path} matches only {n} of {total} frames within {max_difference_s} s: its poses span "
+            f"{lo:.3f} .. {hi:.3f} s (with --time-offset {offset_s:g}), the frames span {min(frame_stamps):.3f} .. "
+            f"{max(frame_stamps):.3f} s. Pass --time-offset SECONDS (added to the trajectory's stamps), e.g. "
+            f"--time-offset {min(frame_stamps) - stamps[0]:.3f} to start both together")
+    return f"odometry {path}: {n} of {total} frames matched a pose within {max_difference_s} s"
+
+
+class FileOdometry(FrontEnd):
+    """Poses from a TUM trajectory file, matched to each frame by the nearest timestamp (+ a time offset)."""
+
+    def __init__(self, path: str | Path, sigma_translation_m: float, sigma_rotation_deg: float,
+                 time_offset_s: float = 0.0) -> None:
+        poses = sorted(read_tum(path), key=lambda p: p[0])
         if not poses:
             raise OdometryError(f"trajectory file {path} holds no poses")
         self.stamps = np.array([t for t, _ in poses])
         self.poses = [p for _, p in poses]
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
+        self.time_offset_s = float(time_offset_s)
         self.far_matches = 0
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
-        i = int(np.argmin(np.abs(self.stamps - frame.stamp)))
-        if abs(self.stamps[i] - frame.stamp) > 0.05:
+        nearest, matched = match_trajectory(self.stamps, np.array([frame.stamp]), self.time_offset_s)
+        if not matched[0]:
             self.far_matches += 1
-        return self.poses[i].copy()
+        return self.poses[int(nearest[0])].copy()
 
 
 def make_frontend(mode: str, config: dict) -> FrontEnd:
@@ -211,7 +249,8 @@ def make_frontend(mode: str, config: dict) -> FrontEnd:
     if mode == "rgbd":
         return RgbdOdometry(config["rgbd_sigma_translation_m"], config["rgbd_sigma_rotation_deg"])
     if mode.startswith("file:"):
-        return FileOdometry(mode[5:], config["file_sigma_translation_m"], config["file_sigma_rotation_deg"])
+        return FileOdometry(mode[5:], config["file_sigma_translation_m"], config["file_sigma_rotation_deg"],
+                            float(config["file_time_offset_s"]))
     raise OdometryError(f"unknown odometry mode {mode!r}: use gt, gt+drift, rgbd or file:PATH")
 
 

@@ -48,6 +48,8 @@ class OdometryService(Service):
             if self.frontend.needs_images:
                 data.rgb, data.depth = frame.rgb(), frame.depth()
             pose = self.to_session @ self.frontend.estimate(data)
+        if hasattr(self.frontend, "far_matches"):  # file:PATH frames with no pose within 0.05 s
+            self.metrics.counters["frames_unmatched"] = self.frontend.far_matches
         sigma_t, sigma_r = self.frontend.sigmas
         self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
                                               keyframe=frame.frame_id % self.keyframe_every == 0,

@@ -1,14 +1,19 @@
 """Rerun sink: records the run to `DIR/run.rrd` (and optionally serves the web viewer for a live run).
 
 Entity layout (Rerun 0.41):
-- `world/landmarks`: one solid sphere per landmark (`Ellipsoids3D`), radius from the object size, a stable colour
-  per landmark id, label `class #id`.
+- `world/landmarks`: each landmark as the outline of its extent's box (`Boxes3D`, wireframe: nothing solid hides
+  what lies inside, a cup on the table stays visible) in a stable colour per landmark id, and a small solid
+  sphere at its centroid (`world/landmarks/centres`); labels `class #id` sit on leader lines above the boxes
+  (`world/landmarks/labels`), raised where they would pile up on each other.
 - `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
 - `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
   `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
   rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
   `world/camera/depth` every `viz.depth_every` frames.
 - `timings/<service>/<stage>`: per-stage latency time series in ms.
+
+Blueprint: the 3D map, a top-down view of it (looking down the gravity axis, once a pose says where that is), and
+the camera image; the latency plot is a second tab behind the camera (collapsed by default).
 """
 
 from __future__ import annotations
@@ -35,6 +40,9 @@ from semmap.messages import (
 from semmap.service import Service, service_main
 
 OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
+LABEL_GAP_M = 0.12  # labels closer than this (horizontally and vertically) would overlap: the later is raised
+CORE_RADIUS_M = (0.03, 0.06)  # the centroid sphere: a fifth of the landmark's radius, within these bounds
+
 TRACK_COLORS = {"tentative": (160, 160, 160), "candidate": (40, 200, 90), "rejected": (230, 40, 40)}
 
 
@@ -45,6 +53,47 @@ def landmark_color(landmark_id: int) -> tuple[int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255)
 
 
+def label_anchors(centres: np.ndarray, tops: np.ndarray, up: np.ndarray, gap: float = LABEL_GAP_M) -> np.ndarray:
+    """Where each label goes: just above its box top, raised along `up` by steps of `gap` until it is at least
+    `gap` from every label placed before it (in id order), so near-by objects' labels stack instead of piling."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    placed: list[np.ndarray] = []
+    for c, top in zip(np.asarray(centres, float), np.asarray(tops, float), strict=True):
+        anchor = c + up * (float(np.dot(top - c, up)) + 0.05)
+        for _ in range(50):
+            if all(np.linalg.norm(anchor - q) >= gap for q in placed):
+                break
+            anchor = anchor + up * gap
+        placed.append(anchor)
+    return np.array(placed).reshape(-1, 3)
+
+
+def blueprint(up: np.ndarray | None = None, centre: np.ndarray | None = None, span: float = 4.0) -> object:
+    """Map, top-down view (looking along -up at `centre` from `span` metres; world Z-up until a pose tells) and
+    the camera, with the latency plot in a tab behind it."""
+    import rerun.blueprint as rrb
+
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float) / np.linalg.norm(up)
+    centre = np.zeros(3) if centre is None else np.asarray(centre, float)
+    side = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(side) < 1e-3:
+        side = np.cross(up, [0.0, 1.0, 0.0])
+    eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=centre + up * max(span, 1.0), look_target=centre,
+                            eye_up=side / np.linalg.norm(side))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="map"),
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="world", name="top-down", contents=["world/landmarks/**",
+                                                                            "world/trajectory/**"],
+                                  eye_controls=eye),
+                rrb.Tabs(rrb.Spatial2DView(origin="world/camera/image", name="camera"),
+                         rrb.TimeSeriesView(origin="timings", name="latency (ms)"), active_tab=0),
+                row_shares=[1, 1]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
+
+
 class VizService(Service):
     """Logs everything on the bus worth seeing to Rerun (see module docstring)."""
 
@@ -52,7 +101,6 @@ class VizService(Service):
 
     def setup(self) -> None:
         import rerun as rr
-        import rerun.blueprint as rrb
 
         self.rr = rr
         cfg = self.config["viz"]
@@ -80,11 +128,8 @@ class VizService(Service):
             self.log.info("web viewer: http://localhost:%d/?url=%s", self.args.web_port, uri)
         if sinks:
             rr.set_sinks(*sinks)
-        rr.send_blueprint(rrb.Blueprint(rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="map"),
-            rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="camera"),
-                         rrb.TimeSeriesView(origin="timings", name="latency (ms)"), row_shares=[3, 2]),
-            column_shares=[3, 2])))
+        rr.send_blueprint(blueprint())
+        self.up: np.ndarray | None = None  # gravity's opposite, from the first pose (image y points down)
         rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.landmarks: dict[int, Landmark] = {}
         self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
@@ -140,6 +185,9 @@ class VizService(Service):
         rr = self.rr
         self._at(pose.frame_id)
         self.odometry[pose.frame_id] = pose.pose.copy()
+        if self.up is None:  # the first camera's -y is "up" for handheld and robot data: the top-down axis
+            self.up = -pose.pose[:3, 1]
+            rr.send_blueprint(blueprint(self.up, pose.pose[:3, 3] + 1.5 * pose.pose[:3, 2]))
         # show the camera where the optimised map puts it: the newest correction applied to the odometry
         current = pose.pose if self.correction is None else self.correction @ pose.pose
         rr.log("world/camera", rr.Transform3D(translation=current[:3, 3], mat3x3=current[:3, :3]))
@@ -189,7 +237,7 @@ class VizService(Service):
                       for b in tracks.boxes]
             rr.log("world/camera/image/tracks", rr.Boxes2D(
                 array=[b.box for b in tracks.boxes], array_format=rr.Box2DFormat.XYXY,
-                labels=[f"{b.class_name} t{b.track_id} ({s})" for b, s in zip(tracks.boxes, states, strict=True)],
+                labels=[f"{b.class_name} t{b.track_id}" for b in tracks.boxes],  # the state is the colour
                 colors=[TRACK_COLORS[s] for s in states]))
         else:
             rr.log("world/camera/image/tracks", rr.Clear(recursive=False))
@@ -228,12 +276,25 @@ class VizService(Service):
         rr = self.rr
         items = [self.landmarks[i] for i in sorted(self.landmarks)]
         if not items:
-            rr.log("world/landmarks", rr.Clear(recursive=False))
+            rr.log("world/landmarks", rr.Clear(recursive=True))
             return
-        rr.log("world/landmarks", rr.Ellipsoids3D(
-            centers=[lm.centroid for lm in items], half_sizes=[[max(lm.radius, 0.02)] * 3 for lm in items],
-            colors=[landmark_color(lm.id) for lm in items], labels=[f"{lm.class_name} #{lm.id}" for lm in items],
-            fill_mode="solid"))
+        centres = np.array([lm.centroid for lm in items], float)
+        half = np.array([np.maximum(np.asarray(lm.extent, float), 0.04) / 2 for lm in items])
+        colors = [landmark_color(lm.id) for lm in items]
+        labels = [f"{lm.class_name} #{lm.id}" for lm in items]
+        rr.log("world/landmarks", rr.Boxes3D(centers=centres, half_sizes=half, colors=colors, radii=0.005,
+                                             fill_mode="majorwireframe", labels=labels, show_labels=False))
+        core = np.clip([0.2 * lm.radius for lm in items], *CORE_RADIUS_M)
+        rr.log("world/landmarks/centres", rr.Ellipsoids3D(centers=centres, half_sizes=np.repeat(core[:, None], 3, 1),
+                                                          colors=colors, fill_mode="solid"))
+        up = self.up if self.up is not None else np.array([0.0, 0.0, 1.0])
+        up = up / np.linalg.norm(up)
+        tops = centres + up * np.abs(half @ np.abs(up))[:, None] if len(items) else centres
+        anchors = label_anchors(centres, tops, up)
+        rr.log("world/landmarks/labels", rr.Points3D(anchors, colors=colors, radii=0.006, labels=labels,
+                                                     show_labels=True))
+        rr.log("world/landmarks/leaders", rr.LineStrips3D(np.stack([centres, anchors], axis=1), colors=colors,
+                                                          radii=0.002))
 
     def on_status(self, status: ServiceStatus) -> None:
         pass  # statuses are summarised in stats.json by the orchestrator
@@ -245,8 +306,18 @@ class VizService(Service):
         if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
             self.finish()
 
+    def _frame_the_map(self) -> None:
+        """Point the top-down view at the whole map (its bounding box, from high enough to see all of it)."""
+        if not self.landmarks:
+            return
+        centres = np.array([lm.centroid for lm in self.landmarks.values()], float)
+        lo, hi = centres.min(axis=0), centres.max(axis=0)
+        span = max(2.0, 1.3 * float(np.linalg.norm(hi - lo)))
+        self.rr.send_blueprint(blueprint(self.up, (lo + hi) / 2, span))
+
     def write_outputs(self) -> None:
-        """After a restart: merge the earlier parts and this one into run.rrd."""
+        """Frame the map in the top-down view; after a restart, merge the earlier parts and this one into run.rrd."""
+        self._frame_the_map()
         if not self.parts or self.out_dir is None:
             return
         import shutil

@@ -258,3 +258,49 @@ def test_params_from_the_yaml_section() -> None:
     assert MapperParams.from_dict({"absence_removal": "false"}).absence_removal is False
     with pytest.raises(ValueError, match="unknown settings"):
         MapperParams.from_dict({"gate_uu": 1.0})
+
+
+def _flipping(schedule: list[tuple[float, str]], centre=(0.0, 0.0, 0.8), radius=0.12):  # noqa: ANN001, ANN202
+    """One object whose detected class follows `schedule` ((from time s, class), ...): a detector's flips."""
+
+    def scene(t: float) -> list[Sphere]:
+        name = [c for start, c in schedule if t >= start][-1]
+        return [Sphere(centre, radius, name)]
+
+    return scene
+
+
+def test_one_object_whose_class_flips_is_one_landmark_of_the_majority_class() -> None:
+    # laptop for 2 s, tv for 1 s, laptop again: each class's tracklet alone would make its own landmark
+    mapper, steps = run(_flipping([(0.0, "laptop"), (2.0, "tv"), (3.0, "laptop")]), range(150))
+    lms = mapper.landmarks()
+    assert len(lms) == 1, [(lm.id, lm.class_name, lm.centroid) for lm in lms]
+    assert lms[0].class_name == "laptop"
+    votes = mapper.map[lms[0].id].class_votes
+    assert set(votes) == {"laptop", "tv"} and votes["laptop"] > votes["tv"] > 0
+    # and the majority decides: mostly tv, laptop only at the start
+    mapper, _ = run(_flipping([(0.0, "laptop"), (1.5, "tv")]), range(150))
+    assert [lm.class_name for lm in mapper.landmarks()] == ["tv"]
+
+
+def test_a_class_flip_joins_only_confusable_classes_and_can_be_turned_off() -> None:
+    # a chair is never a laptop: a (hypothetical) flip between unrelated classes keeps two landmarks
+    mapper, _ = run(_flipping([(0.0, "laptop"), (2.0, "chair")]), range(120))
+    assert sorted(lm.class_name for lm in mapper.landmarks()) == ["chair", "laptop"]
+    off = LandmarkMapper(MapperParams.from_dict({"class_merge": False}))
+    mapper, _ = run(_flipping([(0.0, "laptop"), (2.0, "tv")]), range(120), mapper=off)
+    assert sorted(lm.class_name for lm in mapper.landmarks()) == ["laptop", "tv"]
+
+
+def test_a_cup_and_a_bowl_side_by_side_stay_two() -> None:
+    things = [Sphere((-0.075, 0.0, 0.8), 0.04, "cup"), Sphere((0.075, 0.0, 0.8), 0.04, "bowl")]
+    mapper, _ = run(lambda t: things, range(120))
+    assert sorted(lm.class_name for lm in mapper.landmarks()) == ["bowl", "cup"]
+
+
+def test_class_votes_survive_the_state_round_trip() -> None:
+    mapper, _ = run(_flipping([(0.0, "laptop"), (2.0, "tv"), (3.0, "laptop")]), range(120))
+    state = msgpack.unpackb(msgpack.packb(mapper.to_state()), strict_map_key=False)
+    restored = LandmarkMapper.from_state(state)
+    for lm in mapper.landmarks():
+        assert restored.map[lm.id].class_votes == mapper.map[lm.id].class_votes

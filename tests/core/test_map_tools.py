@@ -42,7 +42,10 @@ def test_queries() -> None:
     assert [lm.id for lm in run_query(MapQuery.from_parameters({"id": "2"}), LANDMARKS)] == [2]
     query = MapQuery(class_name="cup", ids=frozenset({1}))
     assert MapQuery.from_parameters(dict(p.split("=") for p in query.to_parameters().split(";"))) == query
-    for bad in ({"near": "1,2"}, {"near": "1,2,3"}, {"radius": "-1", "near": "0,0,0"}, {"colour": "red"},
+    # near alone: every landmark, nearest first (docs/INTERFACE.md: every parameter optional)
+    assert [lm.id for lm in run_query(MapQuery.from_parameters({"near": "0,1,0.5"}), LANDMARKS)] == [2, 0, 1]
+    assert [lm.id for lm in run_query(MapQuery.from_parameters({"class": "Cup"}), LANDMARKS)] == [0, 1]
+    for bad in ({"near": "1,2"}, {"radius": "1"}, {"radius": "-1", "near": "0,0,0"}, {"colour": "red"},
                 {"id": "x"}):
         with pytest.raises(QueryError):
             MapQuery.from_parameters(bad)
@@ -53,9 +56,42 @@ def test_query_cli_on_a_saved_map(saved: Path) -> None:
                          cwd=PROJECT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert [lm["id"] for lm in json.loads(out.stdout)["landmarks"]] == [2]
-    bad = subprocess.run([sys.executable, "-m", "semmap.cli", "query", str(saved), "--near", "1,2,3"],
+    bad = subprocess.run([sys.executable, "-m", "semmap.cli", "query", str(saved), "--radius", "1"],
                          cwd=PROJECT, capture_output=True, text=True, timeout=60)
-    assert bad.returncode == 2 and "near and radius go together" in bad.stderr
+    assert bad.returncode == 2 and "radius needs near" in bad.stderr
+
+
+def _query(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "semmap.cli", "query", *args], cwd=PROJECT, capture_output=True,
+                          text=True, timeout=60)
+
+
+def test_query_near_without_radius_lists_nearest_first_with_distances(saved: Path) -> None:
+    out = _query(str(saved), "--near", "1.25,0.2,0.8")
+    assert out.returncode == 0, out.stderr
+    header, *rows = out.stdout.splitlines()
+    assert header.split()[-1] == "distance"
+    assert [int(r.split()[0]) for r in rows] == [1, 0, 2]
+    distances = [float(r.split()[-1]) for r in rows]
+    assert distances == sorted(distances) and distances[0] == pytest.approx(0.05, abs=1e-3)
+    assert "nearest first" in out.stderr
+
+
+def test_query_class_is_case_insensitive_and_a_miss_lists_the_classes(saved: Path) -> None:
+    out = _query(str(saved), "--class", "Cup")
+    assert out.returncode == 0 and [int(r.split()[0]) for r in out.stdout.splitlines()[1:]] == [0, 1]
+    miss = _query(str(saved), "--class", "sofa")
+    assert miss.returncode == 0 and miss.stdout.splitlines()[1:] == []
+    assert "no landmark of class 'sofa'; classes in this map: cup (2), chair (1)" in miss.stderr
+
+
+def test_query_piped_to_head_ends_quietly(tmp_path: Path) -> None:
+    many = [Landmark(i, "cup", (0.01 * i, 0.0, 0.0), 0.05, (0.1, 0.1, 0.1), 5, 0.0, 1.0) for i in range(20000)]
+    write_map_json(tmp_path / "map.json", many)  # ~1.5 MB of rows: far more than a pipe holds
+    out = subprocess.run(f"{sys.executable} -m semmap.cli query {tmp_path} | head -n 2", shell=True, cwd=PROJECT,
+                         capture_output=True, text=True, timeout=120)
+    assert len(out.stdout.splitlines()) == 2
+    assert "Traceback" not in out.stderr and "BrokenPipe" not in out.stderr, out.stderr
 
 
 @pytest.mark.parametrize("spheres", [False, True])
@@ -63,7 +99,7 @@ def test_ply_export(saved: Path, spheres: bool) -> None:
     ply = saved / "map.ply"
     args = ["export", str(saved), "--out", str(ply)] + (["--spheres"] if spheres else [])
     out = subprocess.run([sys.executable, "-m", "semmap.cli", *args], cwd=PROJECT, capture_output=True, text=True,
-                         timeout=60)
+                         timeout=300)  # imports Open3D: slow on a loaded machine
     assert out.returncode == 0, out.stderr
     if spheres:
         mesh = o3d.io.read_triangle_mesh(str(ply))
@@ -72,6 +108,13 @@ def test_ply_export(saved: Path, spheres: bool) -> None:
     else:
         cloud = o3d.io.read_point_cloud(str(ply))
         assert len(cloud.points) == 3 and cloud.has_colors()
+    # the classes round-trip: every vertex names its landmark's class through the legend beside the file
+    from semmap.map_cli import read_ply_classes
+
+    classes = {lm.id: lm.class_name for lm in LANDMARKS}
+    pairs = read_ply_classes(ply)
+    assert len(pairs) >= 3 and all(classes[i] == name for i, name in pairs)
+    assert {i for i, _ in pairs} == set(classes)
 
 
 def test_map_store_survives_reopening(tmp_path: Path) -> None:

@@ -104,7 +104,7 @@ def test_invalid_depth_marker_and_defaults(tmp_path: Path) -> None:
 
 
 def test_not_a_sevenscenes_folder(tmp_path: Path) -> None:
-    with pytest.raises(DatasetError, match="no frame-NNNNNN.color.jpg"):
+    with pytest.raises(DatasetError, match="no frame-NNNNNN.color.png/.jpg"):
         SevenScenesDataset(tmp_path)
     (tmp_path / "camera-intrinsics.txt").write_text("1 2 3\n")
     assert cv2.imwrite(str(tmp_path / "frame-000000.color.jpg"), np.zeros((8, 8, 3), np.uint8))

@@ -71,3 +71,25 @@ def test_unusable_modes_are_clear_errors() -> None:
         frontend.estimate(OdometryInput(3, 0.1, None))
     synthetic = open_dataset("synthetic:frames=2")
     assert synthetic[0].gt_pose is not None
+
+
+def test_file_trajectory_on_another_clock_is_refused_and_an_offset_fixes_it(tmp_path: Path) -> None:
+    from services.odometry.frontends import FileOdometry, check_trajectory_overlap, match_trajectory
+
+    poses = []
+    for i in range(30):
+        pose = np.eye(4)
+        pose[0, 3] = 0.01 * i
+        poses.append((1000.0 + i / 30, pose))
+    path = tmp_path / "slam.tum"
+    write_tum(path, poses)
+    frames = [i / 30 for i in range(30)]
+    with pytest.raises(OdometryError, match=r"matches only 0 of 30 frames.*1000\.000 \.\. 1000\.967 s.*0\.000 \.\. "
+                                            r"0\.967 s.*--time-offset -1000\.000"):
+        check_trajectory_overlap(path, frames)
+    assert check_trajectory_overlap(path, frames, offset_s=-1000.0).startswith(f"odometry {path}: 30 of 30 frames")
+    nearest, matched = match_trajectory(np.array([0.0, 1.0, 2.0]), np.array([-5.0, 0.9, 1.6, 9.0]))
+    assert nearest.tolist() == [0, 1, 2, 2] and matched.tolist() == [False, False, False, False]
+    front = FileOdometry(path, 0.01, 0.5, time_offset_s=-1000.0)
+    got = front.estimate(OdometryInput(7, 7 / 30, None))
+    assert got[0, 3] == pytest.approx(0.07) and front.far_matches == 0

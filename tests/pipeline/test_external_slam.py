@@ -58,6 +58,8 @@ def test_example_client_gives_the_same_map_as_the_builtin_front_end(tmp_path: Pa
     assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
     assert json.loads((external / "map.json").read_text()) == json.loads((builtin / "map.json").read_text())
     assert (external / "trajectory_optimized.tum").read_text() == (builtin / "trajectory_optimized.tum").read_text()
+    # the SLAM's input poses are kept too, so `semmap eval` compares them with semmap's output
+    assert (external / "trajectory_odometry.tum").read_text() == (builtin / "trajectory_odometry.tum").read_text()
 
 
 @pytest.mark.needs_data

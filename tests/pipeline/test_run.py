@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from semmap.datasets.trajectory_io import read_tum
+from tests.pipeline.test_first_hour import check_summary
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -41,6 +42,8 @@ def test_synthetic_run_writes_every_output(tmp_path: Path, semmap_run) -> None:
     body = _assert_outputs(tmp_path, 90)
     assert len(body["landmarks"]) >= 5
     assert "bus: tcp/127.0.0.1:" in result.stderr
+    summary = check_summary(result.stdout, tmp_path)  # what `./dev.sh demo` ends with
+    assert summary["ate"] is not None and "90 processed of 90 published" in summary["frames"]
     _assert_recording(tmp_path / "run.rrd", body)
 
 
@@ -51,10 +54,12 @@ def _rerun(*args: str) -> subprocess.CompletedProcess:
 
 
 def _assert_recording(rrd: Path, body: dict) -> None:
-    """The recording loads, and holds landmark spheres labelled `class #id`, trajectories, camera and timings."""
+    """The recording loads and holds landmark boxes, centre spheres, labels `class #id`, trajectories, timings."""
     assert _rerun("rrd", "verify", str(rrd)).returncode == 0
     summary = _rerun("rrd", "print", str(rrd)).stdout
-    for entity, archetype in [("/world/landmarks ", "Ellipsoids3D:half_sizes"),
+    for entity, archetype in [("/world/landmarks ", "Boxes3D:half_sizes"),
+                              ("/world/landmarks/centres", "Ellipsoids3D:half_sizes"),
+                              ("/world/landmarks/labels", "Points3D:"),
                               ("/world/trajectory/odometry", "LineStrips3D:strips"),
                               ("/world/trajectory/optimized", "LineStrips3D:strips"),
                               ("/world/camera/image ", "EncodedImage:blob"),
