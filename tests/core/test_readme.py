@@ -46,6 +46,21 @@ COVERAGE: list[tuple[str, list[str], list[str]]] = [
         ['"external"'],
     ),
     (
+        r"^semmap run \S+\.mcap --out \S+ --odometry gt$",
+        ["tests/datasets/test_ds_rosbag.py::test_bags_map_the_same_as_the_folder"],
+        ['"mcap"', '"--odometry", "gt"'],
+    ),
+    (
+        r"^semmap ros2 --connect \S+$",
+        ["tests/ros2/test_bridge.py::test_bridge_maps_like_the_folder_and_skips_bad_messages"],
+        ['"ros2"', '"--connect"'],
+    ),
+    (
+        r"^semmap diff \S+ \S+$",
+        ["tests/maps/test_diff_merge.py::test_cli", "tests/maps/test_sessions.py::test_diff_names_the_changes"],
+        ['"diff"'],
+    ),
+    (
         r"^pip install \./clients/python$",
         ["tests/client/test_light_client.py::test_light_client_installs_without_the_heavy_stack_and_talks_to_the_bus"],
         ['"clients" / "python"', "pip"],
@@ -102,5 +117,4 @@ def test_readme_links_resolve() -> None:
         for link in re.findall(r"\]\(([^)#]+)\)", readme)
         if not link.startswith("http") and not (PROJECT / link).exists()
     ]
-    # docs/ROS2.md comes with the ROS 2 work merged beside this one
-    assert set(missing) <= {"docs/ROS2.md"}, missing
+    assert not missing, missing
