@@ -32,6 +32,8 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
             extra = ["--set", f"detector.kind={'oracle' if synthetic else 'onnx'}"]
         elif name == "associator" and "backend" in chosen:
             extra = ["--await-backend"]
+        elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
+            extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
         elif name == "viz":
             extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
         specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
@@ -90,6 +92,11 @@ def _run(args: argparse.Namespace) -> int:
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
+    if not special and config["odometry"]["mode"] in ("gt", "gt+drift"):
+        problem = _groundtruth_problem(args.data, config)
+        if problem:
+            print(f"error: --odometry {config['odometry']['mode']}: {problem}", file=sys.stderr)
+            return 2
     if args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
         return 2
@@ -104,6 +111,21 @@ def _run(args: argparse.Namespace) -> int:
                    overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode, verbose=args.verbose,
                    quiet=args.quiet)
     return Orchestrator(plan).run()
+
+
+def _groundtruth_problem(data: str, config: dict) -> str:
+    """Why a ground-truth front end cannot run on `data` ('' when it can): checked before any process starts
+    (opening a dataset reads its file lists, not its images)."""
+    from semmap.datasets import DatasetError, open_dataset
+    from services.player.service import dataset_options
+
+    try:
+        dataset = open_dataset(data, **dataset_options(data, config["run"]))
+    except DatasetError as exc:
+        return str(exc)
+    if not dataset.has_groundtruth:
+        return f"{data} has no ground-truth poses; use --odometry rgbd or file:PATH"
+    return ""
 
 
 def _add_view(sub: argparse._SubParsersAction) -> None:

@@ -49,6 +49,11 @@ class Keys:
         return f"{self.root}/tracks"
 
     @property
+    def dynamic(self) -> str:
+        """Per frame, the boxes of objects dynamic by class or seen moving (for a front end to leave out)."""
+        return f"{self.root}/dynamic"
+
+    @property
     def observations(self) -> str:
         return f"{self.root}/observations"
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from semmap.datasets import DatasetError, open_dataset
+from semmap.datasets import DatasetError, detect_format, open_dataset
 from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.trajectory_io import write_tum
 from semmap.messages import Control, Frame, GroundTruthInstance, Intrinsics, Progress, ServiceStatus
@@ -41,6 +41,16 @@ def parse_wait_for(spec: str) -> dict[str, int]:
 
 
 RETRY_AFTER_S = 5.0
+GT_MODES = ("gt", "gt+drift")  # odometry front ends that need every frame's ground-truth pose
+
+
+def dataset_options(data: str, run: dict) -> dict:
+    """Reader options from the `run` section: the ground-truth gap that TUM-layout readers interpolate over."""
+    try:
+        fmt = detect_format(data)
+    except (DatasetError, OSError):
+        fmt = None
+    return {"gt_max_gap_s": float(run["gt_max_gap_s"])} if fmt == "tum" else {}
 
 
 class PlayerService(Service):
@@ -50,7 +60,11 @@ class PlayerService(Service):
 
     def setup(self) -> None:
         run = self.config["run"]
-        self.dataset: Dataset = open_dataset(self.args.data)
+        self.dataset: Dataset = open_dataset(self.args.data, **dataset_options(self.args.data, run))
+        # ground-truth odometry cannot place a frame without a pose: skip it like an unreadable one
+        # (announced, so nobody waits for it) instead of letting the front end fail it and lockstep stall
+        self.needs_gt = (str(self.config["odometry"]["mode"]) in GT_MODES
+                         and "odometry" in parse_wait_for(f"{self.args.wait_for},{self.args.start_after}"))
         limit = int(run.get("max_frames") or 0)
         self.loops = max(1, int(run["loops"]))
         self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops
@@ -149,6 +163,10 @@ class PlayerService(Service):
         try:
             with self.metrics.timer("read_ms"):
                 data = self._frame(index)
+            if self.needs_gt and data.gt_pose is None:
+                self.metrics.count("frames_without_gt")
+                raise DatasetError(f"no ground-truth pose (none within run.gt_max_gap_s="
+                                   f"{self.config['run']['gt_max_gap_s']} s to interpolate from)")
             with self.metrics.timer("encode_ms"):
                 message = frame_message(self.robot, data, self.depth_png)
         except DatasetError as exc:
