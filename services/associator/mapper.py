@@ -326,18 +326,22 @@ class LandmarkMapper:
         """Why the candidate fails: the recent-window tests' reason, else the whole-track motion test's."""
         if not v.ok:
             return v.reason
-        for view in cand.views:  # the current surface choice and pose of the views still held
+        moving, _ = self._track_motion(cand)
+        return "track_motion" if moving else ""
+
+    def _track_motion(self, cand: _Candidate) -> tuple[bool, float]:
+        """`track_motion` over the candidate's whole track (the views still held as they are placed now)."""
+        for view in cand.views:
             cand.path[view.frame_id] = (view.stamp, view.world, view.truncated)
         entries = list(cand.path.values())
         size = float(np.percentile([x.size for x in cand.views], 80))
-        moving, _ = track_motion(
+        return track_motion(
             np.array([e[0] for e in entries]),
             np.stack([e[1] for e in entries]),
             np.array([e[2] for e in entries], dtype=bool),
             size,
             self.params,
         )
-        return "track_motion" if moving else ""
 
     def _short_but_static(self, cand: _Candidate) -> bool:
         """A tracklet that ended before `min_track_span_s`: kept only if its views are tightly together
@@ -349,10 +353,10 @@ class LandmarkMapper:
             or cand.views[-1].stamp - cand.views[0].stamp < p.min_motion_span_s
         ):
             return False
-        if self._validate(cand):
+        if self._validate(cand) or self._track_motion(cand)[1] > p.short_track_motion_m:
             return False
         v = validate(cand.views, p)
-        size = float(np.percentile([x.size for x in cand.views], 80))
+        size = min(float(np.percentile([x.size for x in cand.views], 80)), p.track_motion_size_cap_m)
         return v.spread_m <= max(p.mad_min_m, p.short_track_mad_factor * size)
 
     def _reject(

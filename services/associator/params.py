@@ -36,6 +36,8 @@ class MapperParams:
     untestable_span_s: float = 2.0  # without enough whole views (a table always cut by the image border),
     # a candidate must be stable for this long instead
     short_track_mad_factor: float = 0.1  # a tracklet ending younger than that needs MAD <= max(min, this x s)
+    # (s capped at track_motion_size_cap_m) and its whole-track displacement (see track_motion_*) at most:
+    short_track_motion_m: float = 0.25
     mad_min_m: float = 0.05  # trimmed mean absolute deviation of per-view centroids above
     mad_size_factor: float = 0.5  # max(mad_min_m, mad_size_factor * s_view) rejects the candidate
     mad_trim: float = 0.3  # share of the largest deviations left out (wrong-surface views)

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from semmap.datasets.trajectory_io import read_tum
 from semmap.messages import DynamicBox
 
-DYNAMIC_MASKS = ("box", "range", "off")
+DYNAMIC_MASKS = ("box", "range", "none")
 
 
 class OdometryError(ValueError):
@@ -45,7 +45,7 @@ class OdometryInput:
 def mask_dynamic(depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float, how: str) -> np.ndarray:
     """A copy of `depth` (uint16) with the dynamic objects left out (0 = invalid): the whole box (`box`), or
     only the pixels in the box's depth range (`range`: the background behind a person stays)."""
-    if how == "off" or not boxes:
+    if how == "none" or not boxes:
         return depth
     out = depth.copy()
     h, w = out.shape
@@ -169,7 +169,7 @@ class RgbdOdometry(FrontEnd):
             raise OdometryError(f"odometry.dynamic_mask must be one of {DYNAMIC_MASKS}, got {dynamic_mask!r}")
         self.o3d = o3d
         self.dynamic_mask = dynamic_mask
-        self.uses_dynamic = dynamic_mask != "off"
+        self.uses_dynamic = dynamic_mask != "none"
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self._prev: object | None = None
         self._pose: np.ndarray | None = None
