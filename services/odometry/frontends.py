@@ -171,30 +171,35 @@ class RgbdOdometry(FrontEnd):
         self.dynamic_mask = dynamic_mask
         self.uses_dynamic = dynamic_mask != "none"
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
-        self._prev: object | None = None
+        self._prev: tuple[object, np.ndarray, list[DynamicBox]] | None = None  # colour, raw depth, dynamic boxes
         self._pose: np.ndarray | None = None
         self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
         self.failures = 0
 
-    def _image(self, frame: OdometryInput) -> object:
+    def _image(self, color: object, depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float) -> object:
         o3d = self.o3d
-        color = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb.astype(np.float32) / 255.0))
-        raw = mask_dynamic(frame.depth, frame.dynamic or [], frame.depth_scale, self.dynamic_mask)
-        depth = o3d.t.geometry.Image(np.ascontiguousarray(raw))
-        return o3d.t.geometry.RGBDImage(color, depth)
+        raw = mask_dynamic(depth, boxes, depth_scale, self.dynamic_mask)
+        return o3d.t.geometry.RGBDImage(color, o3d.t.geometry.Image(np.ascontiguousarray(raw)))
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
         if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
             raise OdometryError("rgbd odometry needs RGB, depth and intrinsics")
         o3d = self.o3d
-        current = self._image(frame)
+        color = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb.astype(np.float32) / 255.0))
+        boxes = list(frame.dynamic or [])
         if self._prev is None or self._pose is None:
             self._pose = frame.gt_pose.copy() if frame.gt_pose is not None else np.eye(4)
         else:
+            # both frames of the pair lose the dynamic objects of both (a person moving between the two frames
+            # leaves out where it was and where it is, in each)
+            prev_color, prev_depth, prev_boxes = self._prev
+            pair = prev_boxes + boxes
+            current = self._image(color, frame.depth, pair, frame.depth_scale)
+            previous = self._image(prev_color, prev_depth, pair, frame.depth_scale)
             K = o3d.core.Tensor(frame.intrinsics, o3d.core.Dtype.Float64)
             try:
                 result = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                    current, self._prev, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
+                    current, previous, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
                     self._criteria, o3d.t.pipelines.odometry.Method.Hybrid)
                 relative = result.transformation.numpy()
                 if not np.all(np.isfinite(relative)):
@@ -203,7 +208,7 @@ class RgbdOdometry(FrontEnd):
                 self.failures += 1
                 relative = np.eye(4)  # constant position: the backend's landmarks can still pull it back
             self._pose = self._pose @ relative
-        self._prev = current
+        self._prev = (color, frame.depth, boxes)
         return self._pose.copy()
 
     def state(self) -> dict:
