@@ -329,7 +329,7 @@ class LandmarkMapper:
         moving, _ = self._track_motion(cand)
         return "track_motion" if moving else ""
 
-    def _track_motion(self, cand: _Candidate) -> tuple[bool, float]:
+    def _track_motion(self, cand: _Candidate, whole_only: bool = True) -> tuple[bool, float]:
         """`track_motion` over the candidate's whole track (the views still held as they are placed now)."""
         for view in cand.views:
             cand.path[view.frame_id] = (view.stamp, view.world, view.truncated)
@@ -341,6 +341,7 @@ class LandmarkMapper:
             np.array([e[2] for e in entries], dtype=bool),
             size,
             self.params,
+            whole_only,
         )
 
     def _short_but_static(self, cand: _Candidate) -> bool:
@@ -353,7 +354,7 @@ class LandmarkMapper:
             or cand.views[-1].stamp - cand.views[0].stamp < p.min_motion_span_s
         ):
             return False
-        if self._validate(cand) or self._track_motion(cand)[1] > p.short_track_motion_m:
+        if self._validate(cand) or self._track_motion(cand, whole_only=False)[1] > p.short_track_motion_m:
             return False
         v = validate(cand.views, p)
         size = min(float(np.percentile([x.size for x in cand.views], 80)), p.track_motion_size_cap_m)
