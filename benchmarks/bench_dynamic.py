@@ -73,12 +73,20 @@ def run_case(name: str, data: Path, out: Path, max_frames: int | None) -> dict:
     ev = json.loads((out / "eval.json").read_text())
     landmarks = json.loads((out / "map.json").read_text())["landmarks"]
     stats = json.loads((out / "stats.json").read_text())
-    counters = {k: v for s in stats.get("services", {}).values() if isinstance(s, dict)
-                for k, v in (s.get("counters") or {}).items()}
-    row.update(ate_frontend_m=ev["ate_odometry_m"], ate_optimized_m=ev["ate_optimized_m"],
-               landmarks=dict(sorted(Counter(lm["class"] for lm in landmarks).items())),
-               persons=sum(lm["class"] == "person" for lm in landmarks),
-               retired=counters.get("landmarks_retired_moving", 0), dynamic_boxes=counters.get("dynamic_boxes", 0))
+    counters = {
+        k: v
+        for s in stats.get("services", {}).values()
+        if isinstance(s, dict)
+        for k, v in (s.get("counters") or {}).items()
+    }
+    row.update(
+        ate_frontend_m=ev["ate_odometry_m"],
+        ate_optimized_m=ev["ate_optimized_m"],
+        landmarks=dict(sorted(Counter(lm["class"] for lm in landmarks).items())),
+        persons=sum(lm["class"] == "person" for lm in landmarks),
+        retired=counters.get("landmarks_retired_moving", 0),
+        dynamic_boxes=counters.get("dynamic_boxes", 0),
+    )
     return row
 
 
@@ -102,8 +110,11 @@ def main(argv: list[str] | None = None) -> int:
         if row["rc"] != 0:
             print(f"{name:<14} FAILED (exit {row['rc']}): {' | '.join(row['error'])}")
             continue
-        print(f"{name:<14} {row['ate_frontend_m']:>11.3f} m {row['ate_optimized_m']:>11.3f} m {row['persons']:>6} "
-              f"{row['retired']:>7} {row['seconds']:>6.0f}  {row['landmarks']}", flush=True)
+        print(
+            f"{name:<14} {row['ate_frontend_m']:>11.3f} m {row['ate_optimized_m']:>11.3f} m {row['persons']:>6} "
+            f"{row['retired']:>7} {row['seconds']:>6.0f}  {row['landmarks']}",
+            flush=True,
+        )
     if args.json_out:
         args.json_out.write_text(json.dumps(rows, indent=1))
     if args.out_root is None:

@@ -18,8 +18,9 @@ from semmap.messages import DynamicObjects
 SYNTH_FRAMES = 30
 
 
-def test_an_external_subscriber_receives_every_frames_dynamic_objects(tmp_path: Path, router, semmap_run,
-                                                                      read_stats) -> None:
+def test_an_external_subscriber_receives_every_frames_dynamic_objects(
+    tmp_path: Path, router, semmap_run, read_stats
+) -> None:
     received: dict[int, DynamicObjects] = {}
     lock = threading.Lock()
 
@@ -30,8 +31,20 @@ def test_an_external_subscriber_receives_every_frames_dynamic_objects(tmp_path: 
     with SemmapClient("robot1", router.endpoint, "client") as client:
         client.on_dynamic(keep)
         out = tmp_path / "run"
-        result = semmap_run([f"synthetic:frames={SYNTH_FRAMES}", "--out", str(out), "--only", "detector,tracker",
-                             "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client"])
+        result = semmap_run(
+            [
+                f"synthetic:frames={SYNTH_FRAMES}",
+                "--out",
+                str(out),
+                "--only",
+                "detector,tracker",
+                "--no-viz",
+                "--connect",
+                router.endpoint,
+                "--zenoh-mode",
+                "client",
+            ]
+        )
         assert result.returncode == 0, result.stderr[-3000:]
         deadline = time.monotonic() + 5
         while len(received) < SYNTH_FRAMES and time.monotonic() < deadline:
@@ -76,8 +89,9 @@ def bonn_dir(data_root: Path) -> Path:
     return path
 
 
-def test_ground_truth_with_gaps_never_stalls_a_lockstep_run(bonn_dir: Path, tmp_path: Path, semmap_run,
-                                                            read_stats) -> None:
+def test_ground_truth_with_gaps_never_stalls_a_lockstep_run(
+    bonn_dir: Path, tmp_path: Path, semmap_run, read_stats
+) -> None:
     # frame 3: its ground-truth sample missing (a 67 ms gap: interpolated); frame 8: the samples of frames 7-9
     # missing (a 133 ms gap: frames 7, 8 and 9 have no pose)
     data = _tum_subset(bonn_dir, tmp_path / "gaps", 12, {3: 0, 8: 1})
@@ -87,8 +101,21 @@ def test_ground_truth_with_gaps_never_stalls_a_lockstep_run(bonn_dir: Path, tmp_
     assert [i for i in range(len(ds)) if ds[i].gt_pose is None] == [7, 8, 9]
     out = tmp_path / "run"
     t0 = time.monotonic()
-    result = semmap_run([str(data), "--out", str(out), "--odometry", "gt", "--lockstep", "--only", "odometry",
-                         "--no-viz", "--set", "run.frame_timeout_s=20"])
+    result = semmap_run(
+        [
+            str(data),
+            "--out",
+            str(out),
+            "--odometry",
+            "gt",
+            "--lockstep",
+            "--only",
+            "odometry",
+            "--no-viz",
+            "--set",
+            "run.frame_timeout_s=20",
+        ]
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert time.monotonic() - t0 < 60  # a stall would wait run.frame_timeout_s and fail the run
     stats = read_stats(out)
@@ -97,8 +124,9 @@ def test_ground_truth_with_gaps_never_stalls_a_lockstep_run(bonn_dir: Path, tmp_
     assert len(poses) == 9 and not {round(stamps[i], 4) for i in (7, 8, 9)} & {round(t, 4) for t, _ in poses}
 
 
-def test_ground_truth_odometry_without_ground_truth_fails_before_the_run(bonn_dir: Path, tmp_path: Path,
-                                                                        semmap_run) -> None:
+def test_ground_truth_odometry_without_ground_truth_fails_before_the_run(
+    bonn_dir: Path, tmp_path: Path, semmap_run
+) -> None:
     data = _tum_subset(bonn_dir, tmp_path / "nogt", 3, gt=False)
     t0 = time.monotonic()
     result = semmap_run([str(data), "--out", str(tmp_path / "run"), "--odometry", "gt", "--no-viz"])
@@ -108,12 +136,24 @@ def test_ground_truth_odometry_without_ground_truth_fails_before_the_run(bonn_di
 
 
 @pytest.mark.needs_model
-def test_rgbd_odometry_waits_for_each_frames_dynamic_boxes(bonn_dir: Path, tmp_path: Path, semmap_run,
-                                                          read_stats) -> None:
+def test_rgbd_odometry_waits_for_each_frames_dynamic_boxes(
+    bonn_dir: Path, tmp_path: Path, semmap_run, read_stats
+) -> None:
     data = _tum_subset(bonn_dir, tmp_path / "crowd", 20)
     out = tmp_path / "run"
-    result = semmap_run([str(data), "--out", str(out), "--odometry", "rgbd", "--lockstep", "--only",
-                         "detector,tracker,odometry", "--no-viz"])
+    result = semmap_run(
+        [
+            str(data),
+            "--out",
+            str(out),
+            "--odometry",
+            "rgbd",
+            "--lockstep",
+            "--only",
+            "detector,tracker,odometry",
+            "--no-viz",
+        ]
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     counters = {s["service"]: s["counters"] for s in read_stats(out)["services"].values()}
     assert counters["tracker"]["dynamic_boxes"] > 0  # people in view
