@@ -36,6 +36,8 @@ def pipeline_specs(data: str, config: dict, detectors: int, viz: bool, only: lis
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
         elif name == "backend" and data == "external":  # no odometry service: record the SLAM's input poses
             extra = ["--write-odometry"]
+        elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
+            extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
         elif name == "viz":
             extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
         specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
@@ -184,12 +186,12 @@ def _run(args: argparse.Namespace) -> int:
 def preflight_dataset(data: str, config: dict) -> None:
     """The dataset's first frame reads, and it has ground truth where the odometry needs it (else a run would
     wait for a frame that never comes and blame 'no progress')."""
-    from semmap.datasets import DatasetError, open_dataset
+    from semmap.datasets import DatasetError, open_dataset, reader_options
 
     if data == "external" or data == "synthetic" or data.startswith("synthetic:"):
         return
     try:
-        dataset = open_dataset(data)
+        dataset = open_dataset(data, **reader_options(data, config))
         if len(dataset) == 0:
             raise OutputError(f"dataset {data} has no frames")
         dataset[0]
@@ -197,8 +199,8 @@ def preflight_dataset(data: str, config: dict) -> None:
         raise OutputError(f"dataset {data}: its first frame cannot be read: {exc}") from None
     mode = str(config["odometry"]["mode"])
     if mode in ("gt", "gt+drift") and not dataset.has_groundtruth:
-        raise OutputError(f"--odometry {mode} needs ground-truth poses, and dataset {data} has none: use "
-                          "--odometry rgbd or file:PATH")
+        raise OutputError(f"--odometry {mode} needs ground-truth poses, and dataset {data} has no ground-truth "
+                          "poses: use --odometry rgbd or file:PATH")
 
 
 def _check_bag(data: str, config: dict) -> str | None:

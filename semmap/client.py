@@ -27,6 +27,7 @@ from semmap.map_query import MapQuery
 from semmap.messages import (
     Control,
     CorrectedPoses,
+    DynamicObjects,
     Frame,
     GroundTruthInstance,
     Intrinsics,
@@ -61,13 +62,15 @@ class SemmapClient:
         self._corrected: CorrectedPoses | None = None
         self._trajectory: dict[int, np.ndarray] = {}  # the corrected deltas applied, frame id -> pose
         self._landmarks: dict[int, np.ndarray] = {}
-        self._callbacks: dict[str, list[Callable]] = {"corrected": [], "observations": [], "map": [], "tags": []}
+        self._callbacks: dict[str, list[Callable]] = {"corrected": [], "observations": [], "map": [], "tags": [],
+                                                      "dynamic": []}
         self.bus.subscribe(self.bus.keys.progress_all, Progress, self._on_progress)
         self.bus.subscribe(self.bus.keys.status_all, ServiceStatus, self._on_status)
         self.bus.subscribe(self.bus.keys.corrected_poses, CorrectedPoses, self._on_corrected)
         self.bus.subscribe(self.bus.keys.observations, Observations, lambda m: self._emit("observations", m))
         self.bus.subscribe(self.bus.keys.map_updates, MapUpdate, lambda m: self._emit("map", m))
         self.bus.subscribe(self.bus.keys.landmark_tags, TagDetections, lambda m: self._emit("tags", m))
+        self.bus.subscribe(self.bus.keys.dynamic, DynamicObjects, lambda m: self._emit("dynamic", m))
 
     # -- inbound ----------------------------------------------------------------------------------------------
     def _emit(self, kind: str, message: object) -> None:
@@ -104,6 +107,11 @@ class SemmapClient:
 
     def on_map_update(self, callback: Callable[[MapUpdate], None]) -> None:
         self._callbacks["map"].append(callback)
+
+    def on_dynamic(self, callback: Callable[[DynamicObjects], None]) -> None:
+        """Each frame's dynamic objects (people, animals, things seen moving): boxes with a depth range, for a
+        SLAM to leave out of its features or depth, as dynamic SLAM systems do. One message per frame."""
+        self._callbacks["dynamic"].append(callback)
 
     def latest_corrected(self) -> CorrectedPoses | None:
         """The newest message as received: a delta (the poses that moved), see `corrected_trajectory`."""

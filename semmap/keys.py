@@ -21,6 +21,7 @@ PUBLISHERS: dict[str, tuple[str, ...]] = {
     "odometry": ("odometry", EXTERNAL_SENDER),
     "detections": ("detector",),
     "tracks": ("tracker",),
+    "dynamic": ("tracker",),
     "observations": ("associator",),
     "observations/tags": ("associator",),
     "map/updates": ("associator",),
@@ -63,6 +64,11 @@ class Keys:
     @property
     def tracks(self) -> str:
         return f"{self.root}/tracks"
+
+    @property
+    def dynamic(self) -> str:
+        """Per frame, the boxes of objects dynamic by class or seen moving (for a front end to leave out)."""
+        return f"{self.root}/dynamic"
 
     @property
     def observations(self) -> str:

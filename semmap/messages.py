@@ -589,6 +589,66 @@ class Tracks(Message):
                    _timings(d), _get(d, "frame_sent_at", float), _get(d, "sent_at", float))
 
 
+@dataclass
+class DynamicBox:
+    """An object in a frame that is dynamic: by class (`associator.dynamic_classes`) or seen moving.
+
+    depth_min_m..depth_max_m: the depth range of the object's surface in the box (metres; 0, 0 when the box
+    held no valid depth): a consumer can leave out only the pixels in that range (the background behind a
+    person stays usable) or the whole box.
+    """
+
+    track_id: int
+    class_name: str
+    box: tuple[float, float, float, float]
+    depth_min_m: float
+    depth_max_m: float
+    reason: str  # "class" | "moving"
+
+    REASONS: ClassVar[tuple[str, ...]] = ("class", "moving")
+
+    def to_dict(self) -> dict:
+        return {"track_id": self.track_id, "class": self.class_name, "box": list(self.box),
+                "depth_min_m": self.depth_min_m, "depth_max_m": self.depth_max_m, "reason": self.reason}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> DynamicBox:
+        if not isinstance(d, dict):
+            raise MessageError("a dynamic box must be a map")
+        lo, hi = _get(d, "depth_min_m", float), _get(d, "depth_max_m", float)
+        if not 0.0 <= lo <= hi:
+            raise MessageError("a dynamic box needs 0 <= depth_min_m <= depth_max_m")
+        reason = _get(d, "reason", str)
+        if reason not in cls.REASONS:
+            raise MessageError(f"dynamic box reason must be one of {cls.REASONS}, got {reason!r}")
+        return cls(_non_negative_int(d, "track_id"), _get(d, "class", str), _box(d.get("box")), lo, hi, reason)
+
+
+@dataclass
+class DynamicObjects(Message):
+    """The tracker's dynamic objects of one frame, one message per frame (an empty list too, so a front end in
+    lockstep can wait for it). `skipped`: the frame was not detected; the boxes are then those of the last
+    detected frame of tracklets still alive."""
+
+    SCHEMA: ClassVar[str] = "semmap.dynamic/1"
+    robot: str
+    frame_id: int
+    stamp: float
+    boxes: list[DynamicBox] = field(default_factory=list)
+    skipped: str = ""
+    sent_at: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
+                "boxes": [b.to_dict() for b in self.boxes], "skipped": self.skipped, "sent_at": self.sent_at}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DynamicObjects:
+        return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
+                   [DynamicBox.from_dict(b) for b in _get(d, "boxes", list)], _get(d, "skipped", str),
+                   _get(d, "sent_at", float))
+
+
 # ---------------------------------------------------------------------------------------------------------
 # the map and the pose graph
 
@@ -698,7 +758,9 @@ class Observations(Message):
     """The associator's landmark observations for one frame (at most one per landmark every 2 s), and merges.
 
     `merges` are (absorbed id, surviving id): the backend joins the two landmark variables. `alignment` (once per
-    session, optional): the session relocalised against a prior map at this frame.
+    session, optional): the session relocalised against a prior map at this frame. `retired` are landmarks whose
+    object was seen moving: the backend drops their factors (they must stop pulling the trajectory towards where
+    the object was). Optional on the wire (absent = none).
     """
 
     SCHEMA: ClassVar[str] = "semmap.observations/1"
@@ -709,12 +771,14 @@ class Observations(Message):
     merges: list[tuple[int, int]] = field(default_factory=list)
     sent_at: float = 0.0
     alignment: MapAlignment | None = None
+    retired: list[int] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"robot": self.robot, "frame_id": self.frame_id, "stamp": self.stamp,
                 "observations": [o.to_dict() for o in self.observations],
                 "merges": [list(m) for m in self.merges], "sent_at": self.sent_at,
-                "alignment": None if self.alignment is None else self.alignment.to_dict()}
+                "alignment": None if self.alignment is None else self.alignment.to_dict(),
+                "retired": list(self.retired)}
 
     @classmethod
     def from_dict(cls, d: dict) -> Observations:
@@ -722,7 +786,14 @@ class Observations(Message):
         return cls(_robot(d), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
                    [Observation.from_dict(o) for o in _get(d, "observations", list)],
                    _merges(_get(d, "merges", list)), _get(d, "sent_at", float),
-                   None if alignment is None else MapAlignment.from_dict(alignment))
+                   alignment=None if alignment is None else MapAlignment.from_dict(alignment),
+                   retired=_ids(_get(d, "retired", list, optional=True) or [], "retired"))
+
+
+def _ids(raw: list, name: str) -> list[int]:
+    if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in raw):
+        raise MessageError(f"field '{name}' must hold non-negative integer ids")
+    return list(raw)
 
 
 def _merges(raw: list) -> list[tuple[int, int]]:
@@ -805,13 +876,16 @@ class MapUpdate(Message):
     timing_ms: dict[str, float] = field(default_factory=dict)
     frame_sent_at: float = 0.0
     sent_at: float = 0.0
+    moved: list[int] = field(default_factory=list)  # of `removed`: retired because their object was seen moving
+    moving_tracks: list[int] = field(default_factory=list)  # of `rejected_candidates`: rejected as moving
 
     def to_dict(self) -> dict:
         return {"robot": self.robot, "seq": self.seq, "frame_id": self.frame_id, "stamp": self.stamp,
                 "landmarks": [lm.to_dict() for lm in self.landmarks], "removed": list(self.removed),
                 "merges": [list(m) for m in self.merges], "full": self.full,
                 "rejected_candidates": list(self.rejected_candidates), "timing_ms": dict(self.timing_ms),
-                "frame_sent_at": self.frame_sent_at, "sent_at": self.sent_at}
+                "frame_sent_at": self.frame_sent_at, "sent_at": self.sent_at, "moved": list(self.moved),
+                "moving_tracks": list(self.moving_tracks)}
 
     @classmethod
     def from_dict(cls, d: dict) -> MapUpdate:
@@ -822,7 +896,9 @@ class MapUpdate(Message):
         return cls(_robot(d), _non_negative_int(d, "seq"), _non_negative_int(d, "frame_id"), _get(d, "stamp", float),
                    [Landmark.from_dict(x) for x in _get(d, "landmarks", list)], removed,
                    _merges(_get(d, "merges", list)), _get(d, "full", bool), rejected, _timings(d),
-                   _get(d, "frame_sent_at", float), _get(d, "sent_at", float))
+                   _get(d, "frame_sent_at", float), _get(d, "sent_at", float),
+                   _ids(_get(d, "moved", list, optional=True) or [], "moved"),
+                   _ids(_get(d, "moving_tracks", list, optional=True) or [], "moving_tracks"))
 
 
 @dataclass
@@ -986,5 +1062,5 @@ class ServiceStatus(Message):
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Frame, OdometryPose, Detections, Tracks, Observations, TagDetections, MapUpdate, CorrectedPoses, Control, Progress,
-    ServiceStatus,
+    ServiceStatus, DynamicObjects,
 )

@@ -31,14 +31,16 @@ IDENTITIES = (*SERVICES, *CLIENTS)
 # what each identity listens to (topics under semmap/v1/<robot>/), besides `control` for every service
 SUBSCRIBES: dict[str, tuple[str, ...]] = {
     "player": ("progress/*", "status/**"),
-    "odometry": ("frames",),
+    "odometry": ("frames", "dynamic"),
     "detector": ("frames",),
-    "tracker": ("detections",),
+    "tracker": ("detections", "map/updates"),
     "associator": ("tracks", "odometry", "poses/corrected"),
     "backend": ("frames", "odometry", "observations"),
-    "viz": ("frames", "odometry", "detections", "tracks", "map/updates", "poses/corrected", "observations"),
+    "viz": ("frames", "odometry", "detections", "tracks", "map/updates", "poses/corrected", "observations",
+            "dynamic"),
     "orchestrator": ("status/**", "progress/*"),
-    "slam": ("poses/corrected", "observations", "observations/tags", "map/updates", "progress/*", "status/**"),
+    "slam": ("poses/corrected", "observations", "observations/tags", "map/updates", "dynamic", "progress/*",
+             "status/**"),
     "query": ("map/updates",),
 }
 

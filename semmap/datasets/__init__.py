@@ -168,13 +168,21 @@ def _resolve(path: Path) -> Path:
 
 
 def reader_options(spec: str | Path, config: dict[str, Any]) -> dict[str, Any]:
-    """The keyword options a run's config gives the reader of `spec`: its `rosbag` section for a bag, none else."""
+    """The keyword options a run's config gives the reader of `spec`: its `rosbag` section for a bag, the
+    ground-truth gap to interpolate over (`run.gt_max_gap_s`) for the TUM layout, none else."""
     text = str(spec).strip()
     name, _, rest = text.partition(":")
     if name == "rosbag" and rest:
         return dict(config.get("rosbag") or {})
     path = _resolve(Path(text).expanduser())
-    return dict(config.get("rosbag") or {}) if path.exists() and is_rosbag(path) else {}
+    if path.exists() and is_rosbag(path):
+        return dict(config.get("rosbag") or {})
+    try:
+        fmt = detect_format(text) if name not in _REGISTRY else name
+    except (DatasetError, OSError):
+        fmt = None
+    gap = (config.get("run") or {}).get("gt_max_gap_s")
+    return {"gt_max_gap_s": float(gap)} if fmt == "tum" and gap is not None else {}
 
 
 def open_dataset(spec: str | Path, **options: Any) -> Dataset:

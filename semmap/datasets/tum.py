@@ -2,7 +2,10 @@
 
 The TUM streams are not synchronised, so frames are the rgb images that have a depth image within
 `max_difference` seconds, matched greedily by smallest time difference exactly like TUM's associate.py;
-ground truth (100 Hz mocap) is matched to each rgb stamp the same way (frames without one get None).
+ground truth (100 Hz mocap) is matched to each rgb stamp the same way. A frame without a ground-truth sample
+that close (mocap has gaps: Bonn "crowd" has 67 ms at frame 160) gets a pose interpolated in SE(3) between the
+samples either side of it when they are at most `gt_max_gap_s` apart (slerp on rotation, linear on
+translation); only a frame in a longer gap gets None.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation, Slerp
 
 from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
 from .images import image_size, read_depth_u16, read_rgb
@@ -132,18 +136,52 @@ def tum_camera_name(root: Path) -> str:
     return f"fr{match.group(1)}" if match else "default"
 
 
+def interpolate_pose(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """The pose a fraction `w` of the way from `a` to `b` (4x4): slerp on rotation, linear on translation."""
+    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
+    out = np.eye(4)
+    out[:3, :3] = Slerp([0.0, 1.0], rots)([w]).as_matrix()[0]
+    out[:3, 3] = (1.0 - w) * a[:3, 3] + w * b[:3, 3]
+    return out
+
+
+def interpolate_missing(stamps: Sequence[float], poses: list[np.ndarray | None],
+                        gt: list[tuple[float, np.ndarray]], max_gap_s: float) -> int:
+    """Fill `poses[i] is None` in place from the ground-truth samples either side of `stamps[i]` when those are
+    at most `max_gap_s` apart; returns how many were filled (the rest have no pose within reach)."""
+    if not gt:
+        return 0
+    gt_stamps = np.array([t for t, _ in gt])
+    filled = 0
+    for i, pose in enumerate(poses):
+        if pose is not None:
+            continue
+        k = int(np.searchsorted(gt_stamps, stamps[i]))
+        if k == 0 or k >= len(gt):  # before the first or after the last sample: no neighbour on one side
+            continue
+        t0, t1 = gt_stamps[k - 1], gt_stamps[k]
+        if t1 - t0 > max_gap_s or t1 <= t0:
+            continue
+        poses[i] = interpolate_pose(gt[k - 1][1], gt[k][1], float((stamps[i] - t0) / (t1 - t0)))
+        filled += 1
+    return filled
+
+
 class TumDataset(Dataset):
     """One TUM RGB-D sequence folder; depth in 1/5000 m units (scale 0.0002)."""
 
     name = "tum"
     rate_hz = 30.0
 
-    def __init__(self, root: str | Path, max_difference: float = 0.02) -> None:
+    def __init__(self, root: str | Path, max_difference: float = 0.02, gt_max_gap_s: float = 0.1) -> None:
         self.root = Path(root)
         if not is_tum_dir(self.root):
             raise DatasetError(f"not a TUM RGB-D folder (needs rgb.txt and depth.txt): {self.root}")
         self.name = f"tum/{self.root.name}"
         self.max_difference = float(max_difference)
+        self.gt_max_gap_s = float(gt_max_gap_s)
+        if not self.gt_max_gap_s >= 0:
+            raise DatasetError(f"gt_max_gap_s must be >= 0, got {gt_max_gap_s}")
         rgb_list = read_file_list(self.root / "rgb.txt")
         depth_list = read_file_list(self.root / "depth.txt")
         if not rgb_list:
@@ -166,6 +204,9 @@ class TumDataset(Dataset):
             gt = read_tum(gt_path)
             for i, j in associate(self._stamps, [s for s, _ in gt], self.max_difference):
                 self._poses[i] = gt[j][1]
+            self.interpolated = interpolate_missing(self._stamps, self._poses, gt, self.gt_max_gap_s)
+        else:
+            self.interpolated = 0
 
         override = _intrinsics_override(self.root)
         if override is not None:

@@ -302,6 +302,45 @@ def coherent_motion(views: list[View], p: MapperParams) -> tuple[bool, float, fl
     return steady, speed, displacement
 
 
+def track_motion(
+    stamps: np.ndarray, centroids: np.ndarray, truncated: np.ndarray, size: float, p: MapperParams,
+    whole_only: bool = True,
+) -> tuple[bool, float]:
+    """(moving, displacement) over a whole track: its views' world centroids binned by `track_motion_bin_s`,
+    each bin with `track_motion_bin_views` views summarised by its median; moving when two bin medians are
+    further apart than
+    max(track_motion_min_m, track_motion_size_factor * min(size, track_motion_size_cap_m)).
+
+    Why whole-track and not `coherent_motion`'s recent window: a person the camera follows keeps a high IOU and
+    a long track, and walks, stops and turns; a steady-motion test over 1.5 s misses much of that, but where
+    the person stood 3 s ago and stands now are metres apart. Why capped with size: a static object's bin
+    medians scatter with its size (partial views), but a person's do not need 0.9 m of slack.
+    whole_only: only views clear of the image border count (a large static object's centroid slides with what
+    is in view: the synthetic room's table moves by more than its size allows); otherwise all views, while
+    whole views are too few (for a track that must prove it stood still, see `_short_but_static`).
+    """
+    if len(stamps) < 2 * p.track_motion_bin_views:
+        return False, 0.0
+    whole = ~truncated
+    enough = int(whole.sum()) >= 2 * p.track_motion_bin_views
+    if whole_only and not enough:
+        return False, 0.0
+    use = whole if enough else np.ones_like(whole)
+    t, c = stamps[use], centroids[use]
+    order = np.argsort(t, kind="stable")
+    t, c = t[order], c[order]
+    bins = np.floor((t - t[0]) / max(p.track_motion_bin_s, 1e-3)).astype(np.int64)
+    edges = np.flatnonzero(np.diff(bins)) + 1
+    medians = [fast_median(c[i]) for i in np.split(np.arange(len(t)), edges) if len(i) >= p.track_motion_bin_views]
+    if len(medians) < 2:
+        return False, 0.0
+    m = np.stack(medians)
+    d = np.sqrt(np.square(m[:, None, :] - m[None, :, :]).sum(axis=-1))
+    displacement = float(d.max())
+    limit = max(p.track_motion_min_m, p.track_motion_size_factor * min(size, p.track_motion_size_cap_m))
+    return displacement > limit, displacement
+
+
 def motion_testable(views: list[View], p: MapperParams) -> bool:
     """Enough whole views, over enough time, for `coherent_motion` to have had its say."""
     whole = [v for v in views if not v.truncated]

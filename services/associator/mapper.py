@@ -49,6 +49,7 @@ from .association import decide, gate_floor, trimmed_mean
 from .candidate import (
     MapProblem,
     PoseLookup,
+    Validation,
     View,
     backproject_params,
     choose_surfaces,
@@ -57,6 +58,7 @@ from .candidate import (
     map_problem,
     motion_testable,
     start_point,
+    track_motion,
     validate,
     view_sigmas,
     whole_views,
@@ -69,6 +71,7 @@ from .params import MapperParams
 __all__ = ["LandmarkMapper", "MapperParams", "MapperStep", "PoseLookup"]
 
 STATE_VERSION = 1
+MOVING = ("motion", "track_motion")  # validation failures that mean the object moves (not just scatter)
 TIMING_KEYS = ("proposal", "association", "pointcloud", "update_merge")
 
 
@@ -95,6 +98,8 @@ class MapperStep:
     merges: list[tuple[int, int]] = field(default_factory=list)  # (absorbed id, surviving id)
     observations: list[Observation] = field(default_factory=list)
     rejected: list[int] = field(default_factory=list)  # candidate track ids rejected by validation
+    moving_tracks: list[int] = field(default_factory=list)  # of `rejected`: those seen moving
+    moved: list[int] = field(default_factory=list)  # of `removed`: landmarks retired because their object moved
     timing_ms: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
 
 
@@ -109,6 +114,9 @@ class _Candidate:
     held: bool = False
     since_validation: int = 0  # views added since the last validation
     skipped: int = 0  # measurements counted but not back-projected (min_view_interval_s)
+    # the whole track's views as (stamp, world centroid, truncated) by frame id, for `track_motion` (views are
+    # trimmed to the validation window; this is not)
+    path: dict[int, tuple[float, np.ndarray, bool]] = field(default_factory=dict)
 
 
 class LandmarkMapper:
@@ -161,8 +169,8 @@ class LandmarkMapper:
         work: list[_Candidate] = []
         seen: set[int] = set()
         for cu in candidates:
-            if cu.track_id in self._rejected or cu.track_id in seen:
-                continue
+            if cu.track_id in self._rejected or cu.track_id in seen or cu.class_name in p.dynamic_classes:
+                continue  # (a dynamic class is published by the tracker as such, never mapped)
             seen.add(cu.track_id)
             cand = self._cands.get(cu.track_id)
             if cand is None:
@@ -178,11 +186,11 @@ class LandmarkMapper:
             if not new_views or len(cand.views) < p.min_views:
                 continue
             cand.since_validation += len(new_views)
-            if (cand.landmark_id is None or cand.since_validation >= p.validate_every) and not self._validate(
-                cand
-            ):
-                self._reject(cand, step, touched)
-                continue
+            if cand.landmark_id is None or cand.since_validation >= p.validate_every:
+                reason = self._validate(cand)
+                if reason:
+                    self._reject(cand, step, touched, moving=reason in MOVING)
+                    continue
             fed.append((cand, new_views))
         t1 = time.perf_counter()
 
@@ -208,14 +216,11 @@ class LandmarkMapper:
         for tid in ended:
             cand = self._cands.get(tid)
             self._rejected.discard(tid)  # the tracker never reuses an id
-            if (
-                cand is not None
-                and cand.landmark_id is not None
-                and cand.since_validation > 0
-                and not validate(cand.views, p).ok
-            ):  # its last views were not validated yet
-                self._reject(cand, step, touched)
-                self._rejected.discard(tid)
+            if cand is not None and cand.landmark_id is not None and cand.since_validation > 0:
+                reason = self._reason(cand, validate(cand.views, p))  # its last views were not validated yet
+                if reason:
+                    self._reject(cand, step, touched, moving=reason in MOVING)
+                    self._rejected.discard(tid)
             cand = self._cands.pop(tid, None)
             if cand is None or cand.landmark_id is not None:
                 continue
@@ -310,6 +315,7 @@ class LandmarkMapper:
             v = make_view(m, T, cand.track_id, self._bp, self.params, expected)
             if v is not None:
                 new_views.append(v)
+                cand.path[v.frame_id] = (v.stamp, v.world.copy(), v.truncated)
                 bisect.insort(kept, m.stamp)
         cand.pending = still
         cand.views.extend(new_views)
@@ -321,14 +327,37 @@ class LandmarkMapper:
             del cand.views[: len(cand.views) - window]
         return new_views
 
-    def _validate(self, cand: _Candidate) -> bool:
-        """Validation; before association, first the multi-view choice of each view's surface (the
-        background in a walking person's box walks along with them, so consensus cannot hide motion)."""
+    def _validate(self, cand: _Candidate) -> str:
+        """Validation ('' = passed, else the reason); before association, first the multi-view choice of each
+        view's surface (the background in a walking person's box walks along with them, so consensus cannot
+        hide motion)."""
         p = self.params
         cand.since_validation = 0
         if cand.landmark_id is None:
             choose_surfaces(cand.views[-p.validation_window :], p)
-        return validate(cand.views, p).ok
+        return self._reason(cand, validate(cand.views, p))
+
+    def _reason(self, cand: _Candidate, v: Validation) -> str:
+        """Why the candidate fails: the recent-window tests' reason, else the whole-track motion test's."""
+        if not v.ok:
+            return v.reason
+        moving, _ = self._track_motion(cand)
+        return "track_motion" if moving else ""
+
+    def _track_motion(self, cand: _Candidate, whole_only: bool = True) -> tuple[bool, float]:
+        """`track_motion` over the candidate's whole track (the views still held as they are placed now)."""
+        for view in cand.views:
+            cand.path[view.frame_id] = (view.stamp, view.world, view.truncated)
+        entries = list(cand.path.values())
+        size = float(np.percentile([x.size for x in cand.views], 80))
+        return track_motion(
+            np.array([e[0] for e in entries]),
+            np.stack([e[1] for e in entries]),
+            np.array([e[2] for e in entries], dtype=bool),
+            size,
+            self.params,
+            whole_only,
+        )
 
     def _short_but_static(self, cand: _Candidate) -> bool:
         """A tracklet that ended before `min_track_span_s`: kept only if its views are tightly together
@@ -340,18 +369,28 @@ class LandmarkMapper:
             or cand.views[-1].stamp - cand.views[0].stamp < p.min_motion_span_s
         ):
             return False
-        if not self._validate(cand):
+        if self._validate(cand) or self._track_motion(cand, whole_only=False)[1] > p.short_track_motion_m:
             return False
         v = validate(cand.views, p)
-        size = float(np.percentile([x.size for x in cand.views], 80))
+        size = min(float(np.percentile([x.size for x in cand.views], 80)), p.track_motion_size_cap_m)
         return v.spread_m <= max(p.mad_min_m, p.short_track_mad_factor * size)
 
-    def _reject(self, cand: _Candidate, step: MapperStep, touched: dict[int, list[View]]) -> None:
+    def _reject(
+        self, cand: _Candidate, step: MapperStep, touched: dict[int, list[View]], moving: bool = False
+    ) -> None:
+        """Drop a candidate that failed validation. One seen moving takes its landmark with it (retired: the
+        object is no longer where the landmark is, whatever other tracks saw there before)."""
         step.rejected.append(cand.track_id)
         self._rejected.add(cand.track_id)
         self._cands.pop(cand.track_id, None)
+        if moving:
+            step.moving_tracks.append(cand.track_id)
         lm = self.map.get(cand.landmark_id) if cand.landmark_id is not None else None
         if lm is None:
+            return
+        if moving:
+            self._remove_landmark(lm.id, step, touched)
+            step.moved.append(lm.id)
             return
         lm.remove_track(cand.track_id)
         if not lm.views:
@@ -746,6 +785,7 @@ class LandmarkMapper:
                     "since_validation": c.since_validation,
                     "skipped": c.skipped,
                     "pending": [m.to_dict() for m in c.pending],
+                    "path": [[f, t, *(float(x) for x in w), bool(tr)] for f, (t, w, tr) in c.path.items()],
                 }
                 for c in self._cands.values()
             ],
@@ -771,6 +811,7 @@ class LandmarkMapper:
                 bool(d["held"]),
                 int(d["since_validation"]),
                 int(d["skipped"]),
+                {int(e[0]): (float(e[1]), np.array(e[2:5], dtype=np.float64), bool(e[5])) for e in d.get("path", [])},
             )
             mapper._cands[c.track_id] = c
         return mapper

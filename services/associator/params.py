@@ -36,6 +36,8 @@ class MapperParams:
     untestable_span_s: float = 2.0  # without enough whole views (a table always cut by the image border),
     # a candidate must be stable for this long instead
     short_track_mad_factor: float = 0.1  # a tracklet ending younger than that needs MAD <= max(min, this x s)
+    # (s capped at track_motion_size_cap_m) and its whole-track displacement (see track_motion_*) at most:
+    short_track_motion_m: float = 0.25
     mad_min_m: float = 0.05  # trimmed mean absolute deviation of per-view centroids above
     mad_size_factor: float = 0.5  # max(mad_min_m, mad_size_factor * s_view) rejects the candidate
     mad_trim: float = 0.3  # share of the largest deviations left out (wrong-surface views)
@@ -49,6 +51,20 @@ class MapperParams:
     motion_min_views: int = 9  # ... and needs this many views in it (three segments of three)
     surface_tol_size_factor: float = 0.5  # a box surface within max(inlier_min_m, this x s) is the object
     # (also the sigma of the multi-view surface consensus)
+    # whole-track motion: the camera often follows a walking person, so the box keeps a high IOU and the
+    # tracklet lives for seconds; its views' world centroids (all of them, before and after it became a
+    # candidate) are binned by time and the track is moving once two bins' median centroids are further apart
+    # than max(track_motion_min_m, track_motion_size_factor * min(s, track_motion_size_cap_m)): capped, so a
+    # 1.8 m person may not walk a metre (the MAD limit 0.5 x s would allow 0.9 m)
+    track_motion_min_m: float = 0.5
+    track_motion_size_factor: float = 0.5
+    track_motion_size_cap_m: float = 1.0
+    track_motion_bin_s: float = 0.5  # time bins of the whole-track test ...
+    track_motion_bin_views: int = 3  # ... that count only with this many whole views
+    # classes that move by nature (COCO: person and the animals): tracked and published as dynamic objects
+    # (semmap/v1/<robot>/dynamic), never mapped; every other class is decided by geometry (parked cars map)
+    dynamic_classes: tuple[str, ...] = ("person", "bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear",
+                                        "zebra", "giraffe")
     validation_window: int = 60  # most recent views a candidate keeps for validation
     validate_every: int = 3  # a candidate feeding a landmark is re-validated after this many new views
 
@@ -141,7 +157,12 @@ class MapperParams:
         values: dict[str, Any] = {}
         for key, raw in d.items():
             default = getattr(cls, key)
-            if isinstance(default, bool):
+            if isinstance(default, tuple):
+                items = raw.split(",") if isinstance(raw, str) else raw
+                if not isinstance(items, list | tuple) or not all(isinstance(x, str) for x in items):
+                    raise ValueError(f"associator.{key} must be a list of names, got {raw!r}")
+                values[key] = tuple(x.strip() for x in items if x.strip())
+            elif isinstance(default, bool):
                 values[key] = (
                     raw if isinstance(raw, bool) else str(raw).strip().lower() in ("1", "true", "yes", "on")
                 )

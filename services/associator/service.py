@@ -55,7 +55,7 @@ def combined(a: MapperStep, b: MapperStep) -> MapperStep:
     updated = {lm.id: lm for lm in a.updated + b.updated if lm.id not in removed}
     timing = {k: a.timing_ms.get(k, 0.0) + b.timing_ms.get(k, 0.0) for k in a.timing_ms.keys() | b.timing_ms.keys()}
     return MapperStep(list(updated.values()), removed, a.merges + b.merges, a.observations + b.observations,
-                      a.rejected + b.rejected, timing)
+                      a.rejected + b.rejected, a.moving_tracks + b.moving_tracks, a.moved + b.moved, timing)
 
 
 class PoseBook:
@@ -326,7 +326,7 @@ class AssociatorService(Service):
             merges = self.pending_merges + list(step.merges)
             self.pending_merges = []
             observations = Observations(self.robot, tracks.frame_id, tracks.stamp, step.observations, merges,
-                                        alignment=self._alignment)
+                                        alignment=self._alignment, retired=list(step.moved))
             self._alignment = None
             self._awaited_observations = observations
             self.emit(self.obs_pub, observations, tracks.frame_id)
@@ -381,7 +381,12 @@ class AssociatorService(Service):
         if refine_ms:
             timing["refine"] = refine_ms
         self.emit(self.map_pub, MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
-                                          step.merges, full, step.rejected, timing, frame_sent_at), max(frame_id, 0))
+                                          step.merges, full, step.rejected, timing, frame_sent_at,
+                                          moved=list(step.moved), moving_tracks=list(step.moving_tracks)),
+                  max(frame_id, 0))
+        for lid in step.moved:
+            self.log.info("retired landmark %d: its object moved", lid)
+        self.metrics.count("landmarks_retired_moving", len(step.moved))
         structural = False
         if step.updated or step.removed or step.merges or full:  # most frames change nothing
             known = {lm.id for lm in self.snapshot}

@@ -75,3 +75,9 @@ def merge_factor(key_a: int, key_b: int, sigma: float) -> gtsam.NonlinearFactor:
     must pull with its full weight; the associator owns the decision.
     """
     return gtsam.BetweenFactorPoint3(key_a, key_b, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
+
+
+def point_prior_factor(key: int, point: np.ndarray, sigma: float) -> gtsam.NonlinearFactor:
+    """A landmark variable held near `point`: what keeps a retired landmark (its observation factors dropped)
+    determined without it pulling any pose."""
+    return gtsam.PriorFactorPoint3(key, np.asarray(point, dtype=np.float64), gtsam.noiseModel.Isotropic.Sigma(3, sigma))

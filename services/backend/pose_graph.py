@@ -38,6 +38,9 @@ from . import factors
 MAX_FRAMES_WAITING_FOR_ODOMETRY = 300  # frames whose observations arrived before their odometry
 
 
+RETIRED_PRIOR_SIGMA_M = 1.0  # the loose prior that keeps a retired landmark's variable determined
+
+
 class PoseGraphError(ValueError):
     """A call the graph cannot honour (unknown frame, bad pose or sigma)."""
 
@@ -214,6 +217,9 @@ class PoseGraph:
         self._est = GrowingRows((4, 4), 0.0)
         self._ref = GrowingRows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
         self._moved_nodes: set[int] = set()  # nodes whose estimate changed since `take_moved_nodes()`
+        self._obs_tags: dict[int, list[Hashable]] = {}  # root -> tags of its observation factors (to retire them)
+        self._obs_seq = 0
+        self._retired: set[int] = set()  # roots of landmarks whose object moved: no factor of theirs pulls
         self.last_update_ms = 0.0
         # (m, rad) of the first pose's prior instead of the params': a session relocalised against a prior map
         # holds its start only as well as the fit knew it, and lets the anchored landmarks place it
@@ -222,6 +228,7 @@ class PoseGraph:
             "odometry": 0, "observations": 0, "observation_factors": 0, "observations_dropped": 0,
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
             "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
+            "landmarks_retired": 0, "factors_retired": 0, "observations_retired": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -277,6 +284,9 @@ class PoseGraph:
                 continue
             self.counters["observations"] += 1
             root = self._root(obs.landmark_id)
+            if root in self._retired:  # (sent before the retirement reached us, or a replay)
+                self.counters["observations_retired"] += 1
+                continue
             self._count[root] = self._count.get(root, 0) + 1
             if root in self._var:
                 self._add_observation_factor(frame_id, obs, root)
@@ -307,10 +317,11 @@ class PoseGraph:
         survivor adopts its variable; waiting observations and counts are pooled.
         """
         a, s = self._root(int(absorbed_id)), self._root(int(surviving_id))
-        if a == s:
+        if a == s or a in self._retired or s in self._retired:  # a retired landmark joins nothing
             return
         self.counters["merges"] += 1
         self._parent[a] = s
+        self._obs_tags.setdefault(s, []).extend(self._obs_tags.pop(a, []))
         self._count[s] = self._count.get(s, 0) + self._count.pop(a, 0)
         va, vs = self._var.pop(a, None), self._var.get(s)
         if va is not None and vs is not None:
@@ -325,6 +336,26 @@ class PoseGraph:
             self._waiting[s] = waiting
             if self._count[s] >= self.params.min_observations_per_landmark:
                 self._activate(s)
+
+    def retire_landmark(self, landmark_id: int) -> None:
+        """The associator saw the landmark's object move: drop every observation factor of it (and of landmarks
+        merged into it) so it stops pulling the trajectory towards where the object was; later observations of
+        it are ignored. Its variable stays, held by a loose prior (iSAM2 cannot drop a variable)."""
+        root = self._root(int(landmark_id))
+        if root in self._retired:
+            return
+        self._retired.add(root)
+        self.counters["landmarks_retired"] += 1
+        self._waiting.pop(root, None)
+        for tag in self._obs_tags.pop(root, []):
+            self._drop(tag)
+            self.counters["factors_retired"] += 1
+        var = self._var.get(root)
+        if var is not None:
+            key = L(var)
+            point = (self._new_values.atPoint3(key) if self._new_values.exists(key)
+                     else self._values().atPoint3(key))
+            self._push(None, factors.point_prior_factor(key, point, RETIRED_PRIOR_SIGMA_M))
 
     def add_relative_pose_constraint(self, frame_a: int, frame_b: int, T_ab: np.ndarray, sigma_translation: float,
                                      sigma_rotation: float, robust: bool = True) -> None:
@@ -354,6 +385,8 @@ class PoseGraph:
         """Merges first (the message's observations may already use surviving ids), then observations."""
         for absorbed, surviving in msg.merges:
             self.merge_landmarks(absorbed, surviving)
+        for landmark_id in msg.retired:
+            self.retire_landmark(landmark_id)
         self.add_observations(msg.frame_id, msg.observations)
 
     # ------------------------------------------------------------------------------------------ solving
@@ -465,7 +498,8 @@ class PoseGraph:
 
     def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids int64 (M,), positions (M,3)) of landmarks in the graph, by surviving id (absorbed ids omitted)."""
-        items = sorted((lid, var) for lid, var in self._var.items() if var in self._isam_vars)
+        items = sorted((lid, var) for lid, var in self._var.items()
+                       if var in self._isam_vars and lid not in self._retired)
         if not items:
             return np.zeros(0, np.int64), np.zeros((0, 3))
         positions = np.array([self._isam.calculateEstimatePoint3(L(var)) for _, var in items],
@@ -630,7 +664,10 @@ class PoseGraph:
         factor = factors.observation_factor(X(frame_id), L(self._var[root]), np.asarray(obs.point_camera, float),
                                             self._observation_sigma(obs), self.params.robust_kernel,
                                             self.params.robust_k)
-        self._push(None, factor)
+        tag = ("obs", self._obs_seq)
+        self._obs_seq += 1
+        self._push(tag, factor)
+        self._obs_tags.setdefault(root, []).append(tag)
         self.counters["observation_factors"] += 1
 
     def _activate(self, root: int) -> None:

@@ -44,6 +44,7 @@ RETRY_AFTER_S = 5.0
 # a waited-for service whose status (sent every second) has not come for this long is down, e.g. being restarted
 # after a crash: lockstep's frame timeout does not run while it is (a restart is not a stuck pipeline)
 DOWN_AFTER_S = 3.0
+GT_MODES = ("gt", "gt+drift")  # odometry front ends that need every frame's ground-truth pose
 
 
 class PlayerService(Service):
@@ -56,6 +57,10 @@ class PlayerService(Service):
         self.dataset: Dataset = open_dataset(self.args.data, **reader_options(self.args.data, self.config))
         if int(run.get("start_frame") or 0) > 0:  # a later session of the recording, renumbered from frame 0
             self.dataset = WindowDataset(self.dataset, int(run["start_frame"]))
+        # ground-truth odometry cannot place a frame without a pose: skip it like an unreadable one
+        # (announced, so nobody waits for it) instead of letting the front end fail it and lockstep stall
+        self.needs_gt = (str(self.config["odometry"]["mode"]) in GT_MODES
+                         and "odometry" in parse_wait_for(f"{self.args.wait_for},{self.args.start_after}"))
         limit = int(run.get("max_frames") or 0)
         self.loops = max(1, int(run["loops"]))
         self.period_s = len(self.dataset) / self.dataset.rate_hz  # one pass, for the stamps of later loops
@@ -184,6 +189,10 @@ class PlayerService(Service):
         try:
             with self.metrics.timer("read_ms"):
                 data = self._frame(index)
+            if self.needs_gt and data.gt_pose is None:
+                self.metrics.count("frames_without_gt")
+                raise DatasetError(f"no ground-truth pose (none within run.gt_max_gap_s="
+                                   f"{self.config['run']['gt_max_gap_s']} s to interpolate from)")
             with self.metrics.timer("encode_ms"):
                 message = frame_message(self.robot, data, self.depth_png)
         except DatasetError as exc:

@@ -33,6 +33,7 @@ class TrackerParams:
     sigma_iou: float = 0.2  # paper
     min_length: int = 5  # paper: measurements before a tracklet becomes a candidate
     max_age_s: float = 0.5  # paper: longest time since the last detection
+    dynamic_depth_band_m: float = 0.5  # a dynamic box's depth range: valid depths this close to its median
 
     def __post_init__(self) -> None:
         if not 0.0 < self.sigma_iou <= 1.0:
@@ -41,6 +42,8 @@ class TrackerParams:
             raise ValueError(f"tracker.min_length must be >= 1, got {self.min_length}")
         if self.max_age_s < 0:
             raise ValueError(f"tracker.max_age_s must be >= 0, got {self.max_age_s}")
+        if not self.dynamic_depth_band_m > 0:
+            raise ValueError(f"tracker.dynamic_depth_band_m must be > 0, got {self.dynamic_depth_band_m}")
 
 
 @dataclass
@@ -121,6 +124,10 @@ class IouTracker:
             raise MessageError(f"not a tracker state: {type(exc).__name__}: {exc}") from None
         return tracker
 
+    def active_ids(self) -> set[int]:
+        """Ids of the tracklets still alive (detected within max_age_s)."""
+        return {t.track_id for t in self._active}
+
     def _age(self, stamp: float) -> list[int]:
         """End tracklets not detected for more than max_age_s; the ids of ended candidates."""
         ended: list[int] = []
@@ -193,3 +200,18 @@ class IouTracker:
             )
         out.candidates.sort(key=lambda c: c.track_id)
         return out
+
+
+def depth_range(det: Detection, depth_scale: float, band_m: float) -> tuple[float, float]:
+    """The depth range (metres) of the object's surface in a box: the 2-98 percentile of the box's valid depths
+    within `band_m` of its median depth (the detector's `depth_m`); (0, 0) without depth. A consumer that
+    leaves out only these depths keeps the static background behind a person."""
+    patch = det.depth_patch
+    if patch is None or det.depth_m <= 0:
+        return 0.0, 0.0
+    z = patch.depth[patch.depth > 0].astype(np.float64) * depth_scale
+    z = z[np.abs(z - det.depth_m) <= band_m]
+    if z.size == 0:
+        return 0.0, 0.0
+    lo, hi = np.percentile(z, [2.0, 98.0])
+    return float(lo), float(hi)

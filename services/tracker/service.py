@@ -1,5 +1,11 @@
 """Tracker service: IOU tracklets from detections; tracklets of 5+ measurements become landmark candidates.
 
+It also publishes, for every frame, the frame's dynamic objects (`semmap/v1/<robot>/dynamic`): the boxes of
+tracklets of a dynamic class (`associator.dynamic_classes`) and of tracklets the associator saw moving (its
+map updates' `moving_tracks`). Why here and not in the associator: the associator waits for each frame's
+odometry, and the odometry (the built-in `rgbd` front end) waits in lockstep for the frame's dynamic boxes;
+the tracker depends only on detections, so the wait cannot close a cycle.
+
 Detections may arrive out of order (several detector replicas) or twice (a replica set that changed): they
 are re-ordered by frame id and duplicates dropped, so the tracker sees each frame once, in order.
 
@@ -16,10 +22,11 @@ import time
 import msgpack
 
 from semmap.journal import FrameJournal
-from semmap.messages import Detections, Tracks
+from semmap.messages import Detections, DynamicBox, DynamicObjects, MapUpdate, Tracks
 from semmap.reorder import FrameReorderBuffer
 from semmap.service import REPLAY_FRAMES, Service, service_main
-from services.tracker.iou_tracker import IouTracker, TrackerParams
+from services.associator.params import MapperParams
+from services.tracker.iou_tracker import IouTracker, TrackerParams, depth_range
 
 TRACK_ID_BLOCK = 10_000_000
 JOURNAL_TRIM_EVERY = 10  # frames: the journal keeps at most this many rows more than a restart reads
@@ -37,6 +44,11 @@ class TrackerService(Service):
         first_id = int(time.time()) * TRACK_ID_BLOCK if self.resume and self.out_dir is None else 0
         self.tracker = IouTracker(self.params, first_track_id=first_id)
         self.pub = self.publisher(self.bus.keys.tracks)
+        self.dynamic_pub = self.publisher(self.bus.keys.dynamic)
+        classes = (self.config.get("associator") or {}).get("dynamic_classes", MapperParams.dynamic_classes)
+        self.dynamic_classes = set(MapperParams.from_dict({"dynamic_classes": classes}).dynamic_classes)
+        self.moving: set[int] = set()  # track ids the associator rejected as moving
+        self.last_dynamic: list[DynamicBox] = []  # of the last detected frame (carried over skipped frames)
         self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
         self.journal = FrameJournal(self.out_dir / "tracker.sqlite") if self.out_dir is not None else None
         if self.journal is not None:
@@ -45,6 +57,10 @@ class TrackerService(Service):
             else:
                 self.journal.clear()
         self.listen(self.bus.keys.detections, Detections, self.on_detections)
+        self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map_update)
+
+    def on_map_update(self, update: MapUpdate) -> None:
+        self.moving.update(update.moving_tracks)
 
     def _restore(self) -> None:
         """Continue after a crash: the tracker's state after the last journalled frame; the outputs of the last
@@ -86,6 +102,7 @@ class TrackerService(Service):
             else:
                 out = self.tracker.update(det.frame_id, det.stamp, det.detections, det.intrinsics, det.depth_scale)
                 candidates, ended, boxes = out.candidates, out.ended, out.boxes
+        self._publish_dynamic(det, boxes)
         self.metrics.count("frames")
         self.metrics.count("candidates_proposed", sum(1 for c in candidates if c.first))
         tracks = Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
@@ -97,6 +114,28 @@ class TrackerService(Service):
                 if det.frame_id % JOURNAL_TRIM_EVERY == 0:  # only the newest rows are ever read back
                     self.journal.trim(det.frame_id - REPLAY_FRAMES)
         self.report_progress(det.frame_id)
+
+
+    def _publish_dynamic(self, det: Detections, boxes: list) -> None:
+        """This frame's dynamic objects (see module docstring); a skipped frame repeats the last detected frame's
+        boxes of tracklets still alive."""
+        if det.skipped:
+            alive = self.tracker.active_ids()
+            out = [b for b in self.last_dynamic if b.track_id in alive]
+        else:
+            out = []
+            band = self.tracker.params.dynamic_depth_band_m
+            for tb, d in zip(boxes, det.detections, strict=True):  # (one tracked box per detection, in order)
+                reason = "class" if tb.class_name in self.dynamic_classes else (
+                    "moving" if tb.track_id in self.moving else "")
+                if reason:
+                    lo, hi = depth_range(d, det.depth_scale, band)
+                    out.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
+            self.last_dynamic = out
+        self.metrics.count("dynamic_boxes", len(out))
+        self.emit(self.dynamic_pub, DynamicObjects(self.robot, det.frame_id, det.stamp, out, det.skipped),
+                  det.frame_id)
+        self.moving &= self.tracker.active_ids()  # forget ended tracklets
 
 
 def main(argv: list[str] | None = None) -> int:

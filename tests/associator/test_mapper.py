@@ -56,14 +56,17 @@ def test_a_static_object_becomes_one_landmark_that_keeps_being_fed() -> None:
     assert set(steps[-1].timing_ms) == {"proposal", "association", "pointcloud", "update_merge"}
 
 
-def test_a_walking_person_never_becomes_a_landmark() -> None:
+@pytest.mark.parametrize("prior", [True, False], ids=["class-prior", "geometry-only"])
+def test_a_walking_person_never_becomes_a_landmark(prior: bool) -> None:
     def scene(t: float) -> list[Sphere]:
         return [CUP, Sphere((-1.0 + 1.0 * t, 0.6, 0.9), 0.25, "person")]
 
-    mapper, steps = run(scene, range(60), pose_at=lambda t: orbit_pose(0.0))
+    params = MapperParams() if prior else MapperParams(dynamic_classes=())
+    mapper, steps = run(scene, range(60), pose_at=lambda t: orbit_pose(0.0), mapper=LandmarkMapper(params))
     classes = [lm.class_name for lm in mapper.landmarks()]
     assert "person" not in classes and "cup" in classes
-    assert any(s.rejected for s in steps)
+    # by class the person is never even a candidate; by geometry it is rejected as moving
+    assert any(s.moving_tracks for s in steps) != prior
 
 
 def test_an_object_that_starts_moving_is_removed() -> None:
@@ -76,6 +79,7 @@ def test_an_object_that_starts_moving_is_removed() -> None:
     assert created, "the static phase must create the landmark"
     removed = [i for s in steps for i in s.removed]
     assert created[0] in removed
+    assert created[0] in [i for s in steps for i in s.moved]  # retired as moved, not just emptied
     assert mapper.landmarks() == []
 
 
@@ -237,14 +241,14 @@ def test_absence_evidence_removes_what_left_and_keeps_what_stays() -> None:
     def still(t: float) -> np.ndarray:
         return orbit_pose(0.0)
 
-    on = LandmarkMapper(MapperParams(absence_removal=True, absence_min_px=5.0))
+    on = LandmarkMapper(MapperParams(absence_removal=True, absence_min_px=5.0, dynamic_classes=()))
     steps = run_with_boxes(scene, range(100), on, still)
     classes = {u.id: u.class_name for s in steps for u in s.updated}
     assert "person" in classes.values()
     assert [lm.class_name for lm in on.landmarks()] == ["cup"]
     assert any(i for s in steps for i in s.removed if classes.get(i) == "person")
 
-    off = LandmarkMapper()  # the default: no negative evidence
+    off = LandmarkMapper(MapperParams(dynamic_classes=()))  # the default: no negative evidence
     run_with_boxes(scene, range(100), off, still)
     assert sorted(lm.class_name for lm in off.landmarks()) == ["cup", "person"]
 

@@ -93,3 +93,19 @@ def test_file_trajectory_on_another_clock_is_refused_and_an_offset_fixes_it(tmp_
     front = FileOdometry(path, 0.01, 0.5, time_offset_s=-1000.0)
     got = front.estimate(OdometryInput(7, 7 / 30, None))
     assert got[0, 3] == pytest.approx(0.07) and front.far_matches == 0
+
+
+def test_dynamic_objects_are_left_out_of_the_depth() -> None:
+    from semmap.messages import DynamicBox
+    from services.odometry.frontends import mask_dynamic
+
+    depth = np.full((40, 60), 2000, np.uint16)  # a wall at 2 m (units of 1 mm)
+    depth[10:30, 20:30] = 1000  # a person at 1 m in front of it
+    person = DynamicBox(3, "person", (18.0, 8.0, 32.0, 32.0), 0.9, 1.1, "class")
+    whole = mask_dynamic(depth, [person], 0.001, "box")
+    assert np.count_nonzero(whole[8:32, 18:32]) == 0 and np.count_nonzero(whole) == 40 * 60 - 24 * 14
+    only = mask_dynamic(depth, [person], 0.001, "range")  # the wall behind the person stays
+    assert np.count_nonzero(only[10:30, 20:30]) == 0 and np.count_nonzero(only) == 40 * 60 - 20 * 10
+    assert mask_dynamic(depth, [person], 0.001, "none") is depth and depth.min() == 1000  # input untouched
+    with pytest.raises(OdometryError, match="dynamic_mask"):
+        make_frontend("rgbd", {**load_config()["odometry"], "dynamic_mask": "blur"})
