@@ -383,7 +383,10 @@ def _make_node_class() -> type:
             self.create_timer(1.0, self._tick)
             self.deleted: set[int] = set()
             self.map_dirty = False
-            self.corrected: CorrectedPoses | None = None
+            # the optimised trajectory, kept by applying each `poses/corrected` delta (semmap.corrected_poses/2)
+            self.poses: dict[int, np.ndarray] = {}
+            self.stamps: dict[int, float] = {}
+            self.trajectory_dirty = False
             self.create_timer(float(p["output_period_s"]), self._publish_outputs)
             client.on_map_update(self._on_map_update)
             client.on_corrected_poses(self._on_corrected)
@@ -479,18 +482,27 @@ def _make_node_class() -> type:
             """(Zenoh thread) Keep the newest estimate; the timer publishes it (a 1000-pose Path takes ~20 ms to
             build: not for every frame)."""
             with self.lock:
-                self.corrected = corrected
+                if corrected.full:
+                    self.stamps.clear()
+                corrected.apply_to(self.poses)
+                self.stamps.update(zip((int(f) for f in corrected.frame_ids), (float(t) for t in corrected.stamps),
+                                       strict=True))
+                self.trajectory_dirty = True
 
         def _publish_outputs(self) -> None:
             """(ROS timer) The latest map and trajectory, if they changed."""
             with self.lock:
                 markers = self._markers(sorted(self.deleted)) if self.map_dirty else None
                 self.deleted, self.map_dirty = set(), False
-                corrected, self.corrected = self.corrected, None
+                trajectory = None
+                if self.trajectory_dirty:
+                    ids = sorted(self.poses)
+                    trajectory = (ids, [self.stamps[i] for i in ids], np.array([self.poses[i] for i in ids]))
+                    self.trajectory_dirty = False
             if markers is not None:
                 self.markers_pub.publish(markers)
-            if corrected is not None:
-                self._publish_trajectory(corrected)
+            if trajectory is not None and trajectory[0]:
+                self._publish_trajectory(*trajectory)
 
         def _markers(self, deleted: list[int]) -> MarkerArray:
             frame = self._frame_id()
@@ -533,28 +545,28 @@ def _make_node_class() -> type:
                     out.markers.append(marker)
             return out
 
-        def _publish_trajectory(self, corrected: CorrectedPoses) -> None:
+        def _publish_trajectory(self, ids: list[int], stamps: list[float], poses: np.ndarray) -> None:
             frame = self._frame_id()
             path = Path()
             path.header.frame_id = frame
-            quats = (
-                Rotation.from_matrix(np.asarray(corrected.poses)[:, :3, :3]).as_quat() if len(corrected.poses) else []
-            )
+            limit = max(2, int(self.params["path_max_poses"]))
+            keep = np.unique(np.linspace(0, len(ids) - 1, min(limit, len(ids))).round().astype(int))  # newest kept
+            quats = Rotation.from_matrix(poses[keep, :3, :3]).as_quat()
             items = []
-            for stamp, pose, q in zip(corrected.stamps, corrected.poses, quats, strict=True):
+            for k, q in zip(keep, quats, strict=True):
+                pose = poses[k]
                 item = PoseStamped()
                 item.header.frame_id = frame
-                item.header.stamp = ros_time(float(stamp))
+                item.header.stamp = ros_time(float(stamps[k]))
                 position, orientation = item.pose.position, item.pose.orientation
                 position.x, position.y, position.z = float(pose[0, 3]), float(pose[1, 3]), float(pose[2, 3])
                 orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
                 items.append(item)
             path.poses = items
-            if len(corrected.stamps):
-                path.header.stamp = ros_time(float(corrected.stamps[-1]))
+            path.header.stamp = ros_time(float(stamps[-1]))
             self.path_pub.publish(path)
             sent = self.link.sent
-            for fid, pose in zip(corrected.frame_ids[::-1], corrected.poses[::-1], strict=True):
+            for fid, pose in zip(ids[::-1], poses[::-1], strict=True):
                 frame_sent = sent.get(int(fid))
                 if frame_sent is not None:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
                     correction = pose @ np.linalg.inv(frame_sent.pose)
