@@ -13,7 +13,7 @@ from setuptools import Distribution, setup
 from setuptools.command.build_py import build_py
 
 SOURCE = Path(__file__).resolve().parents[2] / "semmap"
-MODULES = ("__init__", "client", "messages", "keys", "bus", "map_query", "map_store")
+MODULES = ("__init__", "client", "messages", "keys", "bus", "map_query", "map_store", "outputs")
 
 
 class BuildClientModules(build_py):
