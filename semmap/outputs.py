@@ -30,12 +30,14 @@ class OutputError(RuntimeError):
     """The output directory cannot be used for this run (the message says why and what to do)."""
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+def atomic_write_bytes(path: str | Path, data: bytes, mode: int = 0o644) -> None:
     """Write `data` to `path` through a temporary file in the same directory and a rename: readers see the old
-    file or the new one, never a part (a full disk fails here and leaves the old file as it was)."""
+    file or the new one, never a part (a full disk fails here and leaves the old file as it was). `mode`: the
+    file's permissions (mkstemp makes 0600; outputs and models are not secret)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.chmod(tmp, mode)
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()

