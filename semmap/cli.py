@@ -206,13 +206,16 @@ def preflight_dataset(data: str, config: dict) -> None:
 def _check_bag(data: str, config: dict) -> str | None:
     """A ROS bag is opened once before any service starts, so a missing topic fails at once with the bag's
     topic list (other datasets are checked by the player)."""
-    from semmap.datasets import DatasetError, open_dataset, reader_options
+    from semmap.datasets import DatasetError, detect_format, open_dataset, reader_options
 
-    options = reader_options(data, config)
-    if not options:
+    try:
+        bag = data.startswith("rosbag:") or detect_format(data) == "rosbag"
+    except (DatasetError, OSError):
+        bag = False
+    if not bag:
         return None
     try:
-        open_dataset(data, **options).close()
+        open_dataset(data, **reader_options(data, config)).close()
     except DatasetError as exc:
         return str(exc)
     return None
