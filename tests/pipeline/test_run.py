@@ -97,13 +97,14 @@ def test_replay_is_deterministic(tmp_path: Path, semmap_run) -> None:
 
 
 def test_a_failing_service_fails_the_run_with_its_reason(tmp_path: Path, semmap_run) -> None:
-    missing = tmp_path / "no-such-trajectory.tum"
-    result = semmap_run(["synthetic:frames=10", "--out", str(tmp_path / "out"), "--odometry", f"file:{missing}"],
-                        timeout=120)
+    # a fault only the service itself finds (a missing trajectory file is refused before the run now)
+    missing = tmp_path / "no-such-model.onnx"
+    result = semmap_run(["synthetic:frames=10", "--out", str(tmp_path / "out"), "--no-viz", "--set",
+                         "detector.kind=onnx", "--set", f"detector.model={missing}"], timeout=120)
     assert result.returncode == 1
     err = result.stderr
-    assert "error: odometry" in err and ("failed" in err or "exited with code" in err), err[-2000:]
-    assert "no-such-trajectory.tum" in err
+    assert "error: detector" in err and ("failed" in err or "exited with code" in err), err[-2000:]
+    assert "no-such-model.onnx" in err
 
 
 def test_bad_arguments_are_clear_errors(tmp_path: Path, semmap_run) -> None:
