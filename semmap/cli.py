@@ -7,10 +7,14 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from semmap.config import ConfigError, load_config, validate_sections
 from semmap.outputs import OutputError, OutputLock, check_writable, prepare_output_dir
 from semmap.service import configure_logging
+
+if TYPE_CHECKING:
+    from semmap.datasets.base import Dataset
 
 # services a run starts, in data-flow order; each is `python -m services.<name>`
 PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
@@ -131,15 +135,21 @@ def _run(args: argparse.Namespace) -> int:
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
-    if not special and (error := _check_bag(args.data, config)):
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+    dataset = None
+    if not special:  # opened once for every check before the run (a bag's missing topic fails here, listing them)
+        from semmap.datasets import DatasetError, open_dataset, reader_options
+
+        try:
+            dataset = open_dataset(args.data, **reader_options(args.data, config))
+        except DatasetError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     if args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
         return 2
     mode = str(config["odometry"]["mode"])
     if mode.startswith("file:") and args.data != "external":
-        message = _check_file_odometry(args.data, mode[5:], config)
+        message = _check_file_odometry(dataset, args.data, mode[5:], config)
         if message.startswith("error:"):
             print(message, file=sys.stderr)
             return 2
@@ -172,26 +182,27 @@ def _run(args: argparse.Namespace) -> int:
         lock.acquire()
         prepare_output_dir(plan.out_dir, args.resume, args.overwrite)
         check_writable(plan.out_dir, float(run["min_free_mb"]))
-        preflight_dataset(args.data, config)
+        if dataset is not None:
+            preflight_dataset(dataset, args.data, config)
     except OutputError as exc:
         lock.release(refused=True)
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
+            dataset.close()
     try:
         return Orchestrator(plan).run()
     finally:
         lock.release()
 
 
-def preflight_dataset(data: str, config: dict) -> None:
+def preflight_dataset(dataset: Dataset, data: str, config: dict) -> None:
     """The dataset's first frame reads, and it has ground truth where the odometry needs it (else a run would
     wait for a frame that never comes and blame 'no progress')."""
-    from semmap.datasets import DatasetError, open_dataset, reader_options
+    from semmap.datasets import DatasetError
 
-    if data == "external" or data == "synthetic" or data.startswith("synthetic:"):
-        return
     try:
-        dataset = open_dataset(data, **reader_options(data, config))
         if len(dataset) == 0:
             raise OutputError(f"dataset {data} has no frames")
         dataset[0]
@@ -203,25 +214,7 @@ def preflight_dataset(data: str, config: dict) -> None:
                           "poses: use --odometry rgbd or file:PATH")
 
 
-def _check_bag(data: str, config: dict) -> str | None:
-    """A ROS bag is opened once before any service starts, so a missing topic fails at once with the bag's
-    topic list (other datasets are checked by the player)."""
-    from semmap.datasets import DatasetError, detect_format, open_dataset, reader_options
-
-    try:
-        bag = data.startswith("rosbag:") or detect_format(data) == "rosbag"
-    except (DatasetError, OSError):
-        bag = False
-    if not bag:
-        return None
-    try:
-        open_dataset(data, **reader_options(data, config)).close()
-    except DatasetError as exc:
-        return str(exc)
-    return None
-
-
-def _check_file_odometry(data: str, path: str, config: dict) -> str:
+def _check_file_odometry(dataset: Dataset | None, data: str, path: str, config: dict) -> str:
     """Match a `file:` trajectory's stamps against the frames' before starting anything: a report, or 'error: ...'
     when too few frames find a pose (two clocks that do not overlap)."""
     from semmap.datasets import DatasetError, open_dataset
@@ -230,8 +223,7 @@ def _check_file_odometry(data: str, path: str, config: dict) -> str:
     if not Path(path).is_file():
         return f"error: trajectory file {path} does not exist"
     try:
-        dataset = open_dataset(data)
-        stamps = dataset.stamps()
+        stamps = (dataset if dataset is not None else open_dataset(data)).stamps()  # (synthetic: opened here)
         limit = config["run"].get("max_frames")
         if limit:
             stamps = stamps[: int(limit)]
