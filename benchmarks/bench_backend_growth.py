@@ -6,7 +6,8 @@ thousand frames instead of minutes, and a profile of where the time goes).
 OUT_DIR is a `semmap run` output folder (its `backend.sqlite` journal holds every handled frame's odometry,
 observations and keyframe cloud). Each frame goes through the backend's own steps (PoseGraph update, loop-closure
 search and ICP on keyframes, the corrected-poses delta and its encoding) and the script prints p50 / p95 per
-step for each block of frames, the bytes per `poses/corrected` message and the kept keyframe-cloud memory.
+step for each block of frames, the bytes per `poses/corrected` message, the kept keyframe-cloud memory and the
+process's RSS.
 """
 
 from __future__ import annotations
@@ -22,12 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from semmap.config import load_config  # noqa: E402
-from semmap.journal import FrameJournal  # noqa: E402
-from semmap.messages import CorrectedPoses, Observations, OdometryPose  # noqa: E402
-from services.backend.corrections import CorrectionPublisher, CorrectionsParams  # noqa: E402
-from services.backend.loop_closure import LoopCloser, LoopClosureParams, decode_keyframe  # noqa: E402
-from services.backend.pose_graph import BackendParams, PoseGraph  # noqa: E402
+from semmap.algorithms.backend.loop_closure import decode_keyframe  # noqa: E402
+from semmap.core.config import load_config  # noqa: E402
+from semmap.core.journal import FrameJournal  # noqa: E402
+from semmap.core.messages import Observations, OdometryPose  # noqa: E402
+from semmap.runtime.pipeline import BackendStage  # noqa: E402
+from semmap.runtime.service import rss_mb  # noqa: E402
 
 STEPS = ("update", "loop_closure", "publish")
 
@@ -35,7 +36,7 @@ STEPS = ("update", "loop_closure", "publish")
 HEADER = (
     f"{'frames':>7} {'nodes':>6} "
     + " ".join(f"{s + ' p50/p95 ms':>24}" for s in STEPS)
-    + f" {'B/msg':>8} {'clouds MB':>9}"
+    + f" {'B/msg':>8} {'clouds MB':>9} {'RSS MB':>7}"
 )
 
 
@@ -43,45 +44,37 @@ def print_row(r: dict) -> None:
     print(
         f"{r['frames']:>7} {r['nodes']:>6} "
         + " ".join(f"{r[s][0]:>11.2f} / {r[s][1]:>10.2f}" for s in STEPS)
-        + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f}",
+        + f" {r['bytes_per_msg']:>8.0f} {r['kept_clouds_mb']:>9.1f} {r['rss_mb']:>7.1f}",
         flush=True,
     )
 
 
 def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
     config = load_config(None, overrides)
-    graph = PoseGraph(BackendParams.from_config(config.get("backend")))
-    closer = LoopCloser(LoopClosureParams.from_config(config.get("loop_closure")))
-    publisher = CorrectionPublisher(CorrectionsParams.from_config(config.get("corrections")))
+    # the backend service's stage (semmap/runtime/pipeline.py), built as the service builds it
+    stage = BackendStage(config.backend, config.loop_closure, config.corrections)
     journal = FrameJournal(out_dir / "backend.sqlite")
     rows: list[dict] = []
     samples: dict[str, list[float]] = {s: [] for s in STEPS}
     sizes: list[int] = []
     for n, (frame_id, odometry, observations, keyframe) in enumerate(journal.frames(), start=1):
-        t0 = time.perf_counter()
-        graph.add_odometry_message(OdometryPose.decode(odometry))
-        graph.add_observations_message(Observations.decode(observations))
-        graph.update()
-        t1 = time.perf_counter()
-        if keyframe is not None:
-            cloud, _ = decode_keyframe(keyframe)
-            closer.close(graph, cloud)  # the search and ICP again, as the live backend does
-            samples["loop_closure"].append((time.perf_counter() - t1) * 1e3)
+        cloud = decode_keyframe(keyframe)[0] if keyframe is not None else None
+        # the search and ICP again, as the live backend does
+        step = stage.step(OdometryPose.decode(odometry), Observations.decode(observations), cloud)
         t2 = time.perf_counter()
-        delta = publisher.next(graph)
-        payload = CorrectedPoses(
-            "robot1", n, frame_id, *delta.arrays(), full=delta.full, num_frames=delta.num_frames
-        ).encode()
-        t3 = time.perf_counter()
-        samples["update"].append((t1 - t0) * 1e3)
-        samples["publish"].append((t3 - t2) * 1e3)
+        payload = step.message("robot1", n, frame_id).encode()
+        samples["update"].append(step.update_ms)
+        if step.loop_closure_ms is not None:
+            samples["loop_closure"].append(step.loop_closure_ms)
+        samples["publish"].append(step.timing_ms["publish"] + (time.perf_counter() - t2) * 1e3)
         sizes.append(len(payload))
         if n % block == 0:
             row = {
                 "frames": n,
-                "nodes": graph.num_nodes,
-                "kept_clouds_mb": closer.nbytes / 1e6,
+                "nodes": stage.graph.num_nodes,
+                "kept_clouds_mb": stage.closer.nbytes / 1e6,
                 "bytes_per_msg": float(np.mean(sizes)),
+                "rss_mb": rss_mb(),  # the process's resident memory: graph, kept clouds, publisher state
             }
             for step, values in samples.items():
                 a = np.asarray(values) if values else np.zeros(1)

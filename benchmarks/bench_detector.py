@@ -24,11 +24,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from semmap.algorithms.detector.onnx_detector import OnnxDetector  # noqa: E402
+from semmap.algorithms.detector.oracle import OracleDetector  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.datasets.base import InstanceBox  # noqa: E402
-from services.detector.model_store import ModelMissingError, quantize_int8, require_model  # noqa: E402
-from services.detector.onnx_detector import OnnxDetector  # noqa: E402
-from services.detector.oracle import OracleDetector  # noqa: E402
+from semmap.runtime.model_store import ModelMissingError, quantize_int8, require_model  # noqa: E402
 
 
 def ort_version() -> str:

@@ -63,8 +63,8 @@ def run_case(name: str, data: Path, out: Path, max_frames: int | None) -> dict:
         row["error"] = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
         return row
     if name in FRONT_END_ONLY:
+        from semmap.algorithms.evaluation import ate_rmse
         from semmap.datasets.trajectory_io import read_tum
-        from semmap.evaluation import ate_rmse
 
         ate = ate_rmse(read_tum(out / "groundtruth.tum"), read_tum(out / "trajectory_odometry.tum"))
         row.update(ate_frontend_m=ate, ate_optimized_m=float("nan"), landmarks={}, persons=0, retired=0)

@@ -22,9 +22,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from semmap.algorithms.detector.onnx_detector import DetectedBox, OnnxDetector  # noqa: E402
 from semmap.datasets import find_data_root, open_dataset  # noqa: E402
-from services.detector.model_store import default_model_path, quantize_int8, require_model  # noqa: E402
-from services.detector.onnx_detector import DetectedBox, OnnxDetector  # noqa: E402
+from semmap.runtime.model_store import default_model_path, quantize_int8, require_model  # noqa: E402
 
 IOU_MATCH = 0.5
 CALIB_FRAMES = 32
@@ -70,7 +70,7 @@ def test_sets(root: Path | None, frames: int) -> dict[str, list[Path]]:
         sets["7-Scenes redkitchen"] = spread(sorted(seven.glob("frame-*.color.*")), frames)
     bonn = root / "bonn_crowd" / "rgb"
     if bonn.is_dir():
-        sets["Bonn crowd"] = spread(sorted(bonn.glob("*.png")), frames)
+        sets["Bonn crowd"] = spread(sorted([*bonn.glob("*.png"), *bonn.glob("*.jpg")]), frames)
     kitti = root / "images" / "kitti06"
     if kitti.is_dir():
         sets["KITTI 06"] = sorted(p for p in kitti.glob("*.png"))

@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.associator.offline import OfflineRun, run_offline, score_map  # noqa: E402
+from semmap.runtime.inprocess import OfflineRun, run_offline, score_map  # noqa: E402
 
 PAPER_MS = {"tracker": 0.069, "association": 7.8, "pointcloud": 150.0, "update_merge": 23.16}
 TARGET_P50_MS = {"tracker": 0.1, "association": 2.0, "pointcloud": 20.0, "update_merge": 5.0}
@@ -59,14 +59,14 @@ def stats(values: list[float]) -> dict[str, float]:
 def tracker_alone_ms(frames: list, detect) -> list[float]:  # noqa: ANN001
     """The tracker by itself (as in its own service process): interleaved with the mapper in one process,
     its small arrays come back from a cold cache and it runs ~2x slower."""
-    from services.associator.offline import make_detections, to_intrinsics
-    from services.tracker.iou_tracker import IouTracker
+    from semmap.algorithms.tracker.iou_tracker import IouTracker
+    from semmap.runtime.inprocess import make_detections
 
     dets = [(f, make_detections(f, detect(f))) for f in frames]
     tracker = IouTracker()
     times = []
     for f, d in dets:
-        k = to_intrinsics(f.intrinsics)
+        k = f.intrinsics
         t0 = time.perf_counter()
         tracker.update(f.index, f.stamp, d, k, f.depth_scale)
         times.append((time.perf_counter() - t0) * 1e3)
@@ -104,8 +104,8 @@ def warm_up() -> None:
 
 
 def bench_synthetic(frames: int, size: str, every: int, seed: int) -> dict:
+    from semmap.algorithms.detector.oracle import OracleDetector
     from semmap.datasets.synthetic import SyntheticConfig, SyntheticDataset
-    from services.detector.oracle import OracleDetector
 
     width, height = (int(v) for v in size.lower().split("x"))
     ds = SyntheticDataset(SyntheticConfig(frames=frames, width=width, height=height, seed=seed))
@@ -136,10 +136,10 @@ def bench_synthetic(frames: int, size: str, every: int, seed: int) -> dict:
 
 
 def bench_sevenscenes(frames: int, every: int, model: Path | None) -> dict | None:
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector
     from semmap.datasets import find_data_root
     from semmap.datasets.sevenscenes import SevenScenesDataset
-    from services.detector.model_store import default_model_path
-    from services.detector.onnx_detector import OnnxDetector
+    from semmap.runtime.model_store import default_model_path
 
     root = find_data_root()
     model = model or default_model_path()

@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from semmap.relocalize import MapObject, PriorIndex, apply, relocalize, rotation_angle_deg  # noqa: E402
+from semmap.algorithms.relocalize import MapObject, PriorIndex, apply, relocalize, rotation_angle_deg  # noqa: E402
 
 CLASSES = [f"class{i}" for i in range(20)]
 

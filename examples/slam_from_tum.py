@@ -20,10 +20,10 @@ import sys
 
 import numpy as np
 
-from semmap.client import SemmapClient
+from semmap.core.messages import DynamicObjects, GroundTruthInstance, Intrinsics
 from semmap.datasets import open_dataset
 from semmap.datasets.trajectory_io import read_tum
-from semmap.messages import DynamicObjects, GroundTruthInstance, Intrinsics
+from semmap.runtime.client import SemmapClient
 
 
 def masked_depth(depth: np.ndarray, dynamic: DynamicObjects, depth_scale: float) -> np.ndarray:

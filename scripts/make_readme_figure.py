@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from semmap.datasets.trajectory_io import read_tum  # noqa: E402
-from services.viz.service import landmark_color  # noqa: E402
+from semmap.services.viz.service import landmark_color  # noqa: E402
 
 
 def plane_basis(first_pose: np.ndarray) -> np.ndarray:

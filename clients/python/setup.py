@@ -13,7 +13,18 @@ from setuptools import Distribution, setup
 from setuptools.command.build_py import build_py
 
 SOURCE = Path(__file__).resolve().parents[2] / "semmap"
-MODULES = ("__init__", "client", "messages", "keys", "bus", "map_query", "map_store", "outputs")
+MODULES = (
+    "__init__",
+    "core/__init__",
+    "core/messages",
+    "core/keys",
+    "core/outputs",
+    "runtime/__init__",
+    "runtime/client",
+    "runtime/bus",
+    "runtime/map_query",
+    "runtime/map_store",
+)
 
 
 class BuildClientModules(build_py):
@@ -22,6 +33,7 @@ class BuildClientModules(build_py):
         target = Path(self.build_lib) / "semmap"
         target.mkdir(parents=True, exist_ok=True)
         for name in MODULES:
+            (target / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(SOURCE / f"{name}.py", target / f"{name}.py")
 
 
@@ -30,6 +42,6 @@ class ClientDistribution(Distribution):
         return True
 
 
-if not (SOURCE / "client.py").is_file():
+if not (SOURCE / "runtime" / "client.py").is_file():
     raise SystemExit(f"semmap-client builds from the semmap source tree: {SOURCE} not found")
 setup(packages=[], distclass=ClientDistribution, cmdclass={"build_py": BuildClientModules})

@@ -12,14 +12,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData, InstanceBox, ObjectTruth
+from semmap.core.config import Config
+
+from .base import Dataset, DatasetError, FrameData, InstanceBox, Intrinsics, ObjectTruth
 from .kitti import is_kitti_dir
 from .rosbag import is_rosbag
 from .sevenscenes import is_sevenscenes_dir
 from .tum import is_tum_dir
 
 __all__ = [
-    "CameraIntrinsics",
+    "Intrinsics",
     "Dataset",
     "DatasetError",
     "FrameData",
@@ -167,22 +169,21 @@ def _resolve(path: Path) -> Path:
     return path
 
 
-def reader_options(spec: str | Path, config: dict[str, Any]) -> dict[str, Any]:
+def reader_options(spec: str | Path, config: Config) -> dict[str, Any]:
     """The keyword options a run's config gives the reader of `spec`: its `rosbag` section for a bag, the
     ground-truth gap to interpolate over (`run.gt_max_gap_s`) for the TUM layout, none else."""
     text = str(spec).strip()
     name, _, rest = text.partition(":")
     if name == "rosbag" and rest:
-        return dict(config.get("rosbag") or {})
+        return config.rosbag.model_dump()
     path = _resolve(Path(text).expanduser())
     if path.exists() and is_rosbag(path):
-        return dict(config.get("rosbag") or {})
+        return config.rosbag.model_dump()
     try:
         fmt = detect_format(text) if name not in _REGISTRY else name
     except (DatasetError, OSError):
         fmt = None
-    gap = (config.get("run") or {}).get("gt_max_gap_s")
-    return {"gt_max_gap_s": float(gap)} if fmt == "tum" and gap is not None else {}
+    return {"gt_max_gap_s": config.run.gt_max_gap_s} if fmt == "tum" else {}
 
 
 def open_dataset(spec: str | Path, **options: Any) -> Dataset:

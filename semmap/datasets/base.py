@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from semmap.core.messages import Intrinsics
+
 
 class DatasetError(ValueError):
     """A dataset that cannot be opened or read: a wrong layout, a missing or corrupt file, a bad option.
@@ -15,22 +17,6 @@ class DatasetError(ValueError):
     A ValueError so callers that already catch bad input keep working; raised instead of cv2/numpy
     assertions so the user sees which file is at fault.
     """
-
-
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics of the (depth-registered) colour camera, in pixels."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @property
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -57,7 +43,7 @@ class FrameData:
     rgb: np.ndarray  # HxWx3 uint8, RGB order
     depth: np.ndarray  # HxW uint16
     depth_scale: float
-    intrinsics: CameraIntrinsics
+    intrinsics: Intrinsics  # (the one intrinsics type: semmap.core.messages)
     gt_pose: np.ndarray | None = None
     instances: list[InstanceBox] = field(default_factory=list)
 

@@ -48,6 +48,6 @@ def read_depth_u16(path: str | Path) -> np.ndarray:
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) of an image file, decoding it once (used to fill CameraIntrinsics)."""
+    """(width, height) of an image file, decoding it once (used to fill Intrinsics)."""
     image = read_rgb(path)
     return int(image.shape[1]), int(image.shape[0])

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .images import read_rgb
 from .trajectory_io import read_kitti_poses, read_timestamps
 
@@ -144,7 +144,7 @@ class KittiDataset(Dataset):
         if self.baseline <= 0:
             raise DatasetError(f"non-positive stereo baseline {self.baseline} from P2/P3 in {self.root}")
         first = read_rgb(self.root / "image_2" / self._names[0])
-        self.intrinsics = CameraIntrinsics(
+        self.intrinsics = Intrinsics(
             fx=float(p2[0, 0]),
             fy=float(p2[1, 1]),
             cx=float(p2[0, 2]),

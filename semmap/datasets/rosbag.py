@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from semmap.ros_convert import (
+from semmap.datasets.ros_convert import (
     COLOUR_ENCODINGS,
     DEPTH_ENCODINGS,
     POSE_TYPES,
@@ -48,7 +48,7 @@ from semmap.ros_convert import (
     transform_matrix,
 )
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .tum import associate
 
 log = logging.getLogger("semmap.datasets.rosbag")
@@ -359,7 +359,7 @@ class RosbagDataset(Dataset):
         if intrinsics is None:
             raise self._missing(f"no valid message on {self.topics['camera_info']}", "check the camera info topic")
         fx, fy, cx, cy, width, height = intrinsics
-        self.intrinsics = CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+        self.intrinsics = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
         colour, depth = streams["color"], streams["depth"]
         if not colour.stamps or not depth.stamps:
             raise self._missing("no colour or no depth message could be read", "check the image topics")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .images import image_size, read_depth_u16, read_rgb
 from .trajectory_io import orthonormalize_pose
 
@@ -70,7 +70,7 @@ class SevenScenesDataset(Dataset):
         k_path = self.root / "camera-intrinsics.txt"
         k = _read_matrix(k_path, (3, 3)) if k_path.exists() else DEFAULT_K
         width, height = image_size(self.root / self._color_names[0])
-        self.intrinsics = CameraIntrinsics(
+        self.intrinsics = Intrinsics(
             fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), width=width, height=height
         )
         self._gt_cache: list[tuple[float, np.ndarray]] | None = None

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from semmap.geometry import look_at
+from semmap.core.geometry import look_at
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData, InstanceBox, ObjectTruth
+from .base import Dataset, DatasetError, FrameData, InstanceBox, Intrinsics, ObjectTruth
 
 Mesh = tuple[np.ndarray, np.ndarray]  # (V x 3 float vertices, T x 3 int triangles)
 
@@ -79,9 +79,9 @@ class SyntheticConfig:
         if low < 0.5 or high > lz - 0.1:
             raise DatasetError(f"synthetic: camera height {self.camera_height} +- {self.camera_wave} outside the room")
 
-    def intrinsics(self) -> CameraIntrinsics:
+    def intrinsics(self) -> Intrinsics:
         sx, sy = self.width / 640.0, self.height / 480.0
-        return CameraIntrinsics(
+        return Intrinsics(
             fx=self.fx if self.fx is not None else 525.0 * sx,
             fy=self.fy if self.fy is not None else 525.0 * sy,
             cx=self.cx if self.cx is not None else (self.width - 1) / 2.0,

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..outputs import atomic_write_text
+from semmap.core.outputs import atomic_write_text
+
 from .base import DatasetError
 
 Pose = np.ndarray  # 4x4 float64 homogeneous transform

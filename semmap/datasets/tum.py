@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
-from .base import CameraIntrinsics, Dataset, DatasetError, FrameData
+from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .images import image_size, read_depth_u16, read_rgb
 from .trajectory_io import read_tum
 
@@ -218,7 +218,7 @@ class TumDataset(Dataset):
             factor = None
         self.depth_scale = 1.0 / (factor or DEPTH_FACTOR)
         width, height = image_size(self.root / self._rgb_files[0])
-        self.intrinsics = CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+        self.intrinsics = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
 
     def __len__(self) -> int:
         return len(self._stamps)

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from semmap.geometry import look_at  # noqa: F401 - tests import it from here
-from semmap.messages import DepthPatch, Detection, Intrinsics, Measurement
-from services.associator.candidate import View
+from semmap.algorithms.associator.candidate import View
+from semmap.core.geometry import look_at  # noqa: F401 - tests import it from here
+from semmap.core.messages import DepthPatch, Detection, Intrinsics, Measurement
 
 K_SMALL = Intrinsics(140.0, 140.0, 79.5, 59.5, 160, 120)
 

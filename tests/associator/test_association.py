@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from services.associator.association import decide, gate_floor, gate_radius
-from services.associator.geometry import voxel_downsample
-from services.associator.landmark_map import LandmarkMap
-from services.associator.params import MapperParams
+from semmap.algorithms.associator.association import decide, gate_floor, gate_radius
+from semmap.algorithms.associator.geometry import voxel_downsample
+from semmap.algorithms.associator.landmark_map import LandmarkMap
+from semmap.algorithms.associator.params import MapperParams
 
 P = MapperParams()
 

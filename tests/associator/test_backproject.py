@@ -6,13 +6,13 @@ import time
 
 import numpy as np
 
-from semmap.messages import DepthPatch, Intrinsics
-from services.associator.backproject import (
+from semmap.algorithms.associator.backproject import (
     BackprojectParams,
     extract_surfaces,
     extract_view,
     measurement_points,
 )
+from semmap.core.messages import DepthPatch, Intrinsics
 from tests.associator.helpers import K_SMALL, box_measurement, patch_measurement
 
 K_VGA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.associator.candidate import (
+from semmap.algorithms.associator.candidate import (
     MapProblem,
     choose_surfaces,
     coherent_motion,
@@ -13,7 +13,7 @@ from services.associator.candidate import (
     triangulate,
     validate,
 )
-from services.associator.params import MapperParams
+from semmap.algorithms.associator.params import MapperParams
 from tests.associator.helpers import fake_view, look_at
 
 P = MapperParams()

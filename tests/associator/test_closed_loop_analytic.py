@@ -1,5 +1,5 @@
-"""The services' closed loop (benchmarks/closed_loop.py: odometry -> tracker -> mapper -> iSAM2 -> corrected
-poses -> refine) on the analytic sphere scene: landmarks must cut a drifting odometry's error.
+"""The pipeline's closed loop (the in-process driver, semmap/runtime/inprocess.py: odometry -> tracker -> mapper ->
+iSAM2 -> corrected poses -> refine) on the analytic sphere scene: landmarks must cut a drifting odometry's error.
 
 A few seconds: 360 frames at 160x120 (one orbit), five spheres of different classes, perfect boxes.
 """
@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.closed_loop import ROBOT, Recording, run_loop
-from semmap.config import load_config
-from semmap.messages import Detections
+from semmap.core.config import load_config
+from semmap.core.messages import Detections
+from semmap.runtime.inprocess import ROBOT, Recording, run_loop
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 
 RATE = 30.0
@@ -35,7 +35,7 @@ def orbit() -> Recording:
     return Recording("analytic orbit", dets, gt)
 
 
-def loop(rec: Recording, seed: int, *overrides: str):  # noqa: ANN201 - closed_loop.LoopResult
+def loop(rec: Recording, seed: int, *overrides: str):  # noqa: ANN201 - inprocess.LoopResult
     config = load_config(None, ["odometry.mode=gt+drift", f"odometry.seed={seed}", *overrides])
     return run_loop(rec, config, "gt+drift")
 

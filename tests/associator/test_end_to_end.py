@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semmap.algorithms.associator.mapper import MapperParams
+from semmap.algorithms.detector.oracle import OracleDetector
 from semmap.datasets.synthetic import SyntheticConfig, SyntheticDataset
-from services.associator.mapper import MapperParams
-from services.associator.offline import OfflineRun, run_offline, score_map
-from services.detector.oracle import OracleDetector
+from semmap.runtime.inprocess import OfflineRun, run_offline, score_map
 
 
 def synthetic_run(width: int, height: int, every: int, seed: int = 0,
@@ -96,8 +96,8 @@ def test_synthetic_scene_other_seeds(seed: int) -> None:
 
 @pytest.fixture(scope="module")
 def yolo_7scenes(data_root: Path):
-    from services.detector.model_store import default_model_path
-    from services.detector.onnx_detector import OnnxDetector
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector
+    from semmap.runtime.model_store import default_model_path
 
     folder = data_root / "7scenes-redkitchen"
     if not folder.is_dir():

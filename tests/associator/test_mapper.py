@@ -9,9 +9,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from semmap.messages import Landmark, MapUpdate, Observation
-from services.associator.mapper import LandmarkMapper, MapperParams, MapperStep
-from services.tracker.iou_tracker import IouTracker
+from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
+from semmap.algorithms.tracker.iou_tracker import IouTracker
+from semmap.core.messages import Landmark, MapUpdate, Observation
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 
 RATE = 30.0
@@ -254,14 +254,13 @@ def test_absence_evidence_removes_what_left_and_keeps_what_stays() -> None:
 
 
 def test_params_from_the_yaml_section() -> None:
-    p = MapperParams.from_dict(
-        {"gate_u": 8, "observation_period_s": "3.0", "seed": 2, "absence_removal": True}
-    )
+    p = MapperParams(gate_u=8, observation_period_s=3.0, seed=2, absence_removal=True, dynamic_classes="cat, dog")
     assert p.gate_u == 8.0 and p.observation_period_s == 3.0 and p.seed == 2 and p.absence_removal is True
-    assert MapperParams.from_dict(None) == MapperParams()
-    assert MapperParams.from_dict({"absence_removal": "false"}).absence_removal is False
-    with pytest.raises(ValueError, match="unknown settings"):
-        MapperParams.from_dict({"gate_uu": 1.0})
+    assert p.dynamic_classes == ("cat", "dog")
+    for bad in ({"observation_period_s": "3.0"}, {"absence_removal": "false"}, {"seed": 1.5}, {"gate_u": 0},
+                {"gate_uu": 1.0}, {"dynamic_classes": [1, 2]}):
+        with pytest.raises(ValueError, match=next(iter(bad))):  # strict: no coercion, nothing unknown
+            MapperParams(**bad)
 
 
 def _flipping(schedule: list[tuple[float, str]], centre=(0.0, 0.0, 0.8), radius=0.12):  # noqa: ANN001, ANN202
@@ -291,7 +290,7 @@ def test_a_class_flip_joins_only_confusable_classes_and_can_be_turned_off() -> N
     # a chair is never a laptop: a (hypothetical) flip between unrelated classes keeps two landmarks
     mapper, _ = run(_flipping([(0.0, "laptop"), (2.0, "chair")]), range(120))
     assert sorted(lm.class_name for lm in mapper.landmarks()) == ["chair", "laptop"]
-    off = LandmarkMapper(MapperParams.from_dict({"class_merge": False}))
+    off = LandmarkMapper(MapperParams(class_merge=False))
     mapper, _ = run(_flipping([(0.0, "laptop"), (2.0, "tv")]), range(120), mapper=off)
     assert sorted(lm.class_name for lm in mapper.landmarks()) == ["laptop", "tv"]
 

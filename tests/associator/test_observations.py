@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from services.associator.mapper import LandmarkMapper, MapperParams
-from services.tracker.iou_tracker import IouTracker
+from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams
+from semmap.algorithms.tracker.iou_tracker import IouTracker
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 
 RATE = 30.0

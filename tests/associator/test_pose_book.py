@@ -6,8 +6,8 @@ from __future__ import annotations
 import msgpack
 import numpy as np
 
-from semmap.messages import CorrectedPoses
-from services.associator.service import PoseBook
+from semmap.algorithms.associator.pose_book import PoseBook
+from semmap.core.messages import CorrectedPoses
 from tests.associator.helpers import orbit_pose
 
 

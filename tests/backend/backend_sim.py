@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
+from semmap.algorithms.odometry.frontends import DriftingOdometry, OdometryInput
+from semmap.core.geometry import look_at
+from semmap.core.messages import Observation
 from semmap.datasets import find_data_root
 from semmap.datasets.trajectory_io import orthonormalize_pose
-from semmap.geometry import look_at
-from semmap.messages import Observation
-from services.backend.pose_graph import BackendParams, PoseGraph
-from services.odometry.frontends import DriftingOdometry, OdometryInput
 
 FPS = 30.0
 TIGHT_SIGMAS = (0.0002, math.radians(0.01))  # the `gt` front end's declared per-frame covariance

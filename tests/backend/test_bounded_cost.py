@@ -8,10 +8,10 @@ import math
 import numpy as np
 from backend_sim import Scene, drifting, observe, square_path
 
-from semmap.messages import CorrectedPoses
-from services.associator.service import PoseBook
-from services.backend.corrections import CorrectionPublisher, CorrectionsParams, moved
-from services.backend.pose_graph import BackendParams, PoseGraph
+from semmap.algorithms.associator.pose_book import PoseBook
+from semmap.algorithms.backend.corrections import CorrectionPublisher, CorrectionsParams, moved
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
+from semmap.core.messages import CorrectedPoses
 
 
 def _scene(n: int, seed: int = 0, laps: int = 1) -> Scene:

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from backend_sim import FPS, drifting, shared_data, square_path
 
+from semmap.algorithms.evaluation import EvaluationError, ate_details, ate_rmse, evaluate_run
+from semmap.cli.evaluate import register
 from semmap.datasets.trajectory_io import read_tum, write_tum
-from semmap.eval_cli import register
-from semmap.evaluation import EvaluationError, ate_details, ate_rmse, evaluate_run
 
 TRAJECTORIES = shared_data("trajectories")
 needs_data = pytest.mark.skipif(not (TRAJECTORIES / "fr2_desk_ORB.txt").is_file(),
@@ -112,7 +112,7 @@ def test_evo_writes_nothing_into_home(tmp_path: Path) -> None:
     home = tmp_path / "home"
     home.mkdir()
     env = {**os.environ, "HOME": str(home)}
-    code = "import sys; from semmap.evaluation import evaluate_run; evaluate_run(sys.argv[1])"
+    code = "import sys; from semmap.algorithms.evaluation import evaluate_run; evaluate_run(sys.argv[1])"
     root = Path(__file__).resolve().parents[2]
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "run")], check=True, env=env, cwd=root, timeout=120)
     assert (tmp_path / "run" / "eval.json").is_file()

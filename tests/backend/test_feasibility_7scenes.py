@@ -24,8 +24,8 @@ from backend_sim import (
     shared_data,
 )
 
-from semmap.evaluation import ate_rmse
-from services.odometry.frontends import DriftingOdometry, OdometryInput
+from semmap.algorithms.evaluation import ate_rmse
+from semmap.algorithms.odometry.frontends import DriftingOdometry, OdometryInput
 
 SCENES = shared_data("7scenes-redkitchen")
 pytestmark = [

@@ -1,4 +1,4 @@
-"""Depth loop closures (services/backend/loop_closure.py): clouds, ICP, the closer's gates, the journal record,
+"""Depth loop closures (semmap/algorithms/backend/loop_closure.py): clouds, ICP, the closer's gates, the journal record,
 and a known revisit that corrects a drifted pose graph.
 
 The revisit comes from the synthetic room (ray cast, no data needed): its camera goes once round the table and
@@ -13,9 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from semmap.datasets.base import Dataset, FrameData
-from semmap.datasets.synthetic import SyntheticDataset
-from services.backend.loop_closure import (
+from semmap.algorithms.backend.loop_closure import (
     KeyframeCloud,
     LoopCloser,
     LoopClosureParams,
@@ -26,7 +24,9 @@ from services.backend.loop_closure import (
     icp_point_to_plane,
     voxel_downsample,
 )
-from services.backend.pose_graph import BackendParams, PoseGraph
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
+from semmap.datasets.base import Dataset, FrameData
+from semmap.datasets.synthetic import SyntheticDataset
 
 FRAMES = 121  # 4 s at 30 Hz; frame 120 is back at frame 0's pose
 RADIUS = LoopClosureParams().normal_radius_m
@@ -200,12 +200,12 @@ def test_memory_is_bounded_by_max_keyframes() -> None:
 
 
 def test_params_are_checked() -> None:
-    with pytest.raises(ValueError, match="unknown loop_closure setting"):
-        LoopClosureParams.from_config({"voxel": 0.02})
+    with pytest.raises(ValueError, match="voxel"):
+        LoopClosureParams(voxel=0.02)
     with pytest.raises(ValueError, match="every_n_frames"):
         LoopClosureParams(every_n_frames=0)
     with pytest.raises(ValueError, match="enabled"):
-        LoopClosureParams.from_config({"enabled": "yes"})
+        LoopClosureParams(enabled="yes")
     with pytest.raises(ValueError, match="depth_min_m"):
         LoopClosureParams(depth_min_m=5.0)
     assert not LoopCloser(LoopClosureParams(enabled=False)).wants(0)

@@ -1,7 +1,7 @@
 """The settings that make landmark constraints pull (issue 9): robust kernel, declared odometry sigmas, rates.
 
-Each one was measured in the closed loop (benchmarks/closed_loop.py) on 7-Scenes; the figures are in the
-comments of params.py, pose_graph.py, frontends.py and default.yaml.
+Each one was measured in the closed loop (the in-process driver, semmap/runtime/inprocess.py) on 7-Scenes; the
+figures are in the comments of semmap/core/config (`semmap config show`), pose_graph.py and frontends.py.
 """
 
 from __future__ import annotations
@@ -11,19 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from semmap.config import load_config
-from services.associator.params import MapperParams
-from services.backend.loop_closure import LoopClosureParams
-from services.backend.pose_graph import BackendParams
-from services.odometry.frontends import DriftingOdometry, OdometryInput, make_frontend
-
-
-def test_the_config_file_and_the_dataclasses_agree() -> None:
-    cfg = load_config(None, [])
-    section = {k: v for k, v in cfg["associator"].items() if k != "refine_every_n_frames"}
-    assert MapperParams.from_dict(section) == MapperParams()
-    assert BackendParams.from_config(cfg["backend"]) == BackendParams()
-    assert LoopClosureParams.from_config(cfg["loop_closure"]) == LoopClosureParams()
+from semmap.algorithms.associator.params import MapperParams
+from semmap.algorithms.backend.loop_closure import LoopClosureParams
+from semmap.algorithms.backend.pose_graph import BackendParams
+from semmap.algorithms.odometry.frontends import DriftingOdometry, OdometryInput, make_frontend
+from semmap.core.config import load_config
 
 
 def test_defaults() -> None:
@@ -37,7 +29,7 @@ def test_defaults() -> None:
     assert BackendParams().landmark_constraints is True
     assert LoopClosureParams().enabled is True  # breaks the centroid floor (README, Table 1)
     with pytest.raises(ValueError, match="landmark_constraints"):
-        BackendParams.from_config({"landmark_constraints": "no"})
+        BackendParams(landmark_constraints="no")
 
 
 def test_a_bias_is_declared_over_its_horizon() -> None:
@@ -48,10 +40,9 @@ def test_a_bias_is_declared_over_its_horizon() -> None:
     horizon = DriftingOdometry(0, 0.003, 0.3, 0.05, bias_horizon_frames=100)
     assert horizon.sigmas[1] == pytest.approx(math.radians(math.sqrt(0.3**2 + 100 * 0.05**2)))
     assert horizon.sigmas[1] * math.sqrt(100) >= math.radians(0.05) * 100  # covers the bias over the horizon
-    cfg = load_config(None, [])["odometry"]
+    cfg = load_config(None, []).odometry
     assert make_frontend("gt+drift", cfg).sigmas[1] == pytest.approx(
-        math.radians(math.sqrt(cfg["drift_yaw_sigma_deg"] ** 2
-                               + cfg["drift_bias_horizon_frames"] * cfg["drift_yaw_bias_deg"] ** 2)))
+        math.radians(math.sqrt(cfg.drift_yaw_sigma_deg**2 + cfg.drift_bias_horizon_frames * cfg.drift_yaw_bias_deg**2)))
 
 
 def test_the_declared_sigma_does_not_change_the_trajectory() -> None:

@@ -23,9 +23,9 @@ from backend_sim import (
 )
 from gtsam.symbol_shorthand import X
 
-from semmap.evaluation import ate_rmse
-from semmap.messages import Observation, Observations, OdometryPose
-from services.backend.pose_graph import BackendParams, PoseGraph, PoseGraphError
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph, PoseGraphError
+from semmap.algorithms.evaluation import ate_rmse
+from semmap.core.messages import Observation, Observations, OdometryPose
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -286,12 +286,11 @@ def test_message_helpers_apply_merges_before_observations() -> None:
 
 
 def test_params_from_config() -> None:
-    params = BackendParams.from_config({"robust_kernel": "cauchy", "robust_k": 2, "min_observations_per_landmark": 2})
+    params = BackendParams(robust_kernel="cauchy", robust_k=2, min_observations_per_landmark=2)
     assert params.robust_k == 2.0 and isinstance(params.robust_k, float)
-    assert BackendParams.from_config(params.to_dict()) == params
-    assert BackendParams.from_config(None) == BackendParams()
-    with pytest.raises(ValueError, match="unknown backend setting"):
-        BackendParams.from_config({"robust_kernal": "huber"})
+    assert BackendParams(**params.model_dump()) == params
+    with pytest.raises(ValueError, match="robust_kernal"):
+        BackendParams(robust_kernal="huber")
     with pytest.raises(ValueError, match="robust_kernel"):
         BackendParams(robust_kernel="tukey")
     with pytest.raises(ValueError):

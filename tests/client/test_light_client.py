@@ -1,4 +1,4 @@
-"""`semmap-client` (clients/python): semmap.client, semmap.messages and semmap.keys on Python 3.10 (ROS 2 Humble)
+"""`semmap-client` (clients/python): semmap.runtime.client, .core.messages and .core.keys on Python 3.10 (ROS 2 Humble)
 and 3.12 (Jazzy), without the heavy stack, talking to the real bus.
 
 Each interpreter found (on PATH as python3.X, or pyenv's ~/.pyenv/versions/3.X.*; Debian 12 ships only 3.11,
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Frame, OdometryPose
+from semmap.core.messages import Frame, OdometryPose
+from semmap.runtime.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 HEAVY = ("open3d", "gtsam", "onnxruntime", "rerun", "evo", "scipy", "yaml")
@@ -30,8 +30,8 @@ HEAVY = ("open3d", "gtsam", "onnxruntime", "rerun", "evo", "scipy", "yaml")
 CLIENT_SCRIPT = r"""
 import importlib.util, sys
 import numpy as np
-from semmap.client import SemmapClient
-from semmap.messages import Intrinsics
+from semmap.runtime.client import SemmapClient
+from semmap.core.messages import Intrinsics
 heavy = [m for m in sys.argv[3].split(",") if importlib.util.find_spec(m) is not None or m in sys.modules]
 assert not heavy, f"heavy packages present: {heavy}"
 rgb = np.zeros((48, 64, 3), np.uint8); rgb[10:20, 10:30] = (200, 40, 40)

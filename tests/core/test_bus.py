@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.bus import Bus, BusConfig, Inbox
-from semmap.messages import Control, Frame, Intrinsics, OdometryPose, ServiceStatus
-from semmap.orchestrator import free_loopback_port
+from semmap.core.messages import Control, Frame, Intrinsics, OdometryPose, ServiceStatus
+from semmap.runtime.bus import Bus, BusConfig, Inbox
+from semmap.runtime.orchestrator import free_loopback_port
 
 K = Intrinsics(500.0, 500.0, 16.0, 12.0, 32, 24)
 
@@ -67,7 +67,7 @@ def test_round_trip_through_a_service_process(tmp_path: Path) -> None:
 
     bus.subscribe(bus.keys.status_all, ServiceStatus, on_status)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.odometry", "--robot", "busrobot", "--connect", hub, "--instance", "odo",
+        [sys.executable, "-m", "semmap.services.odometry", "--robot", "busrobot", "--connect", hub, "--instance", "odo",
          "--set", "odometry.mode=gt", "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )

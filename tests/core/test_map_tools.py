@@ -10,9 +10,9 @@ from pathlib import Path
 import open3d as o3d
 import pytest
 
-from semmap.map_query import MapQuery, QueryError, run_query
-from semmap.map_store import MapStore, read_map_json, write_map_json
-from semmap.messages import Landmark, MessageError
+from semmap.core.messages import Landmark, MessageError
+from semmap.runtime.map_query import MapQuery, QueryError, run_query
+from semmap.runtime.map_store import MapStore, read_map_json, write_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 LANDMARKS = [
@@ -109,7 +109,7 @@ def test_ply_export(saved: Path, spheres: bool) -> None:
         cloud = o3d.io.read_point_cloud(str(ply))
         assert len(cloud.points) == 3 and cloud.has_colors()
     # the classes round-trip: every vertex names its landmark's class through the legend beside the file
-    from semmap.map_cli import read_ply_classes
+    from semmap.cli.query_export import read_ply_classes
 
     classes = {lm.id: lm.class_name for lm in LANDMARKS}
     pairs = read_ply_classes(ply)

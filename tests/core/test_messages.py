@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from semmap.messages import (
+from semmap.core.messages import (
     ALL_MESSAGES,
     CandidateUpdate,
     Control,

@@ -61,6 +61,11 @@ COVERAGE: list[tuple[str, list[str], list[str]]] = [
         ['"diff"'],
     ),
     (
+        r"^docker compose (-f compose\.yaml -f compose\.secure\.yaml )?--profile player up --build --scale detector=2$",
+        ["tests/deploy/test_containers.py::test_compose_stack_in_containers_maps_like_the_embedded_run"],
+        ["--profile player up", "compose.yaml", "compose.secure.yaml", "DETECTORS = 2", '"secure"'],
+    ),
+    (
         r"^pip install \./clients/python$",
         ["tests/client/test_light_client.py::test_light_client_installs_without_the_heavy_stack_and_talks_to_the_bus"],
         ['"clients" / "python"', "pip"],

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from semmap.reorder import FrameReorderBuffer
+from semmap.core.reorder import FrameReorderBuffer
 
 
 def test_out_of_order_and_duplicate_frames_come_out_once_in_order() -> None:

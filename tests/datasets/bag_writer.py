@@ -12,30 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from semmap.datasets.base import FrameData
-from semmap.ros_convert import matrix_quaternion
-
-# Time thresholds moved a hundredth of a second off the 30 Hz frame grid, for runs compared across stamp sources.
-# 7-Scenes stamps frame n at n/30 s; a ROS header holds integer nanoseconds, so the same frame is n/30 +- 0.5 ns.
-# The associator and tracker compare stamp differences with thresholds that fall exactly on the grid (1 s = 30
-# frames, 0.5 s = 15 ...), where float noise decides (for the folder alone, 30 of the first 300 frames read
-# (n+30)/30 - n/30 < 1.0): a nanosecond then changes which views count. Off the grid, both stamp sources take
-# the same decisions, so the folder and its recordings must map the same.
-OFF_GRID = [
-    f"{key}={value}"
-    for key, value in {
-        "tracker.max_age_s": 0.49,
-        "associator.min_view_interval_s": 0.09,
-        "associator.min_track_span_s": 0.99,
-        "associator.untestable_span_s": 1.99,
-        "associator.min_motion_span_s": 0.39,
-        "associator.motion_window_s": 1.49,
-        "associator.full_refresh_s": 0.99,
-        "associator.observation_period_s": 0.99,
-        "associator.observation_min_age_s": 0.99,
-        "associator.pose_wait_s": 4.99,
-    }.items()
-]
-OFF_GRID_ARGS = [arg for item in OFF_GRID for arg in ("--set", item)]
+from semmap.datasets.ros_convert import matrix_quaternion
 
 COLOR = "/camera/camera/color/image_raw"
 DEPTH = "/camera/camera/aligned_depth_to_color/image_raw"

@@ -15,7 +15,7 @@ import pytest
 from semmap.datasets import DatasetError, detect_format, open_dataset
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bag_writer import COLOR, DEPTH, INFO, ODOM, OFF_GRID_ARGS, write_bag  # noqa: E402
+from bag_writer import COLOR, DEPTH, INFO, ODOM, write_bag  # noqa: E402
 
 FRAMES = 8  # reader tests
 RUN_FRAMES = 60  # pipeline runs: the first two seconds show a cup, chairs, a table
@@ -147,8 +147,7 @@ def test_bags_map_the_same_as_the_folder(tmp_path: Path, kitchen_dir: Path, semm
     for name, data in runs.items():
         out = tmp_path / f"out_{name}"
         result = semmap_run(
-            [str(data), "--out", str(out), "--odometry", "gt", "--max-frames", str(RUN_FRAMES), "--no-viz"]
-            + OFF_GRID_ARGS,
+            [str(data), "--out", str(out), "--odometry", "gt", "--max-frames", str(RUN_FRAMES), "--no-viz"],
             timeout=400,
         )
         assert result.returncode == 0, result.stderr[-3000:]

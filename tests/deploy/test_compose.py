@@ -49,7 +49,7 @@ def test_published_ports_are_loopback_only(compose: dict) -> None:
 
 
 def _service_parser(module_name: str):
-    module = importlib.import_module(f"services.{module_name}.service")
+    module = importlib.import_module(f"semmap.services.{module_name}.service")
     return module
 
 
@@ -58,12 +58,12 @@ def test_every_command_names_a_real_service_with_real_flags(compose: dict, name:
     command = compose["services"][name]["command"]
     assert command[:2] == ["python", "-m"], command
     module = command[2]
-    assert module == f"services.{name}"
+    assert module == f"semmap.services.{name}"
     assert importlib.util.find_spec(f"{module}.__main__") is not None
     # the flags parse with the service's own parser (no process started)
     import argparse
 
-    from semmap.service import common_arguments
+    from semmap.runtime.service import common_arguments
 
     service_module = importlib.import_module(f"{module}.service")
     parser = argparse.ArgumentParser(exit_on_error=False)
@@ -92,4 +92,25 @@ def test_podman_override_only_swaps_router_base_and_scale(compose: dict) -> None
         for key, value in service.items():
             assert not (isinstance(value, list) and key in base), f"{name}.{key} would be appended to"
         assert service["build"]["args"]["BASE"].startswith("${SEMMAP_BASE_IMAGE:-")
-    assert override["services"]["zenoh"]["command"][:3] == ["python", "-m", "semmap.router"]
+    assert override["services"]["zenoh"]["entrypoint"] == ["python", "-m", "semmap.runtime.router"]
+
+
+def test_secure_override_adds_tls_to_every_service(compose: dict) -> None:
+    """compose.secure.yaml: every service of compose.yaml on TLS with its own identity's Zenoh config, certificates
+    mounted, the router started on the secure profile's config; it adds no list that either file it goes on top of
+    already has except volumes (podman-compose 1.0.3 appends lists: extra mounts are what is wanted)."""
+    secure = yaml.safe_load((PROJECT / "compose.secure.yaml").read_text())
+    podman = yaml.safe_load((PROJECT / "tests" / "deploy" / "compose.podman.yaml").read_text())
+    assert set(secure["services"]) == set(compose["services"])
+    for name, service in secure["services"].items():
+        for key, value in service.items():
+            below = [compose["services"][name], podman["services"].get(name) or {}]
+            assert key == "volumes" or not (isinstance(value, list) and any(key in b for b in below)), (name, key)
+        assert any(v.endswith(":/certs:ro") for v in service["volumes"]), name
+        if name == "zenoh":
+            assert service["command"] == ["-c", "/secure/router.json5"]
+            continue
+        env = service["environment"]
+        assert env["SEMMAP_ZENOH_CONNECT"] == "tls/zenoh:7447", name
+        config = env["SEMMAP_ZENOH_CONFIG"]
+        assert config == f"/secure/{name}.json5" and (PROJECT / "deploy" / "secure" / f"{name}.json5").is_file()

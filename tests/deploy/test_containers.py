@@ -2,7 +2,9 @@
 with two detector replicas, and get the embedded run's map. Then `down` leaves nothing behind.
 
 What runs is compose.yaml plus tests/deploy/compose.podman.yaml (router from semmap's own image, a local Debian base,
-deploy.replicas for the detector scale), with the settings a user passes to `docker compose` (docs/DEPLOY.md).
+deploy.replicas for the detector scale), with the settings a user passes to `docker compose` (docs/DEPLOY.md); the
+`secure` case adds compose.secure.yaml: development certificates made by scripts/make-dev-certs.sh, every service on
+mutual TLS with its own identity, the router's access-control list, and the test's own status reader a TLS client too.
 Needs podman, podman-compose, runc (./dev.sh setup installs them) and the Debian base image (`./dev.sh
 container-base` makes it once, from the Debian mirror, and the podman store keeps it).
 """
@@ -13,19 +15,21 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import ServiceStatus
-from semmap.orchestrator import free_loopback_port
+from semmap.core.messages import ServiceStatus
+from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.orchestrator import free_loopback_port
 
 PROJECT = Path(__file__).resolve().parents[2]
 CONTAINERS_CONF = PROJECT / "tests" / "deploy" / "containers.conf"
 OVERRIDE = "tests/deploy/compose.podman.yaml"
+SECURE = "compose.secure.yaml"
 HOST_CA = Path("/etc/ssl/certs/ca-certificates.crt")  # pip in the build trusts it (TLS-intercepting proxies)
 FRAMES = 60
 DETECTORS = 2
@@ -99,10 +103,16 @@ def _wait_healthy(env: dict[str, str], project: str, expected: int) -> dict[str,
 class StatusWatch:
     """The services' status messages, read through the router's published port (as a SLAM on the host would)."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, endpoint: str, zenoh_config: Path | None = None) -> None:
         self.statuses: dict[str, ServiceStatus] = {}
         self.lock = threading.Lock()
-        self.bus = Bus(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"], listen=[]), "robot1")
+        config = BusConfig(
+            mode="client",
+            connect=[endpoint],
+            listen=[],
+            config_file=str(zenoh_config) if zenoh_config else None,
+        )
+        self.bus = Bus(config, "robot1")
         self.bus.subscribe(self.bus.keys.status_all, ServiceStatus, self._on_status)
 
     def _on_status(self, s: ServiceStatus) -> None:
@@ -159,13 +169,37 @@ def _image_id(env: dict[str, str]) -> str:
     return _podman(env, "image", "inspect", "--format", "{{.Id}}", IMAGE, check=False).strip()
 
 
+def _secure_profile(tmp_path: Path, port: int) -> tuple[Path, Path]:
+    """Development certificates for the stack (the router's name `zenoh` in its certificate), readable by the
+    services' uid 10001, and a client config of the orchestrator's identity for this test's status reader."""
+    certs = tmp_path / "certs"
+    script = PROJECT / "scripts" / "make-dev-certs.sh"
+    made = subprocess.run([str(script), str(certs), "zenoh"], capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    for key in certs.glob("*.key"):
+        key.chmod(0o644)  # development keys only: the containers' user is not the owner of the bind-mounted files
+    host_profile = tmp_path / "host-profile"
+    written = subprocess.run(
+        [sys.executable, "-m", "semmap.runtime.secure_profile", str(certs), str(host_profile)]
+        + ["--router", f"tls/127.0.0.1:{port}"],
+        cwd=PROJECT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert written.returncode == 0, written.stderr
+    return certs, host_profile / "orchestrator.json5"
+
+
+@pytest.mark.parametrize("profile", ["plain", "secure"])
 def test_compose_stack_in_containers_maps_like_the_embedded_run(
     tmp_path: Path,
     kitchen_dir: Path,
     podman_env: dict[str, str],
     semmap_run,  # noqa: ANN001
+    profile: str,
 ) -> None:
-    project = f"semmaptest{os.getpid()}"
+    project = f"semmaptest{os.getpid()}{profile}"
     port = free_loopback_port()
     env = {
         **podman_env,
@@ -180,7 +214,14 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
     build_args = "--network host --format docker"
     if HOST_CA.is_file():
         build_args += f" --secret id=ca,src={HOST_CA}"
-    compose = ["podman-compose", "-p", project, "-f", "compose.yaml", "-f", OVERRIDE, "--podman-build-args", build_args]
+    files = ["-f", "compose.yaml", "-f", OVERRIDE]
+    endpoint, reader_config = f"tcp/127.0.0.1:{port}", None
+    if profile == "secure":
+        certs, reader_config = _secure_profile(tmp_path, port)
+        env["SEMMAP_CERTS"] = str(certs)
+        files += ["-f", SECURE]
+        endpoint = f"tls/127.0.0.1:{port}"
+    compose = ["podman-compose", "-p", project, *files, "--podman-build-args", build_args]
     timings: dict[str, float] = {}
     watch: StatusWatch | None = None
     build: subprocess.Popen | None = None
@@ -204,7 +245,8 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
             _podman(env, "rmi", previous_image, check=False)
 
         t0 = time.monotonic()
-        # `docker compose --profile player up --scale detector=2` (podman-compose 1.0.3: no profiles, no --scale)
+        # the README's `docker compose [-f compose.yaml -f compose.secure.yaml] --profile player up --build --scale
+        # detector=2`, built above (podman-compose 1.0.3: no profiles, no --scale; the override sets the replicas)
         up = subprocess.run(
             [*compose, "up", "-d", "--no-build", *SERVICES],
             cwd=PROJECT,
@@ -218,7 +260,7 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
         timings["healthy_s"] = time.monotonic() - t0
         assert sum(name.startswith(f"{project}_detector_") for name in health) == DETECTORS
 
-        watch = StatusWatch(port)
+        watch = StatusWatch(endpoint, reader_config)
         statuses = _wait_finished(watch, env, project)
         timings["finished_s"] = time.monotonic() - t0
         detectors = [s for s in statuses.values() if s.service == "detector"]
@@ -236,7 +278,7 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
         t0 = time.monotonic()
         _down(compose, env, project)
         timings["down_s"] = time.monotonic() - t0
-        print(f"container test: {json.dumps({k: round(v, 1) for k, v in timings.items()})}")
+        print(f"container test ({profile}): {json.dumps({k: round(v, 1) for k, v in timings.items()})}")
     assert _leftovers(env, project) == {}
 
     assert json.loads((outputs / "map.json").read_text()) == json.loads((embedded / "map.json").read_text())

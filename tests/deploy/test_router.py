@@ -1,4 +1,4 @@
-"""`python -m semmap.router`: the router compose runs from semmap's own image where eclipse/zenoh is out of reach."""
+"""`python -m semmap.runtime.router`: the router compose runs from semmap's own image (no eclipse/zenoh there)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import threading
 import time
 from pathlib import Path
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Control
-from semmap.orchestrator import free_loopback_port
+from semmap.core.messages import Control
+from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.orchestrator import free_loopback_port
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -20,7 +20,7 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     health = tmp_path / "health"
     router = subprocess.Popen(
-        [sys.executable, "-m", "semmap.router", "--listen", endpoint, "--health-file", str(health)],
+        [sys.executable, "-m", "semmap.runtime.router", "--listen", endpoint, "--health-file", str(health)],
         cwd=PROJECT,
         stderr=subprocess.PIPE,
         text=True,
@@ -52,7 +52,7 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
 
 def test_router_without_an_endpoint_is_a_usage_error() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "semmap.router", "--listen", " , "],
+        [sys.executable, "-m", "semmap.runtime.router", "--listen", " , "],
         cwd=PROJECT,
         capture_output=True,
         text=True,

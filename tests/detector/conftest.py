@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from services.detector.model_store import default_model_path
+from semmap.runtime.model_store import default_model_path
 
 FETCH_REASON = "detector model absent: run `semmap models fetch`"
 
@@ -22,6 +22,6 @@ def model_path() -> Path:
 
 @pytest.fixture(scope="session")
 def yolo(model_path: Path):
-    from services.detector.onnx_detector import OnnxDetector
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector
 
     return OnnxDetector(model_path, conf=0.4, iou=0.45, threads=2)

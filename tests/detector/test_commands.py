@@ -1,4 +1,4 @@
-"""`semmap models fetch` and `semmap detect` as registered by services.detector.commands."""
+"""`semmap models fetch` and `semmap detect` as registered by semmap.cli.models."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from services.detector.commands import register
+from semmap.cli.models import register
 
 from .tiny_yolo import tiny_checkpoint
 

@@ -13,7 +13,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from services.detector.yolov5_convert import (
+from semmap.algorithms.detector.yolov5_convert import (
     DECODE_SCOPE,
     CheckpointFormatError,
     UnsafeCheckpointError,

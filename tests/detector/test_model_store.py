@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from services.detector import model_store as ms
+from semmap.runtime import model_store as ms
 
 from .tiny_yolo import tiny_checkpoint
 

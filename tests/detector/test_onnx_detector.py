@@ -10,8 +10,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from semmap.datasets.images import read_depth_u16, read_rgb
-from services.detector.onnx_detector import (
+from semmap.algorithms.detector.onnx_detector import (
     DetectedBox,
     OnnxDetector,
     choose_providers,
@@ -23,6 +22,7 @@ from services.detector.onnx_detector import (
     unletterbox,
     xywh_to_xyxy,
 )
+from semmap.datasets.images import read_depth_u16, read_rgb
 
 # --- synthetic models --------------------------------------------------------------------------------------
 
@@ -328,7 +328,7 @@ def test_real_depth_gate_on_cup(yolo, kitchen_dir):
 @pytest.mark.needs_model
 @pytest.mark.needs_data
 def test_int8_copy_keeps_detections(model_path, kitchen_dir, tmp_path):
-    from services.detector.model_store import quantize_int8
+    from semmap.runtime.model_store import quantize_int8
 
     scene = kitchen_dir
     calib = [scene / f"frame-{i:06d}.color.jpg" for i in (100, 300, 450, 600, 850, 950)]

@@ -7,8 +7,8 @@ import random
 import numpy as np
 import pytest
 
+from semmap.algorithms.detector.oracle import COCO_NAMES, OracleDetector
 from semmap.datasets.base import InstanceBox
-from services.detector.oracle import COCO_NAMES, OracleDetector
 
 W, H = 640, 480
 

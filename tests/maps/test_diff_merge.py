@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from semmap.map_merge import diff_maps, merge_maps, register, transform_landmark
-from semmap.map_store import read_map_json, write_map_json
-from semmap.messages import Landmark
+from semmap.algorithms.map_merge import diff_maps, merge_maps, register, transform_landmark
+from semmap.core.messages import Landmark
+from semmap.runtime.map_store import read_map_json, write_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 CLASSES = ("chair", "cup", "tv", "book", "bottle", "laptop", "clock", "plant", "chair", "cup", "vase", "bowl")

@@ -11,11 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.datasets import open_dataset
-from semmap.datasets.base import DatasetError, WindowDataset
-from semmap.geometry import look_at
-from semmap.map_store import MapStore
-from semmap.messages import (
+from semmap.algorithms.associator.landmark_map import LandmarkMap
+from semmap.algorithms.associator.pose_book import PoseBook
+from semmap.algorithms.associator.prior_map import PriorParams, PriorSession
+from semmap.algorithms.backend.pose_graph import PoseGraph
+from semmap.algorithms.backend.prior_alignment import PriorAlignment
+from semmap.algorithms.odometry.frontends import OdometryError, frame_offset
+from semmap.core.geometry import look_at
+from semmap.core.messages import (
     CorrectedPoses,
     Intrinsics,
     MapAlignment,
@@ -24,12 +27,9 @@ from semmap.messages import (
     OdometryPose,
     TrackedBox,
 )
-from services.associator.landmark_map import LandmarkMap
-from services.associator.prior_map import PriorParams, PriorSession
-from services.associator.service import PoseBook
-from services.backend.pose_graph import PoseGraph
-from services.backend.prior_alignment import PriorAlignment
-from services.odometry.frontends import OdometryError, frame_offset
+from semmap.datasets import open_dataset
+from semmap.datasets.base import DatasetError, WindowDataset
+from semmap.runtime.map_store import MapStore
 
 PROJECT = Path(__file__).resolve().parents[2]
 OFFSET = frame_offset([1.0, -2.0, 0.5, 0.0, 0.0, 30.0])
@@ -103,7 +103,7 @@ K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
 
 def _session(prior: LandmarkMap) -> tuple[PriorSession, object]:
-    from services.associator.mapper import LandmarkMapper
+    from semmap.algorithms.associator.mapper import LandmarkMapper
 
     s = PriorSession(prior, PriorParams(missing_after_frames=3))
     s.transform = np.eye(4)  # relocalised (identity frame) for the test
@@ -217,7 +217,7 @@ def test_cli_checks_the_prior_map_before_starting(tmp_path: Path) -> None:
     ],
 )
 def test_malformed_alignments_are_refused(bad: object) -> None:
-    from semmap.messages import MessageError
+    from semmap.core.messages import MessageError
 
     body = Observations("r", 1, 0.0).to_dict()
     body["alignment"] = bad
@@ -226,3 +226,30 @@ def test_malformed_alignments_are_refused(bad: object) -> None:
     good = MapAlignment(OFFSET, [(3, (1.0, 2.0, 3.0))], 0.03, 5, 0.02)
     back = Observations.decode(Observations("r", 1, 0.0, alignment=good).encode()).alignment
     assert back is not None and np.allclose(back.transform, OFFSET) and back.anchors == good.anchors
+
+
+def test_a_class_the_detector_often_misses_needs_a_longer_run_to_go_missing() -> None:
+    """Two cups, one prior and one of this session (present): the present cup, boxed in plain view one frame
+    in five, teaches the detection rate, and the prior cup goes missing only after a run of misses that a cup
+    still there would give with probability below 1 % (16 frames at 1 in 4), not after the minimum (3)."""
+    s, mapper = _session(_prior(2))
+    s.status.pop(1)  # landmark 1 is this session's own (present)
+    s.streak.pop(1)
+    camera = np.eye(4)
+    on_present = [TrackedBox(1, "cup", (245.0, 200.0, 365.0, 280.0), 5, True)]  # a box on landmark 1 only
+    assert s.missing_after("cup") == 3  # no evidence yet: Beta(4, 1), the minimum holds
+    s.transform = None  # not relocalised yet: the session learns the rate on its own landmarks
+    for frame in range(50):
+        s.update(mapper, frame, camera, on_present if frame % 5 == 0 else [], K, touched=[])
+    assert s.class_seen["cup"] == [10, 50] and s.status[0] == "prior"
+    assert s.missing_after("cup") == 16  # rate (10 + 4) / (50 + 5) = 0.25: 0.75^16 < 0.01 < 0.75^15
+    s.transform = np.eye(4)  # relocalised: now the prior cup's misses count
+    for frame in range(50, 65):
+        s.update(mapper, frame, camera, on_present if frame % 5 == 0 else [], K, touched=[])
+    assert s.status[0] == "prior"  # 15 misses: a cup still there would give them more than 1 % of the time
+    for frame in range(65, 75):
+        s.update(mapper, frame, camera, on_present if frame % 5 == 0 else [], K, touched=[])
+    assert s.status[0] == "missing" and s.streak[0] in range(16, 19), s.streak[0]
+    restored = PriorSession(_prior(2), PriorParams(missing_after_frames=3))
+    restored.restore(s.to_state())
+    assert restored.class_seen == s.class_seen

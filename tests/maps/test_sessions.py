@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semmap.algorithms.odometry.frontends import frame_offset
+from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.datasets import open_dataset
 from semmap.datasets.synthetic import SyntheticConfig, _build_scene, changed_objects
 from semmap.datasets.trajectory_io import read_tum
-from semmap.map_store import read_map_json
-from semmap.relocalize import rotation_angle_deg
-from services.odometry.frontends import frame_offset
+from semmap.runtime.map_store import read_map_json
 
 pytestmark = pytest.mark.slow
 PROJECT = Path(__file__).resolve().parents[2]

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.config import load_config
+from semmap.algorithms.evaluation import ate_rmse
+from semmap.algorithms.odometry.frontends import OdometryError, OdometryInput, make_frontend
+from semmap.core.config import ConfigError, load_config
 from semmap.datasets import open_dataset
 from semmap.datasets.trajectory_io import write_tum
-from semmap.evaluation import ate_rmse
-from services.odometry.frontends import OdometryError, OdometryInput, make_frontend
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +20,7 @@ def kitchen(kitchen_dir: Path):  # noqa: ANN201
 
 
 def _drifted(seed: int, gt: list) -> list:
-    cfg = {**load_config()["odometry"], "seed": seed}
+    cfg = load_config(None, [f"odometry.seed={seed}"]).odometry
     frontend = make_frontend("gt+drift", cfg)
     return [(t, frontend.estimate(OdometryInput(i, t, pose))) for i, (t, pose) in enumerate(gt)]
 
@@ -40,7 +40,7 @@ def test_drift_is_seeded(kitchen) -> None:
 
 
 def test_rgbd_odometry_follows_the_real_camera(kitchen) -> None:
-    frontend = make_frontend("rgbd", load_config()["odometry"])
+    frontend = make_frontend("rgbd", load_config().odometry)
     est, gt = [], []
     for i in range(25):
         f = kitchen[i]
@@ -59,14 +59,15 @@ def test_trajectory_file_is_matched_by_timestamp(tmp_path: Path) -> None:
         pose[0, 3] = i
         poses.append((i * 0.1, pose))
     write_tum(tmp_path / "t.tum", poses)
-    frontend = make_frontend(f"file:{tmp_path / 't.tum'}", load_config()["odometry"])
+    frontend = make_frontend(f"file:{tmp_path / 't.tum'}", load_config().odometry)
     assert frontend.estimate(OdometryInput(0, 0.31, None))[0, 3] == 3.0
 
 
 def test_unusable_modes_are_clear_errors() -> None:
-    with pytest.raises(OdometryError, match="unknown odometry mode"):
-        make_frontend("lidar", load_config()["odometry"])
-    frontend = make_frontend("gt", load_config()["odometry"])
+    for mode in ("lidar", "file:", "gt:x", "rgbd:"):
+        with pytest.raises(ConfigError, match="odometry.mode: expected gt, gt[+]drift, rgbd, file:PATH"):
+            make_frontend(mode, load_config().odometry)
+    frontend = make_frontend("gt", load_config().odometry)
     with pytest.raises(OdometryError, match="no ground-truth pose"):
         frontend.estimate(OdometryInput(3, 0.1, None))
     synthetic = open_dataset("synthetic:frames=2")
@@ -74,7 +75,7 @@ def test_unusable_modes_are_clear_errors() -> None:
 
 
 def test_file_trajectory_on_another_clock_is_refused_and_an_offset_fixes_it(tmp_path: Path) -> None:
-    from services.odometry.frontends import FileOdometry, check_trajectory_overlap, match_trajectory
+    from semmap.algorithms.odometry.frontends import FileOdometry, check_trajectory_overlap, match_trajectory
 
     poses = []
     for i in range(30):
@@ -96,8 +97,8 @@ def test_file_trajectory_on_another_clock_is_refused_and_an_offset_fixes_it(tmp_
 
 
 def test_dynamic_objects_are_left_out_of_the_depth() -> None:
-    from semmap.messages import DynamicBox
-    from services.odometry.frontends import mask_dynamic
+    from semmap.algorithms.odometry.frontends import mask_dynamic
+    from semmap.core.messages import DynamicBox
 
     depth = np.full((40, 60), 2000, np.uint16)  # a wall at 2 m (units of 1 mm)
     depth[10:30, 20:30] = 1000  # a person at 1 m in front of it
@@ -107,5 +108,5 @@ def test_dynamic_objects_are_left_out_of_the_depth() -> None:
     only = mask_dynamic(depth, [person], 0.001, "range")  # the wall behind the person stays
     assert np.count_nonzero(only[10:30, 20:30]) == 0 and np.count_nonzero(only) == 40 * 60 - 20 * 10
     assert mask_dynamic(depth, [person], 0.001, "none") is depth and depth.min() == 1000  # input untouched
-    with pytest.raises(OdometryError, match="dynamic_mask"):
-        make_frontend("rgbd", {**load_config()["odometry"], "dynamic_mask": "blur"})
+    with pytest.raises(ConfigError, match="odometry.dynamic_mask: expected 'box', 'range' or 'none'"):
+        load_config(None, ["odometry.dynamic_mask=blur"])

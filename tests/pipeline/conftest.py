@@ -8,8 +8,8 @@ from typing import TypeVar
 
 import pytest
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Message
+from semmap.core.messages import Message
+from semmap.runtime.bus import Bus, BusConfig
 
 M = TypeVar("M", bound=Message)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from semmap.messages import Detections
+from semmap.core.messages import Detections
 
 
 def _detections(router, tmp_path: Path, replicas: int, semmap_run, read_stats, collector_factory) -> dict:

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from semmap.client import SemmapClient
+from semmap.core.messages import DynamicObjects
 from semmap.datasets.trajectory_io import read_tum, write_tum
 from semmap.datasets.tum import TumDataset
-from semmap.messages import DynamicObjects
+from semmap.runtime.client import SemmapClient
 
 SYNTH_FRAMES = 30
 

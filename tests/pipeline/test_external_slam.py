@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.client import SemmapClient
+from semmap.core.messages import Intrinsics
 from semmap.datasets import open_dataset
 from semmap.datasets.trajectory_io import write_tum
-from semmap.map_query import MapQuery
-from semmap.map_store import read_map_json
-from semmap.messages import Intrinsics
+from semmap.runtime.client import SemmapClient
+from semmap.runtime.map_query import MapQuery
+from semmap.runtime.map_store import read_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 SYNTH = "synthetic:frames=40"

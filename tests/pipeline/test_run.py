@@ -97,14 +97,16 @@ def test_replay_is_deterministic(tmp_path: Path, semmap_run) -> None:
 
 
 def test_a_failing_service_fails_the_run_with_its_reason(tmp_path: Path, semmap_run) -> None:
-    # a fault only the service itself finds (a missing trajectory file is refused before the run now)
-    missing = tmp_path / "no-such-model.onnx"
+    # a fault only the service itself finds (a missing model or trajectory file is refused before the run now):
+    # a model file that is there but is no ONNX model
+    broken = tmp_path / "broken-model.onnx"
+    broken.write_bytes(b"not an onnx model")
     result = semmap_run(["synthetic:frames=10", "--out", str(tmp_path / "out"), "--no-viz", "--set",
-                         "detector.kind=onnx", "--set", f"detector.model={missing}"], timeout=120)
+                         "detector.kind=onnx", "--set", f"detector.model={broken}"], timeout=120)
     assert result.returncode == 1
     err = result.stderr
     assert "error: detector" in err and ("failed" in err or "exited with code" in err), err[-2000:]
-    assert "no-such-model.onnx" in err
+    assert "broken-model.onnx" in err
 
 
 def test_bad_arguments_are_clear_errors(tmp_path: Path, semmap_run) -> None:

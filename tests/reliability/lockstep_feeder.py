@@ -12,8 +12,8 @@ import threading
 import time
 from pathlib import Path
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Control, Message, Progress
+from semmap.core.messages import Control, Message, Progress
+from semmap.runtime.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -69,7 +69,7 @@ class LockstepFeeder:
 def start_service(service: str, endpoint: str, robot: str, out: Path, *extra: str) -> subprocess.Popen:
     """`python -m services.<service>` in lockstep mode, logging to `out/<service>.log`."""
     log = open(out / f"{service}.log", "ab")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", f"services.{service}", "--connect", endpoint, "--zenoh-mode",
+    return subprocess.Popen([sys.executable, "-m", f"semmap.services.{service}", "--connect", endpoint, "--zenoh-mode",
                              "client", "--robot", robot, "--out", str(out), "--mode", "lockstep", *extra],
                             cwd=PROJECT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "CI": "true"})
 

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from semmap.keys import Keys
-from semmap.messages import OdometryPose, Tracks
-from services.tracker.iou_tracker import IouTracker
+from semmap.algorithms.tracker.iou_tracker import IouTracker
+from semmap.core.keys import Keys
+from semmap.core.messages import OdometryPose, Tracks
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service
 

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from semmap.core.keys import Keys
+from semmap.core.messages import Frame, Observations, OdometryPose
 from semmap.datasets.synthetic import SyntheticDataset
-from semmap.keys import Keys
-from semmap.messages import Frame, Observations, OdometryPose
-from services.player.service import frame_message
+from semmap.services.player.service import frame_message
 from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service
 
 ROBOT = "backendjournal"

@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from semmap.messages import ALL_MESSAGES, Frame, Message, MessageError
+from semmap.core.messages import ALL_MESSAGES, Frame, Message, MessageError
 
 from ..core.test_messages import _samples  # noqa: TID252 - the valid samples are the seeds
 
@@ -140,7 +140,7 @@ def test_many_generated_documents_never_crash_a_decoder(kind: type[Message]) -> 
 
 
 def test_oversized_messages_are_refused_before_parsing() -> None:
-    from semmap import messages
+    from semmap.core import messages
 
     huge = b"\x00" * (messages.MAX_MESSAGE_BYTES + 1)
     with pytest.raises(MessageError, match="exceeds the limit"):
@@ -148,7 +148,7 @@ def test_oversized_messages_are_refused_before_parsing() -> None:
 
 
 def test_non_finite_arrays_are_refused() -> None:
-    from semmap.messages import CorrectedPoses
+    from semmap.core.messages import CorrectedPoses
 
     sample = next(m for m in _samples() if isinstance(m, CorrectedPoses))
     sample.landmark_positions = np.array([[math.nan, 0.0, 0.0]])

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from semmap import orchestrator
-from semmap.orchestrator import Orchestrator, RunPlan
+from semmap.runtime import orchestrator
+from semmap.runtime.orchestrator import Orchestrator, RunPlan
 
 
 def test_a_port_taken_between_the_check_and_the_bind_is_not_fatal(tmp_path: Path,

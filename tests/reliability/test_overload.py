@@ -40,11 +40,6 @@ def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path, semma
 @pytest.mark.slow
 @pytest.mark.needs_data
 @pytest.mark.needs_model
-@pytest.mark.xfail(
-    reason="known regression of this round's merges (issue 20 open): over 3000 real-time frames the backend grew "
-    "281 -> 454 MB and the detector 346 -> 581 MB (kept loop-closure clouds: 9.6 MB); it passed before the round",
-    strict=False,
-)
 def test_soak_memory_stays_flat(tmp_path: Path, data_root: Path, semmap_run) -> None:  # noqa: ANN001
     """Three passes over 7-Scenes at 3x speed (~35 s of 90 Hz input each): no service grows."""
     stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 3000, 3)

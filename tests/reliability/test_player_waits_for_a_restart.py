@@ -11,9 +11,9 @@ import threading
 import time
 from pathlib import Path
 
-from semmap.bus import Bus, BusConfig
-from semmap.keys import Keys
-from semmap.messages import Frame, Progress, ServiceStatus
+from semmap.core.keys import Keys
+from semmap.core.messages import Frame, Progress, ServiceStatus
+from semmap.runtime.bus import Bus, BusConfig
 from tests.reliability.lockstep_feeder import start_service
 
 ROBOT = "playerdown"

@@ -8,9 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from semmap.bus import Bus, BusConfig
-from semmap.messages import Control
-from semmap.orchestrator import free_loopback_port
+from semmap.core.messages import Control
+from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.orchestrator import free_loopback_port
 
 PROJECT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "CI": "true"}
@@ -18,7 +18,7 @@ ENV = {**os.environ, "CI": "true"}
 
 def _router(endpoint: str) -> subprocess.Popen:
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import time, zenoh\nfrom semmap.bus import BusConfig\n"
+        [sys.executable, "-c", "import time, zenoh\nfrom semmap.runtime.bus import BusConfig\n"
          f"s = zenoh.open(BusConfig(mode='router', listen=['{endpoint}']).to_zenoh())\n"
          "print('up', flush=True)\ntime.sleep(3600)\n"], cwd=PROJECT, stdout=subprocess.PIPE, text=True, env=ENV)
     assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
@@ -27,7 +27,8 @@ def _router(endpoint: str) -> subprocess.Popen:
 
 def _service(name: str, endpoint: str, out: Path, *extra: str) -> subprocess.Popen:
     log = open(out / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", f"services.{name}", "--connect", endpoint, "--zenoh-mode", "client",
+    module = f"semmap.services.{name}"
+    return subprocess.Popen([sys.executable, "-m", module, "--connect", endpoint, "--zenoh-mode", "client",
                              "--robot", "order", "--out", str(out), "--set", "odometry.mode=gt", *extra],
                             cwd=PROJECT, stdout=log, stderr=subprocess.STDOUT, env=ENV)
 

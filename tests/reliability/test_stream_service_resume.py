@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from semmap.bus import Bus, BusConfig
+from semmap.core.keys import Keys
+from semmap.core.messages import Detections, Message, OdometryPose, Tracks
 from semmap.datasets.synthetic import SyntheticDataset
-from semmap.keys import Keys
-from semmap.messages import Detections, Message, OdometryPose, Tracks
-from services.player.service import frame_message
+from semmap.runtime.bus import Bus, BusConfig
+from semmap.services.player.service import frame_message
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service
 

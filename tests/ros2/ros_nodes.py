@@ -8,8 +8,9 @@
 reliably, after every input of the bridge is matched. `--bad` then sends one of each kind of bad message (a
 wrong encoding, a colour image of another size than the camera info, a NaN pose) after the frames, at stamps of
 their own.
-`listen` keeps the last MarkerArray, the last Path and the bridge status; it writes them as JSON once the bridge
-reports FRAMES frames done and its stream ended (or after its timeout).
+Depth goes out in millimetres whatever the dataset's unit (TUM folders: 1/5000 m).
+`listen` keeps the last MarkerArray, the last Path, the bridge status and every MarkerArray on /semmap/dynamic; it
+writes them as JSON once the bridge reports FRAMES frames done and its stream ended (or after its timeout).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from semmap.datasets import open_dataset
-from semmap.ros_convert import matrix_quaternion
+from semmap.datasets.ros_convert import matrix_quaternion
 
 COLOUR = "/camera/camera/color/image_raw"
 DEPTH = "/camera/camera/aligned_depth_to_color/image_raw"
@@ -81,6 +82,12 @@ def _info(t: float, k) -> CameraInfo:
     return msg
 
 
+def _millimetres(frame) -> np.ndarray:  # noqa: ANN001
+    if abs(frame.depth_scale - 0.001) < 1e-12:
+        return frame.depth
+    return np.clip(np.rint(frame.depth * (frame.depth_scale * 1000.0)), 0, 65535).astype(np.uint16)
+
+
 def publish(dataset: str, frames: int, bad: bool, rate_hz: float = 15.0) -> int:
     rclpy.init()
     node = rclpy.create_node("semmap_test_camera")
@@ -105,7 +112,7 @@ def publish(dataset: str, frames: int, bad: bool, rate_hz: float = 15.0) -> int:
         if i % 10 == 0:
             pubs["info"].publish(_info(f.stamp, f.intrinsics))
         pubs["colour"].publish(_image(f.stamp, "rgb8", f.rgb))
-        pubs["depth"].publish(_image(f.stamp, "16UC1", f.depth))
+        pubs["depth"].publish(_image(f.stamp, "16UC1", _millimetres(f)))
         pubs["pose"].publish(_odometry(f.stamp, f.gt_pose))
         rclpy.spin_once(node, timeout_sec=max(0.0, period - (time.monotonic() - started)))
     if bad:  # after the real frames, at stamps of their own
@@ -136,7 +143,7 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
     rclpy.init()
     node = rclpy.create_node("semmap_test_listener")
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    state: dict = {"markers": None, "path": None, "status": None, "deletes": 0, "arrays": 0}
+    state: dict = {"markers": None, "path": None, "status": None, "deletes": 0, "arrays": 0, "dynamic": []}
 
     def on_markers(msg: MarkerArray) -> None:
         state["arrays"] += 1
@@ -169,12 +176,39 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
             ],
         }
 
+    def on_dynamic(msg: MarkerArray) -> None:
+        state["dynamic"].append(
+            [
+                {
+                    "ns": m.ns,
+                    "id": m.id,
+                    "type": m.type,
+                    "action": m.action,
+                    "frame": m.header.frame_id,
+                    "stamp": m.header.stamp.sec + m.header.stamp.nanosec * 1e-9,
+                    "position": [m.pose.position.x, m.pose.position.y, m.pose.position.z],
+                    "orientation": [
+                        m.pose.orientation.x,
+                        m.pose.orientation.y,
+                        m.pose.orientation.z,
+                        m.pose.orientation.w,
+                    ],
+                    "scale": [m.scale.x, m.scale.y, m.scale.z],
+                    "colour": [m.color.r, m.color.g, m.color.b, m.color.a],
+                    "lifetime": m.lifetime.sec + m.lifetime.nanosec * 1e-9,
+                    "text": m.text,
+                }
+                for m in msg.markers
+            ]
+        )
+
     def on_status(msg: String) -> None:
         state["status"] = json.loads(msg.data)
 
     node.create_subscription(MarkerArray, "/semmap/landmarks", on_markers, latched)
     node.create_subscription(PathMsg, "/semmap/trajectory", on_path, latched)
     node.create_subscription(String, "/semmap/bridge_status", on_status, 10)
+    node.create_subscription(MarkerArray, "/semmap/dynamic", on_dynamic, RELIABLE)
     deadline = time.monotonic() + timeout_s
     done_at = None
     while time.monotonic() < deadline:

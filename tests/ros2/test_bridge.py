@@ -16,12 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semmap.core.messages import DynamicObjects
 from semmap.datasets import open_dataset
+from semmap.datasets.ros_convert import quaternion_matrix
 from semmap.datasets.trajectory_io import write_tum
+from semmap.runtime.client import SemmapClient
 
 pytest.importorskip("rclpy", reason="ROS 2 wheels absent: ./dev.sh setup installs the ros2 extra (semmap[ros2])")
-sys.path.insert(0, str(Path(__file__).parents[1] / "datasets"))
-from bag_writer import OFF_GRID_ARGS  # noqa: E402  (ROS header stamps vs n/30: see there)
 
 PROJECT = Path(__file__).resolve().parents[2]
 NODES = Path(__file__).with_name("ros_nodes.py")
@@ -46,33 +47,19 @@ def _map(out: Path) -> list[dict]:
     return json.loads((out / "map.json").read_text())["landmarks"]
 
 
-@pytest.mark.needs_model
-def test_bridge_maps_like_the_folder_and_skips_bad_messages(
-    tmp_path: Path, kitchen_dir: Path, router, semmap_run, ros_env: dict
-) -> None:
-    dataset = open_dataset(kitchen_dir)
-    trajectory = tmp_path / "slam.tum"
-    write_tum(trajectory, [(dataset[i].stamp, dataset[i].gt_pose) for i in range(FRAMES)])
-    folder = tmp_path / "folder"
-    result = semmap_run(
-        [
-            str(kitchen_dir),
-            "--out",
-            str(folder),
-            "--odometry",
-            f"file:{trajectory}",
-            "--max-frames",
-            str(FRAMES),
-            "--no-viz",
-            *OFF_GRID_ARGS,
-        ],
-        timeout=400,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    want = _map(folder)
-    assert len(want) >= 3, "the first two seconds show a cup, chairs and a table"
-
-    external = tmp_path / "external"
+def _bridge_session(
+    tmp_path: Path,
+    dataset: Path,
+    frames: int,
+    out: Path,
+    router,  # noqa: ANN001
+    semmap_run,  # noqa: ANN001
+    ros_env: dict,
+    run_args: list[str],
+) -> tuple[dict, subprocess.CompletedProcess]:
+    """`semmap run external` + `semmap ros2` (lockstep) + a camera node publishing `frames` frames of `dataset` (and
+    the bad messages) + a listener node: what the listener recorded, and the run's result. Every process ended
+    cleanly (rc 0) or the test fails."""
     outcome: dict = {}
     runner = threading.Thread(
         target=lambda: outcome.setdefault(
@@ -81,13 +68,13 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
                 [
                     "external",
                     "--out",
-                    str(external),
+                    str(out),
                     "--no-viz",
                     "--connect",
                     router.endpoint,
                     "--zenoh-mode",
                     "client",
-                    *OFF_GRID_ARGS,
+                    *run_args,
                 ],
                 timeout=500,
             ),
@@ -136,8 +123,8 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
                 "max_wait_s:=60.0",
             ],
         )
-        start("listener", [sys.executable, str(NODES), "listen", str(listened), str(FRAMES)])
-        start("camera", [sys.executable, str(NODES), "publish", str(kitchen_dir), str(FRAMES), "--bad"])
+        start("listener", [sys.executable, str(NODES), "listen", str(listened), str(frames)])
+        start("camera", [sys.executable, str(NODES), "publish", str(dataset), str(frames), "--bad"])
         assert procs["camera"].wait(timeout=300) == 0, (logs / "camera.log").read_text()[-3000:]
         assert procs["listener"].wait(timeout=400) == 0, (logs / "bridge.log").read_text()[-3000:]
     finally:
@@ -153,8 +140,36 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
         runner.join(timeout=300)
     assert procs["bridge"].returncode == 0, (logs / "bridge.log").read_text()[-3000:]
     assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    return json.loads(listened.read_text()), outcome["run"]
 
-    state = json.loads(listened.read_text())
+
+@pytest.mark.needs_model
+def test_bridge_maps_like_the_folder_and_skips_bad_messages(
+    tmp_path: Path, kitchen_dir: Path, router, semmap_run, ros_env: dict
+) -> None:
+    dataset = open_dataset(kitchen_dir)
+    trajectory = tmp_path / "slam.tum"
+    write_tum(trajectory, [(dataset[i].stamp, dataset[i].gt_pose) for i in range(FRAMES)])
+    folder = tmp_path / "folder"
+    result = semmap_run(
+        [
+            str(kitchen_dir),
+            "--out",
+            str(folder),
+            "--odometry",
+            f"file:{trajectory}",
+            "--max-frames",
+            str(FRAMES),
+            "--no-viz",
+        ],
+        timeout=400,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    want = _map(folder)
+    assert len(want) >= 3, "the first two seconds show a cup, chairs and a table"
+
+    external = tmp_path / "external"
+    state, _ = _bridge_session(tmp_path, kitchen_dir, FRAMES, external, router, semmap_run, ros_env, [])
     status = state["status"]
     assert status["frames_sent"] == FRAMES and status["frames_done"] == FRAMES and status["ended"]
     # the bad messages were counted and skipped; none of them became a frame
@@ -174,6 +189,80 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
     assert path is not None and len(path["poses"]) == FRAMES and path["frame"] == "world"
     assert np.allclose([p[0] for p in path["poses"]], [dataset[i].stamp for i in range(FRAMES)], atol=1e-6)
     assert [lm["id"] for lm in _map(external)] == [lm["id"] for lm in want]
+
+
+DYNAMIC_FRAMES = 40
+
+
+@pytest.mark.needs_data
+@pytest.mark.needs_model
+def test_bridge_publishes_the_dynamic_objects_as_short_lived_boxes(
+    tmp_path: Path, data_root: Path, router, semmap_run, ros_env: dict
+) -> None:
+    """Bonn "crowd" (people walking round a hand-held camera) through the bridge: for every detected frame with
+    dynamic objects, one MarkerArray on /semmap/dynamic at the frame's stamp, a cube and a label per object that
+    semmap published on its `dynamic` key (the reference, received here over Zenoh), the cube where the image box
+    and its depth range put it with the frame's pose, a colour per track, a lifetime so that stale boxes vanish."""
+    bonn = data_root / "bonn_crowd"
+    if not bonn.is_dir():
+        pytest.skip("bonn_crowd absent from the shared data")
+    dataset = open_dataset(bonn)
+    frames = [dataset[i] for i in range(DYNAMIC_FRAMES)]
+    reference: dict[int, DynamicObjects] = {}
+    lock = threading.Lock()
+
+    def keep(message: DynamicObjects) -> None:
+        with lock:
+            reference[message.frame_id] = message
+
+    with SemmapClient("robot1", router.endpoint, "client") as client:
+        client.on_dynamic(keep)
+        state, _ = _bridge_session(tmp_path, bonn, DYNAMIC_FRAMES, tmp_path / "run", router, semmap_run, ros_env, [])
+    assert sorted(reference) == list(range(DYNAMIC_FRAMES))
+    arrays = [a for a in state["dynamic"] if a]
+    stamps = np.array([a[0]["stamp"] for a in arrays])
+    assert np.all(np.diff(stamps) > 0.01), "one MarkerArray per frame, in order"
+
+    def array_at(t: float) -> list | None:
+        near = np.flatnonzero(np.abs(stamps - t) < 1e-4)
+        return arrays[int(near[0])] if len(near) else None
+
+    published = 0
+    for frame_id, objects in sorted(reference.items()):
+        boxes = [b for b in objects.boxes if b.depth_max_m > 0]
+        array = array_at(objects.stamp)
+        if objects.skipped or not boxes:
+            assert array is None, (frame_id, objects.skipped)
+            continue
+        assert array is not None, f"frame {frame_id}: {len(boxes)} dynamic boxes, no MarkerArray"
+        frame = frames[frame_id]
+        assert abs(objects.stamp - frame.stamp) < 1e-5
+        cubes = {m["id"]: m for m in array if m["ns"] == "dynamic"}
+        labels = {m["id"]: m for m in array if m["ns"] == "dynamic_labels"}
+        assert sorted(cubes) == sorted(labels) == sorted(b.track_id for b in boxes)
+        k, pose = frame.intrinsics, frame.gt_pose  # the camera node sent the ground truth as the SLAM's pose
+        colours = {tuple(np.round(m["colour"][:3], 3)) for m in cubes.values()}
+        assert len(colours) == len(cubes), "a distinct colour per object"
+        for box in boxes:
+            cube, label = cubes[box.track_id], labels[box.track_id]
+            assert cube["frame"] == label["frame"] == "world"
+            assert cube["lifetime"] == pytest.approx(0.5) and label["lifetime"] == pytest.approx(0.5)
+            assert label["text"] == f"{box.class_name} (track {box.track_id})" and box.reason == "class"
+            # back in the camera: the cube's centre projects to the image box's centre at the middle of its
+            # depth range; it is as wide and high as the box there, as deep as the range, along the optical axes
+            c = pose[:3, :3].T @ (np.array(cube["position"]) - pose[:3, 3])
+            x1, y1, x2, y2 = box.box
+            assert c[2] == pytest.approx((box.depth_min_m + box.depth_max_m) / 2, abs=1e-4)
+            assert k.fx * c[0] / c[2] + k.cx == pytest.approx((x1 + x2) / 2, abs=0.05)
+            assert k.fy * c[1] / c[2] + k.cy == pytest.approx((y1 + y2) / 2, abs=0.05)
+            want = [(x2 - x1) * c[2] / k.fx, (y2 - y1) * c[2] / k.fy, max(box.depth_max_m - box.depth_min_m, 0.05)]
+            assert np.allclose(cube["scale"], want, atol=1e-4)
+            q = np.array(cube["orientation"])
+            assert np.allclose(quaternion_matrix(*q), pose[:3, :3], atol=1e-5)
+            published += 1
+    assert published >= 20, "people walk through most of these frames"
+    assert {b.class_name for m in reference.values() for b in m.boxes} == {"person"}
+    assert state["status"]["link"]["dynamic_boxes"] == published
 
 
 def test_a_topic_that_never_arrives_is_reported_by_name_and_ctrl_c_stops_cleanly(tmp_path: Path, ros_env: dict) -> None:

@@ -1,4 +1,4 @@
-"""Approximate-time matching of the bridge (semmap.ros2.sync) and the ROS <-> numpy conversions, without ROS:
+"""Approximate-time matching of the bridge (semmap.services.ros2.sync) and the ROS <-> numpy conversions, without ROS:
 messages are plain objects with the ROS field names."""
 
 from __future__ import annotations
@@ -9,8 +9,7 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from semmap.ros2.sync import FrameSync
-from semmap.ros_convert import (
+from semmap.datasets.ros_convert import (
     ROS_BODY_TO_OPTICAL,
     ConversionError,
     colour_to_rgb,
@@ -19,6 +18,7 @@ from semmap.ros_convert import (
     parse_pose_to_optical,
     quaternion_matrix,
 )
+from semmap.services.ros2.sync import FrameSync
 
 W, H = 8, 6
 

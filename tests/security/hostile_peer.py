@@ -22,9 +22,8 @@ import time
 import numpy as np
 import zenoh
 
-from semmap.bus import BusConfig, RunTrust
-from semmap.keys import Keys
-from semmap.messages import (
+from semmap.core.keys import Keys
+from semmap.core.messages import (
     CandidateUpdate,
     Control,
     CorrectedPoses,
@@ -44,6 +43,7 @@ from semmap.messages import (
     ServiceStatus,
     Tracks,
 )
+from semmap.runtime.bus import BusConfig, RunTrust
 
 ROBOT = "robot1"
 INTR = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

@@ -15,9 +15,9 @@ import sys
 import threading
 from pathlib import Path
 
-from semmap.client import SemmapClient
+from semmap.core.messages import GroundTruthInstance, Intrinsics
 from semmap.datasets import open_dataset
-from semmap.messages import GroundTruthInstance, Intrinsics
+from semmap.runtime.client import SemmapClient
 
 PROJECT = Path(__file__).resolve().parents[2]
 DATA = "synthetic:frames=60"

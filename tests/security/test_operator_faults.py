@@ -17,9 +17,9 @@ from pathlib import Path
 import cv2
 import pytest
 
+from semmap.core.messages import ServiceStatus
 from semmap.datasets.trajectory_io import read_tum
-from semmap.messages import ServiceStatus
-from semmap.orchestrator import Orchestrator, RunFailed, RunPlan, ServiceSpec
+from semmap.runtime.orchestrator import Orchestrator, RunFailed, RunPlan, ServiceSpec
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -211,7 +211,7 @@ def test_a_service_that_stops_unasked_fails_the_run(tmp_path: Path) -> None:
         for p in Path("/proc").iterdir()
         if p.name.isdigit()
         and str(out) in (p / "cmdline").read_bytes().decode(errors="replace")
-        and b"services.tracker" in (p / "cmdline").read_bytes()
+        and b"semmap.services.tracker" in (p / "cmdline").read_bytes()
     )
     os.kill(tracker, signal.SIGTERM)  # it writes its outputs and says "stopped", exit 0: nobody asked it to
     _, err = run.communicate(timeout=120)

@@ -13,12 +13,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from semmap.bus import Bus, BusConfig, RateLimit, Refused, RunTrust
-from semmap.keys import Keys
-from semmap.messages import Control, MessageError, Progress
-from semmap.orchestrator import free_loopback_port
-from semmap.outputs import OutputError, OutputLock, atomic_write_text
-from semmap.secure_profile import write_profile
+from semmap.core.keys import Keys
+from semmap.core.messages import Control, MessageError, Progress
+from semmap.core.outputs import OutputError, OutputLock, atomic_write_text
+from semmap.runtime.bus import Bus, BusConfig, RateLimit, Refused, RunTrust
+from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.secure_profile import write_profile
 
 PROJECT = Path(__file__).resolve().parents[2]
 KEY = "semmap/v1/robot1/control"
@@ -138,7 +138,7 @@ def test_a_zenoh_config_file_is_merged_with_semmaps_settings(tmp_path: Path) -> 
 
 
 def test_deploy_secure_matches_the_generator(tmp_path: Path) -> None:
-    """deploy/secure/ is `python -m semmap.secure_profile /certs deploy/secure --router tls/zenoh:7447 --listen
+    """deploy/secure/ is `python -m semmap.runtime.secure_profile /certs deploy/secure --router tls/zenoh:7447 --listen
     tls/0.0.0.0:7447`: regenerate it when the access-control table changes."""
     write_profile(Path("/certs"), tmp_path, ["tls/zenoh:7447"], ["tls/0.0.0.0:7447"])
     shipped = PROJECT / "deploy" / "secure"
@@ -170,7 +170,7 @@ def test_the_output_lock_is_exclusive_across_processes(tmp_path: Path) -> None:
                 sys.executable,
                 "-c",
                 "import sys; from pathlib import Path\n"
-                "from semmap.outputs import OutputLock, OutputError\n"
+                "from semmap.core.outputs import OutputLock, OutputError\n"
                 f"try: OutputLock(Path({str(tmp_path)!r})).acquire()\n"
                 "except OutputError as e: print(e); sys.exit(3)",
             ],

@@ -8,8 +8,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from semmap.messages import DepthPatch, Detection, Intrinsics, MessageError
-from services.tracker.iou_tracker import IouTracker, TrackerParams, iou_matrix
+from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams, iou_matrix
+from semmap.core.messages import DepthPatch, Detection, Intrinsics, MessageError
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
@@ -115,6 +115,28 @@ def test_a_gap_within_max_age_continues_the_track() -> None:
     tr.skip(5, 5 / 30)
     out = feed(tr, 14, [det(102, 100)])  # 0.47 s later
     assert out.boxes[0].track_id == 0
+
+
+T0 = 1311868164.0  # a TUM-like Unix time
+
+
+@pytest.mark.parametrize(
+    "stamp_of",
+    [lambda n: n / 30, lambda n: round(n / 30 * 1e9) / 1e9, lambda n: T0 + n / 30, lambda n: T0 + n / 30 + 0.0123],
+    ids=["n/30", "ros_ns", "unix", "unix_offset"],
+)
+def test_max_age_on_the_30_hz_grid_is_15_frames_for_every_start(stamp_of) -> None:  # noqa: ANN001
+    """max_age_s = 0.5 s is 15 frames at 30 Hz: a track detected again 15 frames later continues, 16 frames later
+    it has ended, whichever frame it started at and however the stamps are written (float rounding of
+    (n + 15) / 30 - n / 30 reads 0.5 +- 1e-16 and must not decide; see semmap.core.stamps)."""
+    for start in range(0, 300):
+        for gap, continues in ((15, True), (16, False)):
+            tr = IouTracker(TrackerParams(max_age_s=0.5))
+            tr.update(start, stamp_of(start), [det(100, 100)], K, 0.001)
+            for f in range(start + 1, start + gap):
+                assert tr.skip(f, stamp_of(f)).ended == []
+            out = tr.update(start + gap, stamp_of(start + gap), [det(100, 100)], K, 0.001)
+            assert (out.boxes[0].track_id == 0) is continues, (start, gap)
 
 
 def test_ids_are_increasing_and_runs_are_deterministic() -> None:

@@ -1,0 +1,87 @@
+"""GTSAM factor builders for the backend: odometry, priors, landmark observations, merges, relative poses.
+
+Why a module of its own: the pose graph's bookkeeping (which frame is a node, which factor replaces which) is
+independent of how one measurement becomes a factor, and the noise models are the part people tune.
+
+Conventions: GTSAM's Pose3 tangent is [rotation (rad) x3, translation (m) x3]; poses are camera-to-world.
+"""
+
+from __future__ import annotations
+
+from typing import get_args
+
+import gtsam
+import numpy as np
+
+from semmap.core.config.sections import RobustKernel
+
+ROBUST_KERNELS: tuple[str, ...] = get_args(RobustKernel)
+
+
+def pose3(matrix: np.ndarray) -> gtsam.Pose3:
+    """A gtsam Pose3 from a 4x4 (the rotation block is re-orthonormalised so drifted inputs stay valid)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    rot = u @ vt
+    if np.linalg.det(rot) < 0:
+        u[:, -1] *= -1.0
+        rot = u @ vt
+    return gtsam.Pose3(gtsam.Rot3(rot), m[:3, 3].copy())
+
+
+def pose_sigmas(sigma_translation: float, sigma_rotation: float) -> np.ndarray:
+    """Diagonal Pose3 sigmas in GTSAM's tangent order (rotation first)."""
+    return np.array([sigma_rotation] * 3 + [sigma_translation] * 3, dtype=np.float64)
+
+
+def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
+    """Wrap a Gaussian model in an M-estimator: one wrong association then pulls with bounded force."""
+    kernel = kernel.lower()
+    if kernel == "none":
+        return base
+    if kernel == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+    if kernel == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+    raise ValueError(f"unknown robust kernel {kernel!r}: use one of {', '.join(ROBUST_KERNELS)}")
+
+
+def prior_factor(key: int, pose: np.ndarray, sigma_translation: float, sigma_rotation: float) -> gtsam.NonlinearFactor:
+    noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(sigma_translation, sigma_rotation))
+    return gtsam.PriorFactorPose3(key, pose3(pose), noise)
+
+
+def between_factor(key_a: int, key_b: int, relative: np.ndarray, sigma_translation: float, sigma_rotation: float,
+                   kernel: str = "none", k: float = 1.345) -> gtsam.NonlinearFactor:
+    """BetweenFactorPose3 measuring pose_b expressed in frame a (`inv(T_a) @ T_b`)."""
+    noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(sigma_translation, sigma_rotation))
+    return gtsam.BetweenFactorPose3(key_a, key_b, pose3(relative), robust(noise, kernel, k))
+
+
+def observation_factor(pose_key: int, point_key: int, point_camera: np.ndarray, sigma: float, kernel: str,
+                       k: float) -> gtsam.NonlinearFactor:
+    """A camera-frame 3D point as a native `BearingRangeFactor3D` (no Python callback: fast in iSAM2).
+
+    An isotropic sigma at range r is a bearing sigma of sigma / r rad (small-angle) and a range sigma of sigma,
+    which is the same Gaussian to first order as a point-to-point factor.
+    """
+    p = np.asarray(point_camera, dtype=np.float64)
+    rng = float(np.linalg.norm(p))
+    bearing_sigma = sigma / rng
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([bearing_sigma, bearing_sigma, sigma]))
+    return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(p / rng), rng, robust(noise, kernel, k))
+
+
+def merge_factor(key_a: int, key_b: int, sigma: float) -> gtsam.NonlinearFactor:
+    """Two landmark variables that are one object: a zero BetweenFactorPoint3 (Gaussian, not robust).
+
+    Not robust on purpose: a merge of two copies of one object seen before and after drift is a loop closure and
+    must pull with its full weight; the associator owns the decision.
+    """
+    return gtsam.BetweenFactorPoint3(key_a, key_b, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
+
+
+def point_prior_factor(key: int, point: np.ndarray, sigma: float) -> gtsam.NonlinearFactor:
+    """A landmark variable held near `point`: what keeps a retired landmark (its observation factors dropped)
+    determined without it pulling any pose."""
+    return gtsam.PriorFactorPoint3(key, np.asarray(point, dtype=np.float64), gtsam.noiseModel.Isotropic.Sigma(3, sigma))

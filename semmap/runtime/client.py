@@ -1,0 +1,202 @@
+"""A small Python client for an external SLAM: publish frames and poses, get corrected poses and the map back.
+
+    from semmap.runtime.client import SemmapClient
+    with SemmapClient(robot="robot1", connect="tcp/127.0.0.1:7447") as client:
+        client.wait_ready()
+        for i, (stamp, rgb, depth, pose) in enumerate(my_slam()):
+            client.publish_frame(i, stamp, rgb, depth, depth_scale=0.001, intrinsics=(fx, fy, cx, cy))
+            client.publish_pose(i, stamp, pose)
+            client.wait_frame_done(i)             # lockstep; leave out to stream in real time
+        client.end_of_stream(i)
+        poses = client.corrected_trajectory()     # {frame_id: 4x4}, from the semmap.corrected_poses/2 deltas
+
+Everything here is plain `semmap.core.messages` on `semmap.core.keys`: a SLAM in another language does the same with its
+own Zenoh and msgpack bindings (docs/INTERFACE.md).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from semmap.core.messages import (
+    Control,
+    CorrectedPoses,
+    DynamicObjects,
+    Frame,
+    GroundTruthInstance,
+    Intrinsics,
+    Landmark,
+    MapUpdate,
+    Observations,
+    OdometryPose,
+    Progress,
+    ServiceStatus,
+    TagDetections,
+)
+from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.map_query import MapQuery
+
+PIPELINE_SERVICES = ("detector", "tracker", "associator", "backend")
+
+
+class SemmapTimeout(TimeoutError):
+    pass
+
+
+class SemmapClient:
+    """One robot's connection to a running semmap (see module docstring)."""
+
+    def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None) -> None:
+        self.bus = Bus(BusConfig.from_env(connect, mode), robot)
+        self.robot = robot
+        self._frames = self.bus.publisher(self.bus.keys.frames)
+        self._poses = self.bus.publisher(self.bus.keys.odometry)
+        self._control = self.bus.publisher(self.bus.keys.control)
+        self._cv = threading.Condition()
+        self._progress: dict[str, int] = {}
+        self._running: dict[str, set[str]] = {}
+        self._corrected: CorrectedPoses | None = None
+        self._trajectory: dict[int, np.ndarray] = {}  # the corrected deltas applied, frame id -> pose
+        self._landmarks: dict[int, np.ndarray] = {}
+        self._callbacks: dict[str, list[Callable]] = {"corrected": [], "observations": [], "map": [], "tags": [],
+                                                      "dynamic": []}
+        self.bus.subscribe(self.bus.keys.progress_all, Progress, self._on_progress)
+        self.bus.subscribe(self.bus.keys.status_all, ServiceStatus, self._on_status)
+        self.bus.subscribe(self.bus.keys.corrected_poses, CorrectedPoses, self._on_corrected)
+        self.bus.subscribe(self.bus.keys.observations, Observations, lambda m: self._emit("observations", m))
+        self.bus.subscribe(self.bus.keys.map_updates, MapUpdate, lambda m: self._emit("map", m))
+        self.bus.subscribe(self.bus.keys.landmark_tags, TagDetections, lambda m: self._emit("tags", m))
+        self.bus.subscribe(self.bus.keys.dynamic, DynamicObjects, lambda m: self._emit("dynamic", m))
+
+    # -- inbound ----------------------------------------------------------------------------------------------
+    def _emit(self, kind: str, message: object) -> None:
+        for callback in list(self._callbacks[kind]):
+            callback(message)
+
+    def _on_progress(self, p: Progress) -> None:
+        with self._cv:
+            self._progress[p.service] = max(self._progress.get(p.service, -1), p.frame_id)
+            self._cv.notify_all()
+
+    def _on_status(self, s: ServiceStatus) -> None:
+        with self._cv:
+            members = self._running.setdefault(s.service, set())
+            (members.add if s.state == "running" else members.discard)(s.instance)
+            self._cv.notify_all()
+
+    def _on_corrected(self, msg: CorrectedPoses) -> None:
+        with self._cv:
+            self._corrected = msg
+            msg.apply_to(self._trajectory, self._landmarks)
+        self._emit("corrected", msg)
+
+    def on_corrected_poses(self, callback: Callable[[CorrectedPoses], None]) -> None:
+        self._callbacks["corrected"].append(callback)
+
+    def on_observations(self, callback: Callable[[Observations], None]) -> None:
+        """Landmark observations as camera-frame points (what a pose-graph back end can add as factors)."""
+        self._callbacks["observations"].append(callback)
+
+    def on_landmark_tags(self, callback: Callable[[TagDetections], None]) -> None:
+        """The same observations as AprilTag-like id + pose detections (the form RTAB-Map's landmarks take)."""
+        self._callbacks["tags"].append(callback)
+
+    def on_map_update(self, callback: Callable[[MapUpdate], None]) -> None:
+        self._callbacks["map"].append(callback)
+
+    def on_dynamic(self, callback: Callable[[DynamicObjects], None]) -> None:
+        """Each frame's dynamic objects (people, animals, things seen moving): boxes with a depth range, for a
+        SLAM to leave out of its features or depth, as dynamic SLAM systems do. One message per frame."""
+        self._callbacks["dynamic"].append(callback)
+
+    def latest_corrected(self) -> CorrectedPoses | None:
+        """The newest message as received: a delta (the poses that moved), see `corrected_trajectory`."""
+        with self._cv:
+            return self._corrected
+
+    def corrected_trajectory(self) -> dict[int, np.ndarray]:
+        """Every frame's corrected camera-to-world pose received so far (the deltas applied; a copy)."""
+        with self._cv:
+            return dict(self._trajectory)
+
+    def corrected_landmarks(self) -> dict[int, np.ndarray]:
+        """Every landmark's position in the backend's graph received so far (a copy)."""
+        with self._cv:
+            return dict(self._landmarks)
+
+    # -- outbound ---------------------------------------------------------------------------------------------
+    def wait_ready(self, services: Iterable[str] = PIPELINE_SERVICES, timeout: float = 60.0) -> None:
+        """Block until each service reports running and our frames have a subscriber."""
+        wanted = list(services)
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while not all(self._running.get(s) for s in wanted):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    missing = [s for s in wanted if not self._running.get(s)]
+                    raise SemmapTimeout(f"semmap services not running after {timeout:g} s: {', '.join(missing)}")
+                self._cv.wait(min(left, 0.1))
+        if not self._frames.wait_matching(max(0.1, deadline - time.monotonic())):
+            raise SemmapTimeout("nothing subscribes to frames")
+
+    def publish_frame(self, frame_id: int, stamp: float, rgb: np.ndarray, depth: np.ndarray, depth_scale: float,
+                      intrinsics: Intrinsics | tuple[float, float, float, float],
+                      instances: list[GroundTruthInstance] | None = None) -> None:
+        """An RGB (uint8 HxWx3) + registered depth (uint16 HxW, `depth_scale` m per unit) frame."""
+        if not isinstance(intrinsics, Intrinsics):
+            fx, fy, cx, cy = intrinsics
+            intrinsics = Intrinsics(fx, fy, cx, cy, rgb.shape[1], rgb.shape[0])
+        self._frames.put(Frame.from_arrays(self.robot, frame_id, stamp, rgb, depth, depth_scale, intrinsics,
+                                           None, instances))
+
+    def publish_pose(self, frame_id: int, stamp: float, pose: np.ndarray, keyframe: bool = True,
+                     sigma_translation: float = 0.01, sigma_rotation: float = 0.005, source: str = "external") -> None:
+        """The camera-to-world pose of frame `frame_id`, with per-frame motion sigmas (m, rad)."""
+        self._poses.put(OdometryPose(self.robot, frame_id, stamp, np.asarray(pose, float), keyframe,
+                                     sigma_translation, sigma_rotation, source))
+
+    def wait_frame_done(self, frame_id: int, services: Iterable[str] = PIPELINE_SERVICES,
+                        timeout: float = 60.0) -> None:
+        """Lockstep: block until every service has finished frame `frame_id`."""
+        wanted = list(services)
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while min((self._progress.get(s, -1) for s in wanted), default=frame_id) < frame_id:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    late = [s for s in wanted if self._progress.get(s, -1) < frame_id]
+                    raise SemmapTimeout(f"frame {frame_id} not done after {timeout:g} s by {', '.join(late)}")
+                self._cv.wait(min(left, 0.1))
+
+    def end_of_stream(self, last_frame_id: int, frames: int | None = None) -> None:
+        """No more frames: services write their outputs (map.json, trajectories)."""
+        self._control.put(Control(self.robot, "end_of_stream", last_frame_id,
+                                  last_frame_id + 1 if frames is None else frames))
+
+    def query_map(self, query: MapQuery | None = None, timeout: float = 3.0) -> list[Landmark]:
+        import json
+
+        from semmap.runtime.map_store import MAP_SCHEMA
+
+        query = query or MapQuery()
+        params = query.to_parameters()
+        selector = self.bus.keys.map_query + (f"?{params}" if params else "")
+        for reply in self.bus.session.get(selector, timeout=timeout):
+            if reply.ok is not None:
+                body = json.loads(reply.ok.payload.to_bytes())
+                if body.get("schema") == MAP_SCHEMA:
+                    return [Landmark.from_dict(item) for item in body["landmarks"]]
+        raise SemmapTimeout("no map service answered")
+
+    def close(self) -> None:
+        self.bus.close()
+
+    def __enter__(self) -> SemmapClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,90 @@
+"""Map queries, shared by the associator's Zenoh queryable and `semmap query` on a saved map.json.
+
+A query is a set of optional filters: class (case-insensitive), a point (near: results nearest first; with a
+radius, only those within it), ids. Over Zenoh it travels as selector
+parameters: `semmap/v1/<robot>/map/query?class=cup;near=1.0,0.5,0.8;radius=0.5;id=3,7`; the reply is a
+`semmap.map/2` document (the same layout as map.json), as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from semmap.core.messages import Landmark
+from semmap.runtime.map_store import MAP_SCHEMA, landmark_json
+
+
+class QueryError(ValueError):
+    """A malformed query (bad numbers, a radius without a point, ...)."""
+
+
+@dataclass(frozen=True)
+class MapQuery:
+    class_name: str | None = None
+    near: tuple[float, float, float] | None = None
+    radius: float | None = None
+    ids: frozenset[int] | None = None
+
+    @classmethod
+    def from_parameters(cls, params: Mapping[str, str]) -> MapQuery:
+        """From selector parameters / CLI strings: class, near ('x,y,z'), radius, id ('3,7')."""
+        unknown = set(params) - {"class", "near", "radius", "id"}
+        if unknown:
+            raise QueryError(f"unknown query parameter(s) {', '.join(sorted(unknown))}: use class, near, radius, id")
+        try:
+            near = tuple(float(v) for v in params["near"].split(",")) if params.get("near") else None
+            radius = float(params["radius"]) if params.get("radius") else None
+            ids = frozenset(int(v) for v in params["id"].split(",")) if params.get("id") else None
+        except ValueError as exc:
+            raise QueryError(f"malformed query: {exc}") from None
+        if near is not None and (len(near) != 3 or not all(math.isfinite(v) for v in near)):
+            raise QueryError("near must be three finite numbers x,y,z")
+        if radius is not None and near is None:
+            raise QueryError("radius needs near=x,y,z")
+        if radius is not None and not (math.isfinite(radius) and radius >= 0):
+            raise QueryError("radius must be a finite number >= 0")
+        return cls(params.get("class") or None, near, radius, ids)  # type: ignore[arg-type]
+
+    def to_parameters(self) -> str:
+        parts = []
+        if self.class_name:
+            parts.append(f"class={self.class_name}")
+        if self.near is not None:
+            parts.append("near=" + ",".join(f"{v:g}" for v in self.near))
+            if self.radius is not None:
+                parts.append(f"radius={self.radius:g}")
+        if self.ids:
+            parts.append("id=" + ",".join(str(i) for i in sorted(self.ids)))
+        return ";".join(parts)
+
+    def matches(self, lm: Landmark) -> bool:
+        if self.class_name is not None and lm.class_name.casefold() != self.class_name.casefold():
+            return False
+        if self.ids is not None and lm.id not in self.ids:
+            return False
+        if self.near is not None and self.radius is not None:
+            return math.dist(lm.centroid, self.near) <= self.radius
+        return True
+
+
+def run_query(query: MapQuery, landmarks: Iterable[Landmark]) -> list[Landmark]:
+    """Matching landmarks, by id; nearest first when the query names a point."""
+    found = sorted((lm for lm in landmarks if query.matches(lm)), key=lambda lm: lm.id)
+    if query.near is not None:
+        found.sort(key=lambda lm: math.dist(lm.centroid, query.near))
+    return found
+
+
+def class_counts(landmarks: Iterable[Landmark]) -> dict[str, int]:
+    """{class: number of landmarks}, most frequent first: what to suggest when a class filter finds nothing."""
+    counts: dict[str, int] = {}
+    for lm in landmarks:
+        counts[lm.class_name] = counts.get(lm.class_name, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def reply_document(landmarks: Iterable[Landmark]) -> bytes:
+    return json.dumps({"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in landmarks]}).encode()

@@ -1,0 +1,293 @@
+"""The per-frame pipeline as plain stage objects: tracker, associator and backend, free of I/O.
+
+Each stage holds its algorithm and the per-frame policy around it; two drivers run them:
+- the services (semmap/services/*/service.py): thin bus adapters (decode a message, call the stage, publish what
+  it returns), with what only a bus needs (re-ordering, duplicates, journals, restarts, metrics, logs);
+- the in-process driver (semmap/runtime/inprocess.py): the same stages in one process without a bus, in the
+  order of a lockstep `semmap run`, so both give the same map and trajectory (tests/pipeline/test_closed_loop.py).
+
+Lockstep order of one frame i: odometry(i) -> `TrackerStage.step` -> `AssociatorStage.process` (against the pose
+book) -> `AssociatorStage.observations` (with the merges held back from the previous refine) ->
+`BackendStage.step` (odometry and observations into the graph, one iSAM2 update, a loop closure from a keyframe,
+the corrections delta) -> `AssociatorStage.corrected` -> `AssociatorStage.complete` (refine when due).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
+from semmap.algorithms.associator.pose_book import PoseBook
+from semmap.algorithms.backend.corrections import CorrectionDelta, CorrectionPublisher, CorrectionsParams
+from semmap.algorithms.backend.loop_closure import KeyframeCloud, LoopCloser, LoopClosure, LoopClosureParams
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
+from semmap.algorithms.backend.prior_alignment import PriorAlignment
+from semmap.algorithms.detector.onnx_detector import DetectedBox, depth_gate
+from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput, TrackerParams
+from semmap.core.messages import (
+    CorrectedPoses,
+    DepthPatch,
+    Detection,
+    Detections,
+    Frame,
+    GroundTruthInstance,
+    Observations,
+    OdometryPose,
+)
+from semmap.datasets.base import FrameData
+
+
+def combined(a: MapperStep, b: MapperStep) -> MapperStep:
+    """Two steps of one frame as one: later landmark states win, removals stay removed."""
+    removed = list(dict.fromkeys(a.removed + b.removed))
+    updated = {lm.id: lm for lm in a.updated + b.updated if lm.id not in removed}
+    timing = {k: a.timing_ms.get(k, 0.0) + b.timing_ms.get(k, 0.0) for k in a.timing_ms.keys() | b.timing_ms.keys()}
+    return MapperStep(
+        list(updated.values()),
+        removed,
+        a.merges + b.merges,
+        a.observations + b.observations,
+        a.rejected + b.rejected,
+        a.moving_tracks + b.moving_tracks,
+        a.moved + b.moved,
+        timing,
+    )
+
+
+# ------------------------------------------------------------------------------------------------ player, detector
+
+
+def frame_message(robot: str, data: FrameData, depth_png: bool = False) -> Frame:
+    """A dataset frame as a bus message (depth as 16-bit PNG: ~3.5x smaller, ~10 ms more, for slow links)."""
+    frame = Frame.from_arrays(
+        robot,
+        data.index,
+        data.stamp,
+        data.rgb,
+        data.depth,
+        data.depth_scale,
+        data.intrinsics,
+        data.gt_pose,
+        [
+            GroundTruthInstance(i.instance_id, i.class_name, tuple(i.box), i.visible_pixels, i.moving)
+            for i in data.instances
+        ],
+    )
+    if depth_png:
+        frame.depth_as_png()
+    return frame
+
+
+def depth_detections(
+    boxes: Iterable[DetectedBox],
+    depth: np.ndarray,
+    depth_scale: float,
+    stride: int = 2,
+    depth_min_m: float = 0.2,
+    depth_max_m: float = 25.0,
+) -> list[Detection]:
+    """A frame's detections as the detector sends them: each box with the median depth of its central half
+    (boxes without valid depth in range are dropped) and the strided depth patch under it."""
+    out = []
+    for b, d in depth_gate(boxes, depth, depth_scale, depth_min_m, depth_max_m):
+        box = (b.x1, b.y1, b.x2, b.y2)
+        out.append(Detection(box, b.class_name, float(b.score), float(d), DepthPatch.from_depth(depth, box, stride)))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ tracker
+
+
+class TrackerStage:
+    """IOU tracklets from one frame's detections. A skipped frame (not detected: stride, overload) only ages the
+    tracklets, which may end them: the associator must hear of it; a frame with no stamp ages nothing."""
+
+    def __init__(self, params: TrackerParams | None = None, first_track_id: int = 0) -> None:
+        self.tracker = IouTracker(params, first_track_id=first_track_id)
+
+    @property
+    def params(self) -> TrackerParams:
+        return self.tracker.params
+
+    def step(self, det: Detections) -> TrackerOutput:
+        if det.skipped:
+            return TrackerOutput(ended=self.tracker.skip(det.frame_id, det.stamp).ended if det.stamp >= 0 else [])
+        return self.tracker.update(det.frame_id, det.stamp, det.detections, det.intrinsics, det.depth_scale)
+
+
+# ------------------------------------------------------------------------------------------------ associator
+
+
+class AssociatorStage:
+    """The landmark mapper against the pose book, with the associator's per-frame policy.
+
+    - `process` associates a frame's candidates against the best known poses (the backend's corrected poses
+      where it has them, odometry moved by the newest correction otherwise).
+    - `observations` are what goes to the backend: the frame's landmark observations and merges, plus the
+      merges a refine found after the previous frame's observations had left (they are carried over).
+    - With `await_backend` (lockstep) a frame is held (`hold`) until the backend's corrected poses for it come
+      (`corrected` hands it back), and only then refined (`complete`), so a replay gives the same map.
+    - Refinement runs every `refine_every_n_frames` frames once there are landmarks.
+    """
+
+    def __init__(
+        self,
+        params: MapperParams | None = None,
+        refine_every_n_frames: int = 10,
+        await_backend: bool = True,
+        mapper: LandmarkMapper | None = None,
+        poses: PoseBook | None = None,
+    ) -> None:
+        self.mapper = mapper if mapper is not None else LandmarkMapper(params)
+        self.poses = poses if poses is not None else PoseBook()
+        self.refine_every = max(1, int(refine_every_n_frames))
+        self.await_backend = await_backend
+        self.pending_merges: list[tuple[int, int]] = []  # found by a refine after the frame's observations left
+        self.awaiting: tuple[object, MapperStep] | None = None  # (the frame's input, its step) held for the backend
+
+    # -- inputs
+    def odometry(self, frame_id: int, pose: np.ndarray) -> None:
+        self.poses.odometry[frame_id] = pose
+
+    def pose_known_or_lost(self, frame_id: int, lockstep: bool) -> bool:
+        """Lockstep: wait for the frame's pose. Real time: a later pose means this one was dropped upstream;
+        go on (the mapper keeps measurements without a pose for a while, then drops them)."""
+        if frame_id in self.poses.odometry:
+            return True
+        return not lockstep and bool(self.poses.odometry) and max(self.poses.odometry) > frame_id
+
+    # -- per frame
+    def process(
+        self, frame_id: int, stamp: float, candidates: list, ended: list[int], boxes: list | None
+    ) -> MapperStep:
+        """The mapper's step for one frame (`boxes` None: a skipped frame, no absence evidence)."""
+        return self.mapper.process(frame_id, stamp, candidates, ended, self.poses, boxes=boxes)
+
+    def take_merges(self, step: MapperStep) -> list[tuple[int, int]]:
+        """The merges to send with this frame's observations: the carried-over ones first."""
+        merges = self.pending_merges + list(step.merges)
+        self.pending_merges = []
+        return merges
+
+    def hold(self, frame: object, step: MapperStep) -> bool:
+        """After the observations left: hold the frame for the backend's answer (True) or complete it now."""
+        if not self.await_backend:
+            return False
+        self.awaiting = (frame, step)
+        return True
+
+    def corrected(self, msg: CorrectedPoses) -> tuple[object, MapperStep] | None:
+        """Apply the backend's corrected poses; returns the held frame (and its step) they answer, if any."""
+        self.poses.set_corrected(msg)
+        if self.awaiting is not None and msg.frame_id >= self.frame_of(self.awaiting[0]):
+            held, self.awaiting = self.awaiting, None
+            return held
+        return None
+
+    @staticmethod
+    def frame_of(frame: object) -> int:
+        return int(frame.frame_id)  # type: ignore[attr-defined]
+
+    def refine_due(self, frame_id: int) -> bool:
+        return frame_id % self.refine_every == 0 and len(self.mapper.landmarks()) > 0
+
+    def complete(self, frame_id: int, stamp: float, step: MapperStep) -> tuple[MapperStep, float]:
+        """After the backend's answer (lockstep): refine when due; returns the frame's whole step and the refine's
+        time (ms, 0 when none ran). The refine's merges go out with the next frame's observations."""
+        if not (self.await_backend and self.refine_due(frame_id)):
+            return step, 0.0
+        t0 = time.perf_counter()
+        refined = self.mapper.refine(self.poses, stamp)
+        refine_ms = (time.perf_counter() - t0) * 1e3
+        self.pending_merges += list(refined.merges)
+        return combined(step, refined), refine_ms
+
+    def refine_only(self) -> MapperStep:
+        """Real time: a refine on a correction, outside any frame."""
+        refined = self.mapper.refine(self.poses)
+        self.pending_merges += list(refined.merges)
+        return refined
+
+
+# ------------------------------------------------------------------------------------------------ backend
+
+
+@dataclass
+class BackendStep:
+    """What one frame did in the backend."""
+
+    delta: CorrectionDelta
+    update_ms: float
+    closure: LoopClosure | None = None
+    loop_closure_ms: float | None = None  # None: no keyframe cloud this frame
+    realigned: bool = False  # the graph moved into a prior map's frame on this frame
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    def message(self, robot: str, seq: int, frame_id: int, timing_ms: dict[str, float] | None = None) -> CorrectedPoses:
+        return CorrectedPoses(
+            robot,
+            seq,
+            frame_id,
+            *self.delta.arrays(),
+            self.timing_ms if timing_ms is None else timing_ms,
+            full=self.delta.full,
+            num_frames=self.delta.num_frames,
+        )
+
+
+class BackendStage:
+    """The pose graph with the backend's per-frame policy: a frame's odometry and observations (a frame that
+    carries a prior-map alignment first moves the graph into the prior map's frame), one iSAM2 update, a loop
+    closure search from a keyframe's cloud, then the delta of corrected poses to send."""
+
+    def __init__(
+        self,
+        backend: BackendParams | None = None,
+        loop_closure: LoopClosureParams | None = None,
+        corrections: CorrectionsParams | None = None,
+    ) -> None:
+        self.graph = PoseGraph(backend or BackendParams())
+        self.aligner = PriorAlignment()  # a session that relocalises against a prior map (docs/MAPS.md)
+        self.closer = LoopCloser(loop_closure)
+        self.corrections = CorrectionPublisher(corrections or CorrectionsParams())
+
+    def wants_cloud(self, frame_id: int) -> bool:
+        return self.closer.wants(frame_id)
+
+    def add(self, pose: OdometryPose, obs: Observations) -> bool:
+        """One frame into the graph (no update); True when its alignment moved the graph into the prior's frame."""
+        realigned = False
+        if obs.alignment is not None and self.aligner.alignment is None:
+            self.graph = self.aligner.realign(self.graph, obs.alignment)
+            realigned = True
+        self.aligner.add(self.graph, pose, obs)
+        return realigned
+
+    def step(self, pose: OdometryPose, obs: Observations, cloud: KeyframeCloud | None) -> BackendStep:
+        t0 = time.perf_counter()
+        realigned = self.add(pose, obs)
+        self.graph.update()
+        update_ms = (time.perf_counter() - t0) * 1e3
+        timing = {"update": update_ms}
+        closure, closure_ms = None, None
+        if cloud is not None:
+            t0 = time.perf_counter()
+            closure = self.closer.close(self.graph, cloud)
+            closure_ms = (time.perf_counter() - t0) * 1e3
+            timing["loop_closure"] = closure_ms
+        t0 = time.perf_counter()
+        delta = self.corrections.next(self.graph)
+        timing["publish"] = (time.perf_counter() - t0) * 1e3
+        return BackendStep(delta, update_ms, closure, closure_ms, realigned, timing)
+
+    def restore(self, pose: OdometryPose, obs: Observations, keyframe: tuple | None) -> bool:
+        """A journalled frame again (after a crash), without a correction to send; True as `add`."""
+        realigned = self.add(pose, obs)
+        self.graph.update()
+        if keyframe is not None:
+            self.closer.restore(self.graph, *keyframe)
+        return realigned

@@ -1,0 +1,83 @@
+"""What `semmap run` prints when it ends: what was mapped, how good the trajectory is, where the files are, and
+what to type next. Built from the run's own output files, so it says exactly what the folder holds."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from collections import Counter
+from pathlib import Path
+
+SUMMARY_TITLE = "semmap run summary"
+
+
+def _landmarks(out_dir: Path) -> list[dict] | None:
+    try:
+        body = json.loads((out_dir / "map.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    landmarks = body.get("landmarks") if isinstance(body, dict) else None
+    return landmarks if isinstance(landmarks, list) else None
+
+
+def _ate(out_dir: Path) -> tuple[float, float] | None:
+    """(odometry, optimised) ATE RMSE in metres where ground truth and both trajectories exist."""
+    if not all(
+        (out_dir / f).is_file() for f in ("groundtruth.tum", "trajectory_odometry.tum", "trajectory_optimized.tum")
+    ):
+        return None
+    from semmap.algorithms.evaluation import EvaluationError, evaluate_run  # evo: only when there is something to score
+
+    try:
+        result = evaluate_run(out_dir)
+    except (EvaluationError, ValueError):
+        return None
+    return float(result["ate_odometry_m"]), float(result["ate_optimized_m"])
+
+
+def run_summary(out_dir: Path, stats: dict) -> str:
+    """The end-of-run table (plain text, one fact a line) for a finished run folder and its stats.json."""
+    out_dir = Path(out_dir)
+    lines = [f"{SUMMARY_TITLE} ({stats.get('outcome', '?')}, {stats.get('wall_s', 0):.1f} s)"]
+    frames = stats.get("frames", {})
+    lines.append(
+        f"  frames      {frames.get('processed', 0)} processed of {frames.get('published', 0)} published, "
+        f"{frames.get('detected', 0)} detected, {frames.get('dropped', 0)} dropped, "
+        f"{frames.get('unreadable', 0)} unreadable; {stats.get('fps', 0):.1f} fps"
+    )
+    landmarks = _landmarks(out_dir)
+    if landmarks is None:
+        lines.append("  landmarks   none (no map.json: the associator did not run)")
+    else:
+        counts = Counter(str(lm.get("class", "?")) for lm in landmarks)
+        lines.append(f"  landmarks   {len(landmarks)}")
+        for name, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])):
+            lines.append(f"    {name:<16}{n:>4}")
+    ate = _ate(out_dir)
+    if ate is not None:
+        odo, opt = ate
+        gain = f" ({100 * (odo - opt) / odo:+.1f} %)" if odo >= 1e-3 else ""
+        lines.append(f"  ATE         odometry {odo:.3f} m -> optimised {opt:.3f} m{gain} (RMSE vs ground truth)")
+    lines.append("  outputs")
+    for name, what in (
+        ("map.json", "landmarks: class, centroid, extent (world frame, m)"),
+        ("run.rrd", "Rerun recording"),
+        ("trajectory_optimized.tum", "camera-to-world poses, TUM format"),
+    ):
+        path = out_dir / name
+        if path.is_file():
+            lines.append(f"    {path}  ({what})")
+    lines.append(f"    {out_dir / 'stats.json'}  (counters, timings), logs in {out_dir / 'logs'}/")
+    folder = shlex.quote(str(out_dir))
+    commands = []
+    if (out_dir / "run.rrd").is_file():
+        commands.append((f"semmap view {folder} --web", "look at the map in a browser"))
+    if landmarks is not None:
+        commands.append((f"semmap query {folder} --near 0,0,0", "landmarks nearest first (also --class, --radius)"))
+    if (out_dir / "groundtruth.tum").is_file():
+        commands.append((f"semmap eval {folder}", "ATE of both trajectories, written to eval.json"))
+    if commands:
+        lines.append("  next")
+        width = max(len(c) for c, _ in commands)
+        lines.extend(f"    {c:<{width}}  # {why}" for c, why in commands)
+    return "\n".join(lines)

@@ -1,0 +1,5 @@
+import sys
+
+from semmap.services.backend.service import main
+
+sys.exit(main())

@@ -1,0 +1,233 @@
+"""Backend service: the GTSAM pose graph of keyframes and landmark observations, corrected poses out.
+
+Per frame it joins the front end's odometry with the associator's observations for that frame (both arrive for
+every frame), runs one iSAM2 update and publishes the whole corrected trajectory on `poses/corrected`, which
+the associator uses to associate against the current optimised estimate (closed loop). An external SLAM can
+consume the same key.
+
+Loop closures (`loop_closure:` config, on by default): the depth image of every n-th frame comes from the
+frames key; at a revisit the keyframe is registered to an earlier one by ICP (semmap/algorithms/backend/loop_closure.py)
+and the relative pose joins the graph before that frame's poses go out. In lockstep a keyframe waits for its
+depth too, so a replay closes the same loops.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from semmap.algorithms.backend.loop_closure import (
+    KeyframeCloud,
+    LoopCloser,
+    LoopClosure,
+    decode_keyframe,
+    encode_keyframe,
+)
+from semmap.algorithms.backend.pose_graph import PoseGraph
+from semmap.core.journal import FrameJournal
+from semmap.core.messages import Control, CorrectedPoses, Frame, MessageError, Observations, OdometryPose
+from semmap.core.reorder import FrameReorderBuffer
+from semmap.datasets.trajectory_io import write_tum
+from semmap.runtime.pipeline import BackendStage
+from semmap.runtime.service import Service, service_main
+
+REALTIME_MAX_PENDING = 8
+REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
+MAX_PENDING_CLOUDS = 64  # keyframe clouds waiting for their odometry and observations (~80 KB each)
+
+
+class BackendService(Service):
+    """Optimises the trajectory with landmark constraints (see module docstring)."""
+
+    name = "backend"
+
+    def setup(self) -> None:
+        # the per-frame policy (graph update, loop closure, corrections) is the stage's (semmap/runtime/pipeline.py)
+        self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections)
+        # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
+        self.clouds: dict[int, KeyframeCloud | None] = {}
+        self.pub = self.publisher(self.bus.keys.corrected_poses)
+        # real time: odometry of a dropped frame never comes; give up on it after a few later ones
+        self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(
+            max_pending=100_000 if self.lockstep else REALTIME_MAX_PENDING)
+        self.observations: dict[int, Observations] = {}
+        self.ready_odometry: list[OdometryPose] = []
+        self.seq = 0
+        # `semmap run external`: no odometry service writes the SLAM's input, so the backend does
+        self.write_odometry = bool(getattr(self.args, "write_odometry", False))
+        self.input_trajectory: list[tuple[float, object]] = []  # only then: it grows with every frame
+        self.journal = FrameJournal(self.out_dir / "backend.sqlite") if self.out_dir is not None else None
+        if self.journal is not None:
+            if self.resume:
+                self._restore()
+            else:
+                self.journal.clear()
+        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
+        self.listen(self.bus.keys.observations, Observations, self.on_observations)
+        if self.closer.params.enabled:
+            self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
+
+    @property
+    def graph(self) -> PoseGraph:
+        return self.stage.graph  # (a new graph once the session relocalises against a prior map)
+
+    @property
+    def closer(self) -> LoopCloser:
+        return self.stage.closer
+
+    def on_frame(self, frame: Frame) -> None:
+        """Keep a keyframe's depth cloud until its frame is handled (other frames are not looked at)."""
+        fid = frame.frame_id
+        if not self.closer.wants(fid) or fid <= self.last_frame_id or fid in self.clouds:
+            return
+        try:
+            depth = frame.depth()
+        except MessageError as exc:
+            self.metrics.count("keyframe_depth_unreadable")
+            self.log.warning("frame %d: no loop closure from it (%s)", fid, exc)
+            self.clouds[fid] = None
+        else:
+            k = frame.intrinsics
+            with self.metrics.timer("keyframe_cloud_ms"):
+                self.clouds[fid] = self.closer.cloud_from_depth(fid, frame.stamp, depth, frame.depth_scale, k.fx,
+                                                                k.fy, k.cx, k.cy)
+        while len(self.clouds) > MAX_PENDING_CLOUDS:  # frames without odometry: bounded, the oldest go
+            del self.clouds[min(self.clouds)]
+            self.metrics.count("keyframe_clouds_dropped")
+        self._drain()
+
+    def on_odometry(self, pose: OdometryPose) -> None:
+        if not self.odometry.push(pose.frame_id, pose):
+            self.metrics.count("odometry_duplicates")
+            return
+        self._release()
+
+    def on_observations(self, obs: Observations) -> None:
+        if obs.frame_id <= self.last_frame_id:
+            self.metrics.count("observations_duplicates")
+            self.replay(obs.frame_id)
+            return
+        self.observations[obs.frame_id] = obs
+        self._drain()
+
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        self.odometry.skip(frame_id)
+        self.observations.pop(frame_id, None)
+        self.clouds.pop(frame_id, None)
+        self._release()
+
+    def _release(self) -> None:
+        self.ready_odometry.extend(self.odometry.pop_ready())
+        self._drain()
+
+    def _drain(self) -> None:
+        """Handle frames in order, each once its odometry and its observations (and, in lockstep, a keyframe's
+        depth) are here."""
+        while self.ready_odometry and self._ready(self.ready_odometry[0].frame_id):
+            pose = self.ready_odometry.pop(0)
+            obs = self.observations.pop(pose.frame_id)
+            cloud = self.clouds.pop(pose.frame_id, None)
+            if self.write_odometry:
+                self.input_trajectory.append((pose.stamp, pose.pose))
+            step = self.stage.step(pose, obs, cloud)
+            if step.realigned:
+                self._log_realigned(obs)
+            self.metrics.time_ms("update_ms", step.update_ms)
+            if cloud is not None:
+                self._loop_closed(cloud, step.closure, step.loop_closure_ms or 0.0)
+            if self.journal is not None:
+                # after the frame's closure (journalled as its extra): a frame journalled is a frame complete, so
+                # a crash in between loses no closure; one before it means the frame is handled again
+                self.journal.append(pose.frame_id, pose.encode(), obs.encode())
+            self.metrics.time_ms("publish_ms", step.timing_ms["publish"])
+            self.seq += 1
+            message = step.message(self.robot, self.seq, pose.frame_id)
+            self.emit(self.pub, message, pose.frame_id)
+            self.metrics.count("corrected_poses_sent", len(step.delta.frame_ids))
+            self.metrics.count("frames")
+            self.metrics.count("observations", len(obs.observations))
+            self.report_progress(pose.frame_id)
+        # observations for frames before our first odometry can never be joined
+        first = self.odometry.next_id
+        for stale in [f for f in self.observations if first is not None and f < first - 1]:
+            del self.observations[stale]
+            self.metrics.count("observations_unjoined")
+        for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
+            del self.clouds[stale]
+
+    def _log_realigned(self, obs: Observations) -> None:
+        """A frame that carried a prior-map alignment moved the graph into the prior map's frame
+        (semmap/algorithms/backend/prior_alignment.py)."""
+        assert obs.alignment is not None
+        self.log.info("relocalised against the prior map at frame %d (%d landmarks agree, residual %.1f cm): "
+                      "the trajectory is now in the prior map's frame, %d prior landmarks anchor it",
+                      obs.frame_id, obs.alignment.inliers, 100 * obs.alignment.rms_m, len(obs.alignment.anchors))
+        self.metrics.counters["relocalised_at_frame"] = obs.frame_id
+
+    def _corrected(self, frame_id: int, timing_ms: dict[str, float]) -> CorrectedPoses:
+        ids, stamps, poses = self.graph.corrected_poses()
+        lids, lpos = self.graph.landmark_positions()
+        return CorrectedPoses(self.robot, self.seq, frame_id, ids, stamps, poses, lids, lpos, timing_ms)
+
+    def _ready(self, frame_id: int) -> bool:
+        if frame_id not in self.observations:
+            return False
+        # lockstep: a keyframe waits for its depth so that a replay closes the same loops; in real time the
+        # depth arrives long before the observations, and a dropped one only means no closure from that frame
+        return not (self.lockstep and self.closer.wants(frame_id)) or frame_id in self.clouds
+
+    def _loop_closed(self, cloud: KeyframeCloud, closure: LoopClosure | None, ms: float) -> None:
+        """Journal and count a keyframe's loop-closure search (the stage ran it)."""
+        self.metrics.time_ms("loop_closure_ms", ms)
+        if self.journal is not None:
+            self.journal.append_extra(cloud.frame_id, encode_keyframe(cloud, closure))
+        if closure is not None:
+            self.metrics.count("loop_closures")
+            self.log.info("loop closure: frame %d to frame %d (fitness %.2f, rmse %.1f cm, moved %.1f cm)",
+                          closure.frame_b, closure.frame_a, closure.fitness, 100 * closure.rmse_m,
+                          100 * closure.correction_m)
+        for name in ("registered", "rejected_fitness", "rejected_rmse", "rejected_degenerate",
+                     "rejected_correction", "evicted"):
+            self.metrics.counters[f"loop_{name}"] = self.closer.counters[name]
+        self.metrics.counters["loop_kept_keyframes"] = len(self.closer.keyframes)
+        self.metrics.counters["loop_kept_kb"] = self.closer.nbytes // 1024
+
+    def _restore(self) -> None:
+        """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
+        n = 0
+        for frame_id, odometry, observations, keyframe in self.journal.frames():
+            pose = OdometryPose.decode(odometry)
+            if self.write_odometry:
+                self.input_trajectory.append((pose.stamp, pose.pose))
+            obs = Observations.decode(observations)
+            if self.stage.restore(pose, obs, None if keyframe is None else decode_keyframe(keyframe)):
+                self._log_realigned(obs)
+            self.odometry.mark_done(frame_id)
+            self.last_frame_id = frame_id
+            n += 1
+        self.seq = n  # one correction went out per frame
+        if n:
+            # the old process may have journalled its last frame and died before that frame's correction left:
+            # the associator sends the frame's observations again and must get it (the same message)
+            self.remember(self.pub, self._corrected(self.last_frame_id, {}), self.last_frame_id)
+            self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
+
+    def on_end_of_stream(self, control: Control) -> None:
+        if self.last_frame_id >= control.last_frame_id:
+            self.finish()
+
+    def write_outputs(self) -> None:
+        if self.out_dir is None or self.graph.num_frames == 0:
+            return
+        ids, stamps, poses = self.graph.corrected_poses()
+        write_tum(self.out_dir / "trajectory_optimized.tum", zip(stamps.tolist(), poses, strict=True))
+        if self.write_odometry and self.input_trajectory:
+            write_tum(self.out_dir / "trajectory_odometry.tum", self.input_trajectory)
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--write-odometry", action="store_true",
+                        help="also write the odometry it received as trajectory_odometry.tum (external runs)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(BackendService, argv, _arguments)

@@ -1,0 +1,190 @@
+"""Detector service: detections for every frame on `semmap/v1/<robot>/detections`.
+
+Scaling out: each replica holds a liveliness token; the live replicas, sorted by name, share frames by rank
+(frame_id % n == rank), so N replicas detect each frame once. Every frame gets exactly one `Detections`
+message, `skipped` ones too (not this frame's turn under `every_n_frames`, dropped under real-time overload),
+so consumers never wait for a frame that will not come; they re-order by frame id and drop duplicates.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from semmap.algorithms.detector import create_detector, needs_model, resolve_kind
+from semmap.algorithms.detector.onnx_detector import DetectedBox
+from semmap.core.keys import Keys
+from semmap.core.messages import Control, Detections, Frame
+from semmap.runtime.model_store import packaged_model
+from semmap.runtime.pipeline import depth_detections
+from semmap.runtime.service import Service, service_main
+
+MEMBERSHIP_SETTLE_S = 0.5
+EOS_GRACE_S = 2.0  # real time: how long after the end of the stream a late frame may still arrive
+
+
+class DetectorService(Service):
+    """Detects COCO objects in frames (see module docstring)."""
+
+    name = "detector"
+
+    def setup(self) -> None:
+        cfg = self.config.detector
+        self.cfg = cfg
+        # (`semmap run` resolves `auto` for its dataset; a detector started by hand sees a camera)
+        self.kind = resolve_kind(cfg.kind, synthetic=False)
+        self.every_n = cfg.every_n_frames
+        self.stride = cfg.depth_patch_stride
+        model = Path(cfg.model or packaged_model(cfg.precision)) if needs_model(self.kind) else None
+        self.detector = create_detector(self.kind, cfg, model)
+        if model is not None:
+            self.log.info("%s model %s on %s", self.kind, model, ", ".join(getattr(self.detector, "providers", [])))
+        self.pub = self.publisher(self.bus.keys.detections)
+        # replica membership from liveliness tokens
+        self._members: set[str] = {self.instance}
+        self._members_lock = threading.Lock()
+        self._members_changed = time.monotonic()
+        liveliness = self.bus.session.liveliness()
+        run = self.bus.trust.run_id
+        self._token = liveliness.declare_token(self.bus.keys.detector_replica(self.instance, run))
+        self._replica_prefix = self.bus.keys.detector_replicas(run)[:-1]  # a replica of this run: prefix + name
+        self._foreign_tokens = 0
+        self._live_sub = liveliness.declare_subscriber(
+            self.bus.keys.detector_replicas_all, self._on_liveliness, history=True
+        )
+        self.last_mine = -1
+        self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
+        self._last_frame: Frame | None = None
+        self._eos_since: float | None = None
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg.queue)))
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() - self._members_changed < MEMBERSHIP_SETTLE_S and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self.log.info("replica %d of %d", *self._rank())
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        name = Keys.instance_of(key)
+        if key != self._replica_prefix + name:  # another run's replica, or a forged token: not one of ours
+            with self._members_lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._foreign_tokens += 1
+                    self.metrics.counters["rejected_foreign_replica"] = self._foreign_tokens
+            return
+        with self._members_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._members.add(name)
+            else:
+                self._members.discard(name)
+            self._members_changed = time.monotonic()
+
+    def _rank(self) -> tuple[int, int]:
+        with self._members_lock:
+            members = sorted(self._members | {self.instance})
+        return members.index(self.instance), len(members)
+
+    def _detect(self, frame: Frame) -> list[DetectedBox]:
+        return self.detector.detect_frame(frame)
+
+    def on_frame(self, frame: Frame) -> None:
+        rank, n = self._rank()
+        if frame.frame_id % n != rank:
+            return
+        started = time.time()
+        # frames of our share that never reached us were dropped upstream of this handler (bounded queue)
+        for missed in range(self.last_mine + 1, frame.frame_id):
+            if missed % n == rank and self.last_mine >= 0:
+                self._publish_skip(frame, missed, "dropped")
+        self.last_mine = frame.frame_id
+        self._last_frame = frame
+        if frame.frame_id % self.every_n:
+            self._publish_skip(frame, frame.frame_id, "stride")
+            return
+        with self.metrics.timer("detect_ms") as t_detect:
+            try:
+                boxes = self._detect(frame)
+                depth = frame.depth()
+            except ValueError as exc:
+                self.metrics.count("frames_bad")
+                self.log.warning("frame %d not detected: %s", frame.frame_id, exc)
+                self._publish_skip(frame, frame.frame_id, "bad_frame")
+                return
+        with self.metrics.timer("depth_ms"):
+            detections = depth_detections(boxes, depth, frame.depth_scale, self.stride, self.cfg.depth_min_m,
+                                          self.cfg.depth_max_m)
+        self.metrics.count("frames_detected")
+        if self._last_detected_stamp is not None and frame.stamp > self._last_detected_stamp:
+            self.metrics.time_ms("detect_interval_ms", (frame.stamp - self._last_detected_stamp) * 1e3)
+        self._last_detected_stamp = frame.stamp
+        self.metrics.count("detections", len(detections))
+        self.metrics.count("depth_gated", len(boxes) - len(detections))
+        queue_ms = max(0.0, (started - frame.sent_at) * 1e3) if frame.sent_at else 0.0
+        self.metrics.time_ms("queue_ms", queue_ms)
+        self.pub.put(
+            Detections(
+                self.robot,
+                frame.frame_id,
+                frame.stamp,
+                frame.intrinsics,
+                frame.depth_scale,
+                detections,
+                "",
+                self.instance,
+                {"detect_ms": t_detect.ms, "queue_ms": queue_ms},
+                frame.sent_at,
+            )
+        )
+        self.report_progress(frame.frame_id)
+
+    def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
+        self.metrics.count(f"frames_{reason}")
+        stamp = frame.stamp if frame_id == frame.frame_id else -1.0
+        self.pub.put(
+            Detections(
+                self.robot,
+                frame_id,
+                stamp,
+                frame.intrinsics,
+                frame.depth_scale,
+                [],
+                reason,
+                self.instance,
+                {},
+                frame.sent_at if frame_id == frame.frame_id else 0.0,
+            )
+        )
+        self.report_progress(frame_id)
+
+    def _owed(self, last_frame_id: int) -> list[int]:
+        """Frames of our share up to `last_frame_id` that we have not answered yet."""
+        rank, n = self._rank()
+        return [f for f in range(self.last_mine + 1, last_frame_id + 1) if f % n == rank]
+
+    def on_end_of_stream(self, control: Control) -> None:
+        """Finish once our share is answered; frames still missing after a grace period were dropped."""
+        if self.finished:
+            return
+        if not self._owed(control.last_frame_id):
+            self.finish()
+        elif self._eos_since is None:
+            self._eos_since = time.monotonic()
+
+    def tick(self) -> None:
+        if self.end_of_stream is None or self.finished or self._eos_since is None:
+            return
+        if time.monotonic() - self._eos_since > EOS_GRACE_S and len(self.inbox) == 0:
+            if self._last_frame is not None:
+                for missed in self._owed(self.end_of_stream.last_frame_id):
+                    self._publish_skip(self._last_frame, missed, "dropped")
+            self.finish()
+
+    def teardown(self) -> None:
+        self._live_sub.undeclare()
+        self._token.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(DetectorService, argv)

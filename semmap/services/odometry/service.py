@@ -1,0 +1,146 @@
+"""Odometry front-end service: one `OdometryPose` per frame on `semmap/v1/<robot>/odometry`.
+
+It stands in for an external SLAM; a real one publishes the same messages on the same key instead.
+
+A front end that leaves out dynamic objects (`rgbd`) gets each frame's boxes from the tracker
+(`semmap/v1/<robot>/dynamic`). Lockstep (with `--await-dynamic`, which `semmap run` passes when a tracker
+runs): a frame waits for its own boxes, so a replay is deterministic; the tracker depends only on the
+detector, never on the odometry, so the wait closes no cycle (the player waits for every service's progress,
+the odometry's included). Real time: the newest boxes at hand, never a wait.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import msgpack
+import numpy as np
+
+from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
+from semmap.core.journal import FrameJournal
+from semmap.core.messages import DynamicObjects, Frame, OdometryPose
+from semmap.datasets.trajectory_io import write_tum
+from semmap.runtime.service import REPLAY_FRAMES, Service, service_main
+
+DYNAMIC_KEPT = 64  # frames of dynamic objects kept (real time: boxes may run ahead of or behind the frames)
+
+
+class OdometryService(Service):
+    """Publishes camera poses for every frame (see module docstring)."""
+
+    name = "odometry"
+
+    def setup(self) -> None:
+        cfg = self.config.odometry
+        self.mode: str = cfg.mode
+        self.frontend: FrontEnd = make_frontend(self.mode, cfg)
+        self.to_session = np.linalg.inv(frame_offset(cfg.frame_offset))
+        self.keyframe_every = cfg.keyframe_every
+        self.trajectory: list[tuple[float, object]] = []
+        self.pose_pub = self.publisher(self.bus.keys.odometry)
+        self.journal = FrameJournal(self.out_dir / "odometry.sqlite") if self.out_dir is not None else None
+        if self.journal is not None:
+            if self.resume:
+                self._restore()
+            else:
+                self.journal.clear()
+        self.dynamic: dict[int, DynamicObjects] = {}  # recent frames' dynamic objects by frame id
+        self.await_dynamic = self.frontend.uses_dynamic and self.lockstep and bool(self.args.await_dynamic)
+        self.dynamic_wait_s = cfg.dynamic_wait_s
+        self.waiting: tuple[Frame, float] | None = None  # lockstep: a frame waiting for its dynamic objects
+        if self.frontend.uses_dynamic:
+            self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
+        # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=4)
+
+    def on_dynamic(self, message: DynamicObjects) -> None:
+        if message.frame_id <= self.last_frame_id:
+            return  # (a replay, or boxes of a frame already done)
+        self.dynamic[message.frame_id] = message
+        for old in sorted(self.dynamic)[:-DYNAMIC_KEPT]:
+            del self.dynamic[old]
+        if self.waiting is not None and self.waiting[0].frame_id == message.frame_id:
+            self._estimate(self.waiting[0])
+
+    def on_frame(self, frame: Frame) -> None:
+        if frame.frame_id <= self.last_frame_id:
+            self.metrics.count("frames_repeated")
+            self.replay(frame.frame_id)
+            return
+        if self.await_dynamic and frame.frame_id not in self.dynamic:
+            if self.waiting is None or self.waiting[0].frame_id != frame.frame_id:  # (not a resent frame)
+                self.waiting = (frame, time.monotonic())
+            return
+        self._estimate(frame)
+
+    def tick(self) -> None:
+        if self.waiting is not None and time.monotonic() - self.waiting[1] > self.dynamic_wait_s:
+            self.metrics.count("dynamic_wait_timeouts")
+            self.log.warning("frame %d: no dynamic objects after %.0f s, estimating without them",
+                             self.waiting[0].frame_id, self.dynamic_wait_s)
+            self._estimate(self.waiting[0])
+
+    def _boxes(self, frame_id: int) -> DynamicObjects | None:
+        """The frame's own dynamic objects, else (real time) the newest earlier ones."""
+        if frame_id in self.dynamic:
+            return self.dynamic[frame_id]
+        earlier = [f for f in self.dynamic if f < frame_id]
+        return self.dynamic[max(earlier)] if earlier else None
+
+    def _estimate(self, frame: Frame) -> None:
+        self.waiting = None
+        with self.metrics.timer("odometry_ms"):
+            data = OdometryInput(frame.frame_id, frame.stamp, frame.gt_pose, depth_scale=frame.depth_scale,
+                                 intrinsics=frame.intrinsics.matrix)
+            if self.frontend.needs_images:
+                data.rgb, data.depth = frame.rgb(), frame.depth()
+            if self.frontend.uses_dynamic:
+                dynamic = self._boxes(frame.frame_id)
+                data.dynamic = dynamic.boxes if dynamic is not None else []
+                self.metrics.count("frames_with_dynamic_boxes", bool(data.dynamic))
+                if dynamic is not None and dynamic.frame_id != frame.frame_id:
+                    self.metrics.count("dynamic_from_earlier_frame")
+            pose = self.to_session @ self.frontend.estimate(data)
+        if hasattr(self.frontend, "far_matches"):  # file:PATH frames with no pose within 0.05 s
+            self.metrics.counters["frames_unmatched"] = self.frontend.far_matches
+        sigma_t, sigma_r = self.frontend.sigmas
+        self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
+                                              keyframe=frame.frame_id % self.keyframe_every == 0,
+                                              sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode),
+                  frame.frame_id)
+        self.trajectory.append((frame.stamp, pose))
+        if self.journal is not None:
+            self.journal.append(frame.frame_id, self._sent[frame.frame_id][0][1].encode(),
+                                msgpack.packb(self.frontend.state()))
+        self.metrics.count("poses_published")
+        self.report_progress(frame.frame_id)
+
+    def _restore(self) -> None:
+        """Continue the trajectory after a crash: earlier poses from the journal, the front end's state. The
+        newest poses are remembered as sent: the old process may have journalled a frame and died before its pose
+        or its progress left, and the player then sends that frame again; it must be answered, not ignored."""
+        state = None
+        for frame_id, pose_bytes, state_bytes, _ in self.journal.frames():
+            pose = OdometryPose.decode(pose_bytes)
+            self.trajectory.append((pose.stamp, pose.pose))
+            self.last_frame_id, state = frame_id, state_bytes
+        for frame_id, pose_bytes, _, _ in self.journal.last(REPLAY_FRAMES):
+            self.remember(self.pose_pub, OdometryPose.decode(pose_bytes), frame_id)
+        if state is not None:
+            self.frontend.restore(msgpack.unpackb(state))
+            self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))
+
+    def write_outputs(self) -> None:
+        if self.out_dir is not None and self.trajectory:
+            write_tum(self.out_dir / "trajectory_odometry.tum", self.trajectory)
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--await-dynamic", action="store_true",
+                        help="lockstep: a front end that leaves out dynamic objects waits for each frame's boxes "
+                             "(a tracker must run)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(OdometryService, argv, _arguments)

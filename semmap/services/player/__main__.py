@@ -1,0 +1,5 @@
+import sys
+
+from semmap.services.player.service import main
+
+sys.exit(main())

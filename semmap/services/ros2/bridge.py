@@ -1,0 +1,747 @@
+"""`semmap ros2`: a ROS 2 node that feeds a running semmap from a camera + SLAM and publishes the map back in ROS 2.
+
+    semmap run external --out out/robot &          # the pipeline, waiting for a SLAM (Zenoh on 127.0.0.1:7447)
+    semmap ros2 --ros-args -r /odom:=/rtabmap/odom -p pose_to_optical:=ros
+
+In (defaults: the RealSense ROS 2 wrapper's names; remap any with `--ros-args -r FROM:=TO`):
+  /camera/camera/color/image_raw                   sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)
+  /camera/camera/aligned_depth_to_color/image_raw  sensor_msgs/Image (16UC1 mm or 32FC1 m), aligned to colour
+  /camera/camera/color/camera_info                 sensor_msgs/CameraInfo
+  /odom                                            the camera pose: nav_msgs/Odometry (`pose_type:=odometry`),
+                                                   geometry_msgs/PoseStamped (`pose`) or
+                                                   PoseWithCovarianceStamped (`pose_with_covariance`)
+Out:
+  /semmap/landmarks               visualization_msgs/MarkerArray: a cube per landmark (its extent, a colour per
+                                  class) and a text `class #id`; DELETE for merged and retired landmarks
+  /semmap/trajectory              nav_msgs/Path: the backend's optimised camera trajectory (optical frame)
+  /semmap/correction              geometry_msgs/TransformStamped: corrected world <- SLAM world (tf2_msgs, to put
+                                  it on /tf, is not on PyPI)
+  /semmap/landmark_observations   nav_msgs/Odometry, one per observation: child_frame_id `semmap_landmark_<id>`,
+                                  the landmark's centroid in the camera frame with its covariance
+  /semmap/dynamic                 visualization_msgs/MarkerArray per detected frame: a box per dynamic object
+                                  (people, animals, things seen moving), a colour per track, a text label, a short
+                                  lifetime (`dynamic_lifetime_s`) so that stale boxes vanish
+  /semmap/bridge_status           std_msgs/String (JSON): counters of matched, skipped and sent messages
+
+Frames go to semmap through its Zenoh keys exactly as an external SLAM sends them (semmap.runtime.client), one frame per
+matched colour/depth/pose triple (semmap.services.ros2.sync). Parameters (`-p name:=value`) are listed in PARAMETERS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import colorsys
+import json
+import logging
+import math
+import os
+import sys
+import threading
+import time
+import zlib
+from collections import Counter, OrderedDict, deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Landmark, MapUpdate, Observations
+from semmap.datasets.ros_convert import matrix_quaternion, parse_pose_to_optical
+from semmap.services.ros2.sync import FrameSync, MatchedFrame
+
+log = logging.getLogger("semmap.services.ros2")
+
+COLOUR_TOPIC = "/camera/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/camera/color/camera_info"
+POSE_TOPIC = "/odom"
+LANDMARKS_TOPIC = "/semmap/landmarks"
+TRAJECTORY_TOPIC = "/semmap/trajectory"
+CORRECTION_TOPIC = "/semmap/correction"
+OBSERVATIONS_TOPIC = "/semmap/landmark_observations"
+DYNAMIC_TOPIC = "/semmap/dynamic"
+STATUS_TOPIC = "/semmap/bridge_status"
+
+# name: (default, description)
+PARAMETERS: dict[str, tuple[Any, str]] = {
+    "pose_type": ("odometry", "type on the pose topic: odometry | pose | pose_with_covariance"),
+    "pose_to_optical": (
+        "identity",
+        "pose frame -> camera optical frame: identity (the pose is the optical "
+        "frame's) | ros (a REP 103 frame at the camera, x forward) | 'x y z qx qy qz qw'",
+    ),
+    "sync_tolerance_s": (0.02, "largest header-stamp difference between colour, depth and pose"),
+    "pose_max_gap_s": (0.5, "longest gap between two poses that a frame's pose is interpolated over"),
+    "max_wait_s": (2.0, "how long an unmatched colour image waits for its depth and pose"),
+    "sigma_translation_m": (0.01, "per-frame 1-sigma motion noise declared to semmap's backend (metres)"),
+    "sigma_rotation_deg": (0.5, "... and rotation (degrees)"),
+    "lockstep": (
+        False,
+        "wait until semmap has processed each frame before sending the next (no drops; for "
+        "bags and tests); false: real time, the oldest waiting frame is dropped when semmap is busy",
+    ),
+    "queue_size": (2, "real time: frames waiting for semmap before the oldest is dropped"),
+    "map_frame": ("", "frame of the outputs (\"\" = the pose messages' header.frame_id, else 'map')"),
+    "corrected_frame": ("semmap_map", "parent frame of /semmap/correction (the corrected world)"),
+    "output_period_s": (1.0, "publish the map and the trajectory at most this often (the latest state)"),
+    "path_max_poses": (500, "the Path holds at most this many poses, evenly spread, the newest always"),
+    "topic_timeout_s": (5.0, "report an input topic by name when nothing arrived on it for this long"),
+    "end_after_idle_s": (
+        0.0,
+        "send semmap end-of-stream (it writes its files) after this long without a frame; "
+        "0 = only when the bridge stops",
+    ),
+    "reliable_input": (
+        False,
+        "subscribe to the inputs with reliable QoS (default best effort: matches any "
+        "publisher, never blocks the camera)",
+    ),
+    "input_depth": (10, "input QoS history depth"),
+    "dynamic_lifetime_s": (
+        0.5,
+        "lifetime of a dynamic-object box in RViz: it vanishes unless a newer detected frame renews it",
+    ),
+}
+LOCKSTEP_QUEUE = 300  # frames held while semmap catches up in lockstep (~1.5 MB each at 640x480)
+SENT_KEPT = 9000  # frames sent whose pose is kept for the outputs (5 min at 30 Hz; ~0.3 KB each, no images)
+DYNAMIC_MIN_DEPTH_M = 0.05  # a dynamic box is at least this deep along the view (a one-surface depth range)
+
+
+@dataclass(frozen=True)
+class SentFrame:
+    """What the outputs need of a frame sent to semmap: not its images (1.5 MB a frame at 640x480)."""
+
+    stamp: float
+    pose: np.ndarray  # optical camera -> world
+    intrinsics: tuple[float, float, float, float, int, int]
+    camera_frame: str
+
+
+def track_colour(track_id: int) -> tuple[float, float, float]:
+    """A distinct RGB colour per track (golden-ratio hue steps: neighbouring ids look different), fully saturated
+    so that dynamic objects stand out from the landmarks' softer class colours."""
+    hue = (track_id * 0.618033988749895) % 1.0
+    return colorsys.hsv_to_rgb(hue, 1.0, 1.0)
+
+
+def dynamic_box_in_world(
+    box: DynamicBox, intrinsics: tuple[float, float, float, float, int, int], pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(centre in the world, rotation world <- box axes, size x y z) of the 3D box of a dynamic object: its image box
+    at the middle of its depth range, as wide and high as the image box spans there, as deep as the range (at least
+    DYNAMIC_MIN_DEPTH_M), axes along the optical frame's (x right, y down, z forward). None without a depth range
+    (0, 0: no valid depth in the box)."""
+    if not box.depth_max_m > 0:
+        return None
+    fx, fy, cx, cy, _, _ = intrinsics
+    x1, y1, x2, y2 = box.box
+    z = 0.5 * (box.depth_min_m + box.depth_max_m)
+    centre_cam = np.array([((x1 + x2) / 2 - cx) / fx * z, ((y1 + y2) / 2 - cy) / fy * z, z])
+    size = np.array(
+        [abs(x2 - x1) / fx * z, abs(y2 - y1) / fy * z, max(box.depth_max_m - box.depth_min_m, DYNAMIC_MIN_DEPTH_M)]
+    )
+    return pose[:3, :3] @ centre_cam + pose[:3, 3], pose[:3, :3].copy(), size
+
+
+def class_colour(name: str) -> tuple[float, float, float]:
+    """A stable RGB colour per class (the same in every run and every process)."""
+    hue = (zlib.crc32(name.encode()) % 360) / 360.0
+    return colorsys.hsv_to_rgb(hue, 0.75, 0.95)
+
+
+class SemmapLink:
+    """Sends matched frames to semmap over Zenoh on its own thread (publishing can wait; ROS callbacks must not)."""
+
+    def __init__(
+        self,
+        client: Any,
+        lockstep: bool,
+        queue_size: int,
+        sigmas: tuple[float, float],
+        end_after_idle_s: float,
+        counters: Counter,
+    ) -> None:
+        self.client = client
+        self.lockstep = lockstep
+        self.queue_size = LOCKSTEP_QUEUE if lockstep else max(1, int(queue_size))
+        self.sigmas = sigmas
+        self.end_after_idle_s = float(end_after_idle_s)
+        self.counters = counters
+        self.sent: OrderedDict[int, SentFrame] = OrderedDict()  # frame_id -> its pose etc. (the last SENT_KEPT)
+        self.ready = False
+        self.ended = False
+        self.last_id = -1
+        self.done_id = -1
+        self._queue: deque[MatchedFrame] = deque()
+        self._cv = threading.Condition()
+        self._stopping = False
+        self._last_frame_at = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="semmap-link", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, frame: MatchedFrame) -> None:
+        with self._cv:
+            if self.ended:
+                self.counters["after_end_of_stream"] += 1
+                return
+            if len(self._queue) >= self.queue_size:
+                self._queue.popleft()
+                self.counters["dropped_busy"] += 1
+            self._queue.append(frame)
+            self._cv.notify_all()
+
+    def _wait_ready(self) -> bool:
+        from semmap.runtime.client import SemmapTimeout
+
+        waited = 0.0
+        while not self._stopping:
+            try:
+                self.client.wait_ready(timeout=5.0)
+                log.info("semmap is running: sending frames")
+                return True
+            except SemmapTimeout as exc:
+                waited += 5.0
+                if waited == 5.0 or waited % 30 == 0:
+                    log.warning("waiting for semmap (start `semmap run external`): %s", exc)
+        return False
+
+    def _run(self) -> None:
+        from semmap.runtime.client import SemmapTimeout
+
+        if not self._wait_ready():
+            return
+        with self._cv:
+            self.ready = True
+        while True:
+            with self._cv:
+                while not self._queue and not self._stopping:
+                    if self._idle_end_due():
+                        break
+                    self._cv.wait(0.1)
+                if self._idle_end_due():
+                    self._end_locked(f"no frame for {self.end_after_idle_s:.1f} s")
+                    continue
+                if not self._queue or (self._stopping and not self.lockstep):
+                    return
+                frame = self._queue.popleft()
+                frame_id = self.last_id + 1
+            fx, fy, cx, cy, _, _ = frame.intrinsics
+            self.client.publish_frame(frame_id, frame.stamp, frame.rgb, frame.depth_mm, 0.001, (fx, fy, cx, cy))
+            self.client.publish_pose(
+                frame_id,
+                frame.stamp,
+                frame.pose,
+                sigma_translation=self.sigmas[0],
+                sigma_rotation=self.sigmas[1],
+                source="ros2",
+            )
+            with self._cv:
+                self.sent[frame_id] = SentFrame(frame.stamp, frame.pose, frame.intrinsics, frame.camera_frame)
+                if len(self.sent) > SENT_KEPT:
+                    self.sent.popitem(last=False)
+                self.last_id = frame_id
+                self._last_frame_at = time.monotonic()
+                self.counters["frames_sent"] += 1
+            if self.lockstep:
+                try:
+                    self.client.wait_frame_done(frame_id, timeout=120.0)
+                except SemmapTimeout as exc:
+                    self.counters["frame_timeouts"] += 1
+                    log.error("%s", exc)
+            with self._cv:
+                self.done_id = frame_id
+
+    def _idle_end_due(self) -> bool:
+        return (
+            self.end_after_idle_s > 0
+            and not self.ended
+            and self.last_id >= 0
+            and not self._queue
+            and time.monotonic() - self._last_frame_at > self.end_after_idle_s
+        )
+
+    def _end_locked(self, why: str) -> None:
+        if not self.ended and self.last_id >= 0:
+            self.client.end_of_stream(self.last_id)
+            log.info("end of stream after frame %d (%s)", self.last_id, why)
+        self.ended = True
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Lockstep: send what is queued first. Then end the stream, so semmap writes its files."""
+        with self._cv:
+            self._stopping = True
+            self._cv.notify_all()
+        self._thread.join(timeout if self.lockstep else 5.0)
+        with self._cv:
+            self._end_locked("the bridge stops")
+
+    def status(self) -> dict:
+        with self._cv:
+            return {
+                "semmap_ready": self.ready,
+                "frames_sent": self.last_id + 1,
+                "frames_done": self.done_id + 1,
+                "queued": len(self._queue),
+                "ended": self.ended,
+            }
+
+
+def _declare(node: Any) -> dict[str, Any]:
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    values = {}
+    for name, (default, description) in PARAMETERS.items():
+        values[name] = node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+    return values
+
+
+def run_bridge(robot: str, connect: str | None, zenoh_mode: str | None, ros_args: list[str]) -> int:
+    """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
+    try:
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+
+        node_class = _make_node_class()
+    except ImportError as exc:
+        print(f"error: the ROS 2 bridge needs the ros2 extra (pip install 'semmap[ros2]'): {exc}", file=sys.stderr)
+        return 2
+    from semmap.runtime.client import SemmapClient
+
+    rclpy.init(args=["semmap_ros2", *ros_args])
+    client = None
+    node = None
+    try:
+        client = SemmapClient(robot, connect or "tcp/127.0.0.1:7447", zenoh_mode)
+        node = node_class(client)
+        node.start()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:  # a bad parameter value
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        try:
+            if node is not None:
+                node.stop()
+                node.destroy_node()
+        finally:
+            if client is not None:
+                client.close()
+            rclpy.try_shutdown()
+    return 0
+
+
+def _make_node_class() -> type:
+    """The node class, built here so that rclpy and the message packages are imported only by the bridge."""
+    from builtin_interfaces.msg import Duration, Time
+    from geometry_msgs.msg import (
+        Point,
+        Pose,
+        PoseStamped,
+        PoseWithCovarianceStamped,
+        Quaternion,
+        TransformStamped,
+        Vector3,
+    )
+    from nav_msgs.msg import Odometry, Path
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from scipy.spatial.transform import Rotation
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+    from std_msgs.msg import ColorRGBA, String
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    pose_types = {
+        "odometry": ("nav_msgs/msg/Odometry", Odometry),
+        "pose": ("geometry_msgs/msg/PoseStamped", PoseStamped),
+        "pose_with_covariance": ("geometry_msgs/msg/PoseWithCovarianceStamped", PoseWithCovarianceStamped),
+    }
+
+    def ros_time(t: float) -> Time:
+        sec = math.floor(t)
+        return Time(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+
+    def ros_pose(matrix: np.ndarray) -> Pose:
+        x, y, z, w = matrix_quaternion(matrix[:3, :3])
+        t = matrix[:3, 3]
+        return Pose(
+            position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])), orientation=Quaternion(x=x, y=y, z=z, w=w)
+        )
+
+    class _BridgeNode(Node):
+        """Subscriptions, matching, the Zenoh link and the outputs (see the module docstring)."""
+
+        def __init__(self, client: Any) -> None:
+            super().__init__("semmap_bridge")
+            p = _declare(self)
+            if p["pose_type"] not in pose_types:
+                raise ValueError(f"pose_type must be one of {', '.join(pose_types)}, got {p['pose_type']!r}")
+            self.params = p
+            self.client = client
+            self.counters: Counter[str] = Counter()
+            self.sync = FrameSync(
+                p["sync_tolerance_s"],
+                p["pose_max_gap_s"],
+                p["max_wait_s"],
+                parse_pose_to_optical(str(p["pose_to_optical"])),
+            )
+            self.link = SemmapLink(
+                client,
+                bool(p["lockstep"]),
+                int(p["queue_size"]),
+                (float(p["sigma_translation_m"]), math.radians(float(p["sigma_rotation_deg"]))),
+                float(p["end_after_idle_s"]),
+                self.counters,
+            )
+            self.lock = threading.Lock()  # the map and trajectory state is updated from Zenoh threads
+            self.landmarks: dict[int, Landmark] = {}
+            qos = QoSProfile(
+                depth=int(p["input_depth"]),
+                reliability=ReliabilityPolicy.RELIABLE if p["reliable_input"] else ReliabilityPolicy.BEST_EFFORT,
+            )
+            pose_name, pose_class = pose_types[p["pose_type"]]
+            self.inputs = {
+                "colour": (self.create_subscription(Image, COLOUR_TOPIC, self._on_colour, qos), "sensor_msgs/Image"),
+                "depth": (self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, qos), "sensor_msgs/Image"),
+                "camera_info": (
+                    self.create_subscription(CameraInfo, INFO_TOPIC, self._on_info, qos),
+                    "sensor_msgs/CameraInfo",
+                ),
+                "pose": (
+                    self.create_subscription(pose_class, POSE_TOPIC, lambda m: self._on_pose(m, pose_name), qos),
+                    pose_name,
+                ),
+            }
+            # a compressed colour stream is taken too when that is what the camera sends
+            self.create_subscription(CompressedImage, COLOUR_TOPIC + "/compressed", self._on_compressed, qos)
+            self.arrivals: Counter[str] = Counter()
+            self.warned: dict[str, float] = {}
+            latched = QoSProfile(
+                depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+            )
+            self.markers_pub = self.create_publisher(MarkerArray, LANDMARKS_TOPIC, latched)
+            self.path_pub = self.create_publisher(Path, TRAJECTORY_TOPIC, latched)
+            self.correction_pub = self.create_publisher(TransformStamped, CORRECTION_TOPIC, latched)
+            self.observations_pub = self.create_publisher(Odometry, OBSERVATIONS_TOPIC, 100)
+            self.dynamic_pub = self.create_publisher(MarkerArray, DYNAMIC_TOPIC, 10)
+            self.status_pub = self.create_publisher(String, STATUS_TOPIC, 10)
+            self.started = time.monotonic()
+            self.create_timer(1.0, self._tick)
+            self.deleted: set[int] = set()
+            self.map_dirty = False
+            # the optimised trajectory, kept by applying each `poses/corrected` delta (semmap.corrected_poses/2)
+            self.poses: dict[int, np.ndarray] = {}
+            self.stamps: dict[int, float] = {}
+            self.trajectory_dirty = False
+            self.create_timer(float(p["output_period_s"]), self._publish_outputs)
+            client.on_map_update(self._on_map_update)
+            client.on_corrected_poses(self._on_corrected)
+            client.on_observations(self._on_observations)
+            client.on_dynamic(self._on_dynamic)
+            self.get_logger().info(
+                f"in: {self._topic('colour')}, {self._topic('depth')}, {self._topic('camera_info')}, "
+                f"{self._topic('pose')} ({pose_name}); out: {LANDMARKS_TOPIC}, {TRAJECTORY_TOPIC}, "
+                f"{CORRECTION_TOPIC}, {OBSERVATIONS_TOPIC}, {DYNAMIC_TOPIC}; "
+                f"{'lockstep' if p['lockstep'] else 'real time'}, "
+                f"tolerance {p['sync_tolerance_s']} s, ROS_AUTOMATIC_DISCOVERY_RANGE="
+                f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
+            )
+
+        def _topic(self, role: str) -> str:
+            return self.inputs[role][0].topic_name
+
+        def start(self) -> None:
+            self.link.start()
+
+        def stop(self) -> None:
+            """After rclpy's shutdown (SIGINT / SIGTERM): nothing can be published any more; the counters go to
+            the log."""
+            self.link.stop()
+            log.info("stopped: %s", json.dumps(self._status()))
+
+        # -- inputs ------------------------------------------------------------------------------------------
+        def _forward(self, frames: list[MatchedFrame]) -> None:
+            for frame in frames:
+                self.link.submit(frame)
+
+        def _on_colour(self, msg: Image) -> None:
+            self.arrivals["colour"] += 1
+            self._forward(self.sync.add_colour(msg))
+
+        def _on_compressed(self, msg: CompressedImage) -> None:
+            self.arrivals["colour"] += 1
+            self._forward(self.sync.add_colour(msg, compressed=True))
+
+        def _on_depth(self, msg: Image) -> None:
+            self.arrivals["depth"] += 1
+            self._forward(self.sync.add_depth(msg))
+
+        def _on_info(self, msg: CameraInfo) -> None:
+            self.arrivals["camera_info"] += 1
+            self._forward(self.sync.add_camera_info(msg))
+
+        def _on_pose(self, msg: Any, msgtype: str) -> None:
+            self.arrivals["pose"] += 1
+            self._forward(self.sync.add_pose(msg, msgtype))
+
+        def _tick(self) -> None:
+            """Once a second: report inputs that never arrived, publish the counters."""
+            now = time.monotonic()
+            timeout = float(self.params["topic_timeout_s"])
+            for role, (sub, kind) in self.inputs.items():
+                quiet = now - self.warned.get(role, -1e9) > 30
+                if self.arrivals[role] == 0 and now - self.started >= timeout and quiet:
+                    self.warned[role] = now
+                    self.get_logger().warning(
+                        f"no message on {sub.topic_name} ({kind}) after {now - self.started:.0f} s: is it published? "
+                        f"remap with --ros-args -r {sub.topic_name}:=/your/topic"
+                    )
+            self.status_pub.publish(String(data=json.dumps(self._status())))
+
+        def _status(self) -> dict:
+            missing = [self.inputs[r][0].topic_name for r in self.inputs if self.arrivals[r] == 0]
+            return {
+                "received": dict(self.arrivals),
+                "sync": dict(self.sync.counters),
+                "link": dict(self.counters),
+                **self.link.status(),
+                "missing_topics": missing,
+            }
+
+        # -- outputs -----------------------------------------------------------------------------------------
+        def _frame_id(self) -> str:
+            return str(self.params["map_frame"]) or self.sync.world_frame or "map"
+
+        def _on_map_update(self, update: MapUpdate) -> None:
+            """(Zenoh thread) Keep the map; the timer publishes it (at most every `output_period_s`)."""
+            with self.lock:
+                before = set(self.landmarks)
+                if update.full:
+                    self.landmarks = {lm.id: lm for lm in update.landmarks}
+                else:
+                    for lm in update.landmarks:
+                        self.landmarks[lm.id] = lm
+                    for gone in [*update.removed, *(absorbed for absorbed, _ in update.merges)]:
+                        self.landmarks.pop(gone, None)
+                self.deleted |= before - set(self.landmarks)
+                self.map_dirty = True
+
+        def _on_corrected(self, corrected: CorrectedPoses) -> None:
+            """(Zenoh thread) Keep the newest estimate; the timer publishes it (a 1000-pose Path takes ~20 ms to
+            build: not for every frame)."""
+            with self.lock:
+                if corrected.full:
+                    self.stamps.clear()
+                corrected.apply_to(self.poses)
+                self.stamps.update(
+                    zip((int(f) for f in corrected.frame_ids), (float(t) for t in corrected.stamps), strict=True)
+                )
+                self.trajectory_dirty = True
+
+        def _publish_outputs(self) -> None:
+            """(ROS timer) The latest map and trajectory, if they changed."""
+            with self.lock:
+                markers = self._markers(sorted(self.deleted)) if self.map_dirty else None
+                self.deleted, self.map_dirty = set(), False
+                trajectory = None
+                if self.trajectory_dirty:
+                    ids = sorted(self.poses)
+                    trajectory = (ids, [self.stamps[i] for i in ids], np.array([self.poses[i] for i in ids]))
+                    self.trajectory_dirty = False
+            if markers is not None:
+                self.markers_pub.publish(markers)
+            if trajectory is not None and trajectory[0]:
+                self._publish_trajectory(*trajectory)
+
+        def _markers(self, deleted: list[int]) -> MarkerArray:
+            frame = self._frame_id()
+            out = MarkerArray()
+            for lid in deleted:
+                for ns in ("landmarks", "labels"):
+                    out.markers.append(Marker(ns=ns, id=lid, action=Marker.DELETE))
+                    out.markers[-1].header.frame_id = frame
+            for lm in sorted(self.landmarks.values(), key=lambda x: x.id):
+                r, g, b = class_colour(lm.class_name)
+                pose = Pose(
+                    position=Point(x=float(lm.centroid[0]), y=float(lm.centroid[1]), z=float(lm.centroid[2])),
+                    orientation=Quaternion(w=1.0),
+                )
+                cube = Marker(
+                    ns="landmarks",
+                    id=lm.id,
+                    type=Marker.CUBE,
+                    action=Marker.ADD,
+                    pose=pose,
+                    scale=Vector3(
+                        x=max(float(lm.extent[0]), 0.02),
+                        y=max(float(lm.extent[1]), 0.02),
+                        z=max(float(lm.extent[2]), 0.02),
+                    ),
+                    color=ColorRGBA(r=r, g=g, b=b, a=0.6),
+                )
+                label = Marker(
+                    ns="labels",
+                    id=lm.id,
+                    type=Marker.TEXT_VIEW_FACING,
+                    action=Marker.ADD,
+                    pose=pose,
+                    scale=Vector3(z=0.08),
+                    color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
+                    text=f"{lm.class_name} #{lm.id}",
+                )
+                for marker in (cube, label):
+                    marker.header.frame_id = frame  # stamp 0: RViz draws with the latest transform
+                    out.markers.append(marker)
+            return out
+
+        def _publish_trajectory(self, ids: list[int], stamps: list[float], poses: np.ndarray) -> None:
+            frame = self._frame_id()
+            path = Path()
+            path.header.frame_id = frame
+            limit = max(2, int(self.params["path_max_poses"]))
+            keep = np.unique(np.linspace(0, len(ids) - 1, min(limit, len(ids))).round().astype(int))  # newest kept
+            quats = Rotation.from_matrix(poses[keep, :3, :3]).as_quat()
+            items = []
+            for k, q in zip(keep, quats, strict=True):
+                pose = poses[k]
+                item = PoseStamped()
+                item.header.frame_id = frame
+                item.header.stamp = ros_time(float(stamps[k]))
+                position, orientation = item.pose.position, item.pose.orientation
+                position.x, position.y, position.z = float(pose[0, 3]), float(pose[1, 3]), float(pose[2, 3])
+                orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
+                items.append(item)
+            path.poses = items
+            path.header.stamp = ros_time(float(stamps[-1]))
+            self.path_pub.publish(path)
+            sent = self.link.sent
+            for fid, pose in zip(ids[::-1], poses[::-1], strict=True):
+                frame_sent = sent.get(int(fid))
+                if frame_sent is not None:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
+                    correction = pose @ np.linalg.inv(frame_sent.pose)
+                    msg = TransformStamped()
+                    msg.header.frame_id = str(self.params["corrected_frame"])
+                    msg.header.stamp = ros_time(frame_sent.stamp)
+                    msg.child_frame_id = frame
+                    q = ros_pose(correction)
+                    msg.transform.translation = Vector3(x=q.position.x, y=q.position.y, z=q.position.z)
+                    msg.transform.rotation = q.orientation
+                    self.correction_pub.publish(msg)
+                    break
+
+        def _on_dynamic(self, objects: DynamicObjects) -> None:
+            """(Zenoh thread) A detected frame's dynamic objects as boxes in the world, published at once (they are
+            about now; each lives `dynamic_lifetime_s`, so an object that left vanishes). A frame that was not
+            detected repeats older boxes: nothing is published for it, the boxes of the last detected frame live on
+            until their lifetime ends."""
+            if objects.skipped:
+                return
+            sent = self.link.sent.get(objects.frame_id)
+            if sent is None:
+                self.counters["dynamic_unknown_frame"] += 1
+                return
+            frame = self._frame_id()
+            stamp = ros_time(objects.stamp)
+            lifetime = max(float(self.params["dynamic_lifetime_s"]), 0.0)
+            life = Duration(sec=int(lifetime), nanosec=int(round((lifetime % 1.0) * 1e9)))
+            out = MarkerArray()
+            for box in objects.boxes:
+                placed = dynamic_box_in_world(box, sent.intrinsics, sent.pose)
+                if placed is None:
+                    self.counters["dynamic_without_depth"] += 1
+                    continue
+                centre, rotation, size = placed
+                x, y, z, w = matrix_quaternion(rotation)
+                r, g, b = track_colour(box.track_id)
+                position = Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
+                cube = Marker(
+                    ns="dynamic",
+                    id=box.track_id,
+                    type=Marker.CUBE,
+                    action=Marker.ADD,
+                    pose=Pose(position=position, orientation=Quaternion(x=x, y=y, z=z, w=w)),
+                    scale=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
+                    color=ColorRGBA(r=r, g=g, b=b, a=0.5),
+                    lifetime=life,
+                )
+                why = " moving" if box.reason == "moving" else ""
+                label = Marker(
+                    ns="dynamic_labels",
+                    id=box.track_id,
+                    type=Marker.TEXT_VIEW_FACING,
+                    action=Marker.ADD,
+                    pose=Pose(position=Point(x=position.x, y=position.y, z=position.z), orientation=Quaternion(w=1.0)),
+                    scale=Vector3(z=0.1),
+                    color=ColorRGBA(r=r, g=g, b=b, a=1.0),
+                    text=f"{box.class_name}{why} (track {box.track_id})",
+                    lifetime=life,
+                )
+                for marker in (cube, label):
+                    marker.header.frame_id = frame
+                    marker.header.stamp = stamp
+                    out.markers.append(marker)
+            if out.markers:
+                self.counters["dynamic_boxes"] += len(out.markers) // 2
+                with self.lock:
+                    self.dynamic_pub.publish(out)
+
+        def _on_observations(self, observations: Observations) -> None:
+            sent = self.link.sent.get(observations.frame_id)
+            camera_frame = sent.camera_frame if sent is not None else "camera_color_optical_frame"
+            for obs in observations.observations:
+                msg = Odometry(child_frame_id=f"semmap_landmark_{obs.landmark_id}")
+                msg.header.frame_id = camera_frame
+                msg.header.stamp = ros_time(observations.stamp)
+                msg.pose.pose.position = Point(
+                    x=float(obs.point_camera[0]), y=float(obs.point_camera[1]), z=float(obs.point_camera[2])
+                )
+                msg.pose.pose.orientation = Quaternion(w=1.0)
+                # position: the observation's isotropic sigma; orientation: unconstrained (an object centroid)
+                msg.pose.covariance = [float(v) for v in np.diag([obs.sigma**2] * 3 + [1e6] * 3).reshape(36)]
+                msg.twist.covariance[0] = -1.0  # no twist (the REP 145 "unknown" marker)
+                with self.lock:
+                    self.observations_pub.publish(msg)
+
+    return _BridgeNode
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`semmap ros2 [--robot R] [--connect EP] [--ros-args ...]` (also `python -m semmap.services.ros2.bridge`)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args: list[str] = []
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        argv, ros_args = argv[:i], argv[i:]
+    parser = argparse.ArgumentParser(
+        prog="semmap ros2", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    return run(args, ros_args)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robot", default="robot1", help="semmap robot name (key space semmap/v1/<robot>)")
+    parser.add_argument(
+        "--connect",
+        default=None,
+        help="semmap's Zenoh endpoint (default tcp/127.0.0.1:7447, where "
+        "`semmap run external` listens); env SEMMAP_ZENOH_CONNECT",
+    )
+    parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    parser.add_argument("-v", "--verbose", action="store_true")
+
+
+def run(args: argparse.Namespace, ros_args: list[str]) -> int:
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
+    )
+    return run_bridge(args.robot, args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT"), args.zenoh_mode, ros_args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,358 @@
+"""Rerun sink: records the run to `DIR/run.rrd` (and optionally serves the web viewer for a live run).
+
+Entity layout (Rerun 0.41):
+- `world/landmarks`: each landmark as the outline of its extent's box (`Boxes3D`, wireframe: nothing solid hides
+  what lies inside, a cup on the table stays visible) in a stable colour per landmark id, and a small solid
+  sphere at its centroid (`world/landmarks/centres`); labels `class #id` sit on leader lines above the boxes
+  (`world/landmarks/labels`), raised where they would pile up on each other.
+- `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
+- `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
+  `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
+  rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
+  `world/camera/depth` every `viz.depth_every` frames.
+- `timings/<service>/<stage>`: per-stage latency time series in ms.
+
+Blueprint: the 3D map, a top-down view of it (looking down the gravity axis, once a pose says where that is), and
+the camera image; the latency plot is a second tab behind the camera (collapsed by default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import colorsys
+import os
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from semmap.core.geometry import carry_correction
+from semmap.core.messages import (
+    CorrectedPoses,
+    Detections,
+    Frame,
+    Landmark,
+    MapUpdate,
+    OdometryPose,
+    ServiceStatus,
+    Tracks,
+)
+from semmap.runtime.service import Service, service_main
+
+OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
+LABEL_GAP_M = 0.12  # labels closer than this (horizontally and vertically) would overlap: the later is raised
+CORE_RADIUS_M = (0.03, 0.06)  # the centroid sphere: a fifth of the landmark's radius, within these bounds
+
+TRACK_COLORS = {"tentative": (160, 160, 160), "candidate": (40, 200, 90), "rejected": (230, 40, 40)}
+
+
+def landmark_color(landmark_id: int) -> tuple[int, int, int]:
+    """A stable, well-spread colour per id (golden-ratio hue steps)."""
+    hue = (landmark_id * 0.618033988749895) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+def label_anchors(centres: np.ndarray, tops: np.ndarray, up: np.ndarray, gap: float = LABEL_GAP_M) -> np.ndarray:
+    """Where each label goes: just above its box top, raised along `up` by steps of `gap` until it is at least
+    `gap` from every label placed before it (in id order), so near-by objects' labels stack instead of piling."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    placed: list[np.ndarray] = []
+    for c, top in zip(np.asarray(centres, float), np.asarray(tops, float), strict=True):
+        anchor = c + up * (float(np.dot(top - c, up)) + 0.05)
+        for _ in range(50):
+            if all(np.linalg.norm(anchor - q) >= gap for q in placed):
+                break
+            anchor = anchor + up * gap
+        placed.append(anchor)
+    return np.array(placed).reshape(-1, 3)
+
+
+def blueprint(up: np.ndarray | None = None, centre: np.ndarray | None = None, span: float = 4.0) -> object:
+    """Map, top-down view (looking along -up at `centre` from `span` metres; world Z-up until a pose tells) and
+    the camera, with the latency plot in a tab behind it."""
+    import rerun.blueprint as rrb
+
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float) / np.linalg.norm(up)
+    centre = np.zeros(3) if centre is None else np.asarray(centre, float)
+    side = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(side) < 1e-3:
+        side = np.cross(up, [0.0, 1.0, 0.0])
+    eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=centre + up * max(span, 1.0), look_target=centre,
+                            eye_up=side / np.linalg.norm(side))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="map"),
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="world", name="top-down", contents=["world/landmarks/**",
+                                                                            "world/trajectory/**"],
+                                  eye_controls=eye),
+                rrb.Tabs(rrb.Spatial2DView(origin="world/camera/image", name="camera"),
+                         rrb.TimeSeriesView(origin="timings", name="latency (ms)"), active_tab=0),
+                row_shares=[1, 1]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
+
+
+class VizService(Service):
+    """Logs everything on the bus worth seeing to Rerun (see module docstring)."""
+
+    name = "viz"
+
+    def setup(self) -> None:
+        import rerun as rr
+
+        self.rr = rr
+        cfg = self.config.viz
+        self.images = cfg.images
+        self.depth_every = cfg.depth_every
+        # one recording id per run, so what a restarted sink records merges into the same recording
+        run_key = str(self.out_dir.resolve()) if self.out_dir is not None else self.robot
+        recording_id = f"semmap-{self.robot}-{uuid.uuid5(uuid.NAMESPACE_URL, run_key).hex[:12]}"
+        rr.init(f"semmap-{self.robot}", recording_id=recording_id, spawn=False)
+        self.parts: list[Path] = []
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            rrd = self.out_dir / "run.rrd"
+            self.parts = sorted(self.out_dir.glob("run.part-*.rrd")) if self.resume else []
+            if self.resume and rrd.is_file():  # keep what the crashed sink recorded; merged when we finish
+                part = self.out_dir / f"run.part-{len(self.parts) + 1}.rrd"
+                rrd.rename(part)
+                self.parts.append(part)
+        sinks: list = [rr.FileSink(str(rrd))] if self.out_dir is not None else []
+        if self.args.serve:  # the live run in the web viewer as well as the file
+            server = rr.GrpcServerSink(port=self.args.grpc_port)
+            sinks.append(server)
+            uri = f"rerun+http://127.0.0.1:{self.args.grpc_port}/proxy"  # as the browser on this host sees it
+            rr.serve_web_viewer(web_port=self.args.web_port, open_browser=False, connect_to=uri)
+            self.log.info("web viewer: http://localhost:%d/?url=%s", self.args.web_port, uri)
+        if sinks:
+            rr.set_sinks(*sinks)
+        rr.send_blueprint(blueprint())
+        self.up: np.ndarray | None = None  # gravity's opposite, from the first pose (image y points down)
+        rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.landmarks: dict[int, Landmark] = {}
+        self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
+        self.optimized: dict[int, np.ndarray] = {}  # frame id -> corrected pose (the backend sends deltas)
+        self.optimized_drawn_at = 0.0
+        self.correction: tuple[np.ndarray, np.ndarray] | None = None  # (corrected, odometry) of one frame
+        self.map_frame = -1
+        self.rejected: set[int] = set()  # track ids of rejected candidates
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=8)
+        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
+        self.listen(self.bus.keys.detections, Detections, self.on_detections)
+        self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
+        self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map)
+        self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
+        self.listen(self.bus.keys.status_all, ServiceStatus, self.on_status)
+        self._load_current_map()
+
+    def _load_current_map(self) -> None:
+        """Start from the map as it is (a sink started late or restarted would see only later changes)."""
+        import json
+
+        for reply in self.bus.session.get(self.bus.keys.map_query, timeout=1.0):
+            if reply.ok is not None:
+                body = json.loads(reply.ok.payload.to_bytes())
+                self.landmarks = {lm.id: lm for lm in map(Landmark.from_dict, body.get("landmarks", []))}
+                if self.landmarks:
+                    self._log_landmarks()
+                break
+
+    def _at(self, frame_id: int) -> None:
+        self.rr.set_time("frame", sequence=frame_id)
+
+    def on_frame(self, frame: Frame) -> None:
+        with self.metrics.timer("log_frame_ms"):
+            self._log_frame(frame)
+        self.metrics.count("frames")
+        self.last_frame_id = max(self.last_frame_id, frame.frame_id)
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def _log_frame(self, frame: Frame) -> None:
+        rr = self.rr
+        self._at(frame.frame_id)
+        k = frame.intrinsics
+        rr.log("world/camera", rr.Pinhole(focal_length=[k.fx, k.fy], principal_point=[k.cx, k.cy],
+                                          resolution=[k.width, k.height], image_plane_distance=0.3))
+        if self.images:
+            rr.log("world/camera/image", rr.EncodedImage(contents=frame.rgb_jpeg, media_type="image/jpeg"))
+        if self.depth_every and frame.frame_id % self.depth_every == 0:
+            rr.log("world/camera/depth", rr.DepthImage(frame.depth(), meter=1.0 / frame.depth_scale))
+
+    def on_odometry(self, pose: OdometryPose) -> None:
+        rr = self.rr
+        self._at(pose.frame_id)
+        self.odometry[pose.frame_id] = pose.pose.copy()
+        if self.up is None:  # the first camera's -y is "up" for handheld and robot data: the top-down axis
+            self.up = -pose.pose[:3, 1]
+            rr.send_blueprint(blueprint(self.up, pose.pose[:3, 3] + 1.5 * pose.pose[:3, 2]))
+        # show the camera where the optimised map puts it: the newest correction applied to the odometry
+        current = pose.pose if self.correction is None else carry_correction(*self.correction, pose.pose)
+        rr.log("world/camera", rr.Transform3D(translation=current[:3, 3], mat3x3=current[:3, :3]))
+        if pose.frame_id % 5 == 0:
+            path = np.array([self.odometry[i][:3, 3] for i in sorted(self.odometry)])
+            rr.log("world/trajectory/odometry", rr.LineStrips3D([path], colors=[(230, 120, 30)], radii=0.005))
+
+    def on_corrected(self, poses: CorrectedPoses) -> None:
+        poses.apply_to(self.optimized)
+        if len(poses.poses) == 0:
+            return
+        self._at(poses.frame_id)
+        # the whole path is O(trajectory) to draw: at most twice a second (and whenever a full message comes)
+        now = time.monotonic()
+        if poses.full or now - self.optimized_drawn_at >= OPTIMIZED_DRAW_PERIOD_S:
+            self.optimized_drawn_at = now
+            self._draw_optimized()
+        last_id = int(poses.frame_ids[-1])
+        if last_id in self.odometry:
+            self.correction = (poses.poses[-1], self.odometry[last_id])  # the newest corrected frame, its odometry
+        for name, ms in poses.timing_ms.items():
+            self.rr.log(f"timings/backend/{name}", self.rr.Scalars(ms))
+
+    def _draw_optimized(self) -> None:
+        if self.optimized:
+            path = np.array([self.optimized[f][:3, 3] for f in sorted(self.optimized)])
+            self.rr.log("world/trajectory/optimized", self.rr.LineStrips3D([path], colors=[(40, 140, 255)],
+                                                                           radii=0.006))
+
+    def on_detections(self, det: Detections) -> None:
+        rr = self.rr
+        self._at(det.frame_id)
+        if det.detections:
+            rr.log("world/camera/image/detections", rr.Boxes2D(
+                array=[d.box for d in det.detections], array_format=rr.Box2DFormat.XYXY,
+                labels=[f"{d.class_name} {d.score:.2f}" for d in det.detections], colors=[(255, 210, 0)]))
+        else:
+            rr.log("world/camera/image/detections", rr.Clear(recursive=False))
+        for name, ms in det.timing_ms.items():
+            rr.log(f"timings/detector/{name}", rr.Scalars(ms))
+
+    def on_tracks(self, tracks: Tracks) -> None:
+        rr = self.rr
+        self._at(tracks.frame_id)
+        if tracks.boxes:
+            states = ["rejected" if b.track_id in self.rejected else "candidate" if b.candidate else "tentative"
+                      for b in tracks.boxes]
+            rr.log("world/camera/image/tracks", rr.Boxes2D(
+                array=[b.box for b in tracks.boxes], array_format=rr.Box2DFormat.XYXY,
+                labels=[f"{b.class_name} t{b.track_id}" for b in tracks.boxes],  # the state is the colour
+                colors=[TRACK_COLORS[s] for s in states]))
+        else:
+            rr.log("world/camera/image/tracks", rr.Clear(recursive=False))
+        if "proposal" in tracks.timing_ms:
+            rr.log("timings/tracker/proposal", rr.Scalars(tracks.timing_ms["proposal"]))
+
+    def on_map(self, update: MapUpdate) -> None:
+        with self.metrics.timer("log_map_ms"):
+            self._log_map(update)
+        if self.end_of_stream is not None:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def _log_map(self, update: MapUpdate) -> None:
+        rr = self.rr
+        self._at(update.frame_id)
+        if update.full:
+            self.landmarks.clear()
+        for gone in update.removed:
+            self.landmarks.pop(gone, None)
+        for absorbed, _ in update.merges:
+            self.landmarks.pop(absorbed, None)
+        for lm in update.landmarks:
+            self.landmarks[lm.id] = lm
+        self.map_frame = max(self.map_frame, update.frame_id)
+        if update.landmarks or update.removed or update.merges or update.full:
+            self._log_landmarks()
+        if update.rejected_candidates:
+            # drawn red on the image from now on (see on_tracks), and noted in the log view
+            self.rejected.update(update.rejected_candidates)
+            rr.log("world/rejected", rr.TextLog(f"rejected candidates (moving / unstable): tracks "
+                                                f"{update.rejected_candidates}", level="WARN"))
+        for name, ms in update.timing_ms.items():
+            rr.log(f"timings/associator/{name}", rr.Scalars(ms))
+
+    def _log_landmarks(self) -> None:
+        rr = self.rr
+        items = [self.landmarks[i] for i in sorted(self.landmarks)]
+        if not items:
+            rr.log("world/landmarks", rr.Clear(recursive=True))
+            return
+        centres = np.array([lm.centroid for lm in items], float)
+        half = np.array([np.maximum(np.asarray(lm.extent, float), 0.04) / 2 for lm in items])
+        colors = [landmark_color(lm.id) for lm in items]
+        labels = [f"{lm.class_name} #{lm.id}" for lm in items]
+        rr.log("world/landmarks", rr.Boxes3D(centers=centres, half_sizes=half, colors=colors, radii=0.005,
+                                             fill_mode="majorwireframe", labels=labels, show_labels=False))
+        core = np.clip([0.2 * lm.radius for lm in items], *CORE_RADIUS_M)
+        rr.log("world/landmarks/centres", rr.Ellipsoids3D(centers=centres, half_sizes=np.repeat(core[:, None], 3, 1),
+                                                          colors=colors, fill_mode="solid"))
+        up = self.up if self.up is not None else np.array([0.0, 0.0, 1.0])
+        up = up / np.linalg.norm(up)
+        tops = centres + up * np.abs(half @ np.abs(up))[:, None] if len(items) else centres
+        anchors = label_anchors(centres, tops, up)
+        rr.log("world/landmarks/labels", rr.Points3D(anchors, colors=colors, radii=0.006, labels=labels,
+                                                     show_labels=True))
+        rr.log("world/landmarks/leaders", rr.LineStrips3D(np.stack([centres, anchors], axis=1), colors=colors,
+                                                          radii=0.002))
+
+    def on_status(self, status: ServiceStatus) -> None:
+        pass  # statuses are summarised in stats.json by the orchestrator
+
+    def on_end_of_stream(self, control) -> None:  # noqa: ANN001 - Control
+        frames_done = self.last_frame_id >= control.last_frame_id
+        if frames_done:
+            self._draw_optimized()  # the newest path, whatever the redraw period left out
+        if frames_done and (self.map_frame >= control.last_frame_id or not self.args.wait_for_map):
+            self.finish()
+
+    def _frame_the_map(self) -> None:
+        """Point the top-down view at the whole map (its bounding box, from high enough to see all of it)."""
+        if not self.landmarks:
+            return
+        centres = np.array([lm.centroid for lm in self.landmarks.values()], float)
+        lo, hi = centres.min(axis=0), centres.max(axis=0)
+        span = max(2.0, 1.3 * float(np.linalg.norm(hi - lo)))
+        self.rr.send_blueprint(blueprint(self.up, (lo + hi) / 2, span))
+
+    def write_outputs(self) -> None:
+        """Frame the map in the top-down view; after a restart, merge the earlier parts and this one into run.rrd."""
+        self._frame_the_map()
+        if not self.parts or self.out_dir is None:
+            return
+        import shutil
+        import subprocess
+        import sys
+
+        self.rr.disconnect()
+        rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+        rrd = self.out_dir / "run.rrd"
+        merged = self.out_dir / "run.merged.rrd"
+        if rerun is None:
+            self.log.warning("rerun CLI missing: the recording stays in parts %s", [p.name for p in self.parts])
+            return
+        result = subprocess.run([rerun, "rrd", "merge", *map(str, self.parts), str(rrd), "-o", str(merged)],
+                                capture_output=True, text=True, env={**os.environ, "CI": "true"})
+        if result.returncode == 0:
+            merged.replace(rrd)
+            for part in self.parts:
+                part.unlink()
+            self.parts = []
+        else:
+            self.log.warning("could not merge the recording parts: %s", result.stderr[-500:])
+
+    def teardown(self) -> None:
+        self.rr.disconnect()
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--serve", action="store_true", help="also serve the Rerun web viewer (live run)")
+    parser.add_argument("--web-port", type=int, default=9090, help="web viewer port (with --serve)")
+    parser.add_argument("--grpc-port", type=int, default=9876, help="Rerun gRPC port (with --serve)")
+    parser.add_argument("--wait-for-map", action="store_true",
+                        help="finish only after the map update of the last frame (the run has an associator)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main(VizService, argv, _arguments)

@@ -1,5 +1,0 @@
-import sys
-
-from services.associator.service import main
-
-sys.exit(main())

@@ -1,5 +1,0 @@
-import sys
-
-from services.backend.service import main
-
-sys.exit(main())

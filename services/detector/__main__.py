@@ -1,5 +1,0 @@
-import sys
-
-from services.detector.service import main
-
-sys.exit(main())

@@ -1,5 +1,0 @@
-import sys
-
-from services.odometry.service import main
-
-sys.exit(main())

@@ -1,5 +1,0 @@
-import sys
-
-from services.player.service import main
-
-sys.exit(main())

@@ -1,5 +1,0 @@
-import sys
-
-from services.tracker.service import main
-
-sys.exit(main())

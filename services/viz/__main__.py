@@ -1,5 +1,0 @@
-import sys
-
-from services.viz.service import main
-
-sys.exit(main())
