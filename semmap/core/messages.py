@@ -500,17 +500,23 @@ class Measurement:
     detection: Detection
     intrinsics: Intrinsics
     depth_scale: float
+    # a box of a dynamic class (a person) covers part of this one in the same frame: its depth may show the
+    # person, so the associator's motion tests leave it out (optional on the wire: absent reads False)
+    occluded: bool = False
 
     def to_dict(self) -> dict:
         return {"frame_id": self.frame_id, "stamp": self.stamp, "detection": self.detection.to_dict(),
-                "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale}
+                "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale, "occluded": self.occluded}
 
     @classmethod
     def from_dict(cls, d: Any) -> Measurement:
         if not isinstance(d, dict):
             raise MessageError("a measurement must be a map")
+        occluded = d.get("occluded", False)
+        if not isinstance(occluded, bool):
+            raise MessageError("field 'occluded' must be a bool")
         return cls(_non_negative_int(d, "frame_id"), _get(d, "stamp", float), Detection.from_dict(d.get("detection")),
-                   Intrinsics.from_dict(d.get("intrinsics")), _get(d, "depth_scale", float))
+                   Intrinsics.from_dict(d.get("intrinsics")), _get(d, "depth_scale", float), occluded)
 
 
 @dataclass

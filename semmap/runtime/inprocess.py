@@ -324,7 +324,7 @@ def run_loop(
     sigma_t, sigma_r = front.sigmas
     keyframe_every = config.odometry.keyframe_every
     # the sections each service reads (semmap/services/*/service.py)
-    tracker = TrackerStage(config.tracker)
+    tracker = TrackerStage(config.tracker, dynamic_classes=config.associator.dynamic_classes)
     associator = AssociatorStage(config.associator, config.associator.refine_every_n_frames, await_backend=True)
     backend = BackendStage(config.backend, config.loop_closure, config.corrections)
     mapper = associator.mapper
@@ -450,8 +450,9 @@ def run_offline(
 ) -> OfflineRun:
     """Feed every frame (its index is the frame id) through detection, the tracker stage and the mapper against
     fixed poses (no backend): for tests and benchmarks of the mapping alone."""
-    tracker = TrackerStage(tracker_params)
-    run = OfflineRun(tracker.tracker, LandmarkMapper(mapper_params))
+    mapper = LandmarkMapper(mapper_params)
+    tracker = TrackerStage(tracker_params, dynamic_classes=mapper.params.dynamic_classes)
+    run = OfflineRun(tracker.tracker, mapper)
     lookup = poses.get
     for frame in frames:
         dets = make_detections(frame, detect(frame), stride)

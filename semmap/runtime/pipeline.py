@@ -106,8 +106,10 @@ class TrackerStage:
     """IOU tracklets from one frame's detections. A skipped frame (not detected: stride, overload) only ages the
     tracklets, which may end them: the associator must hear of it; a frame with no stamp ages nothing."""
 
-    def __init__(self, params: TrackerParams | None = None, first_track_id: int = 0) -> None:
-        self.tracker = IouTracker(params, first_track_id=first_track_id)
+    def __init__(
+        self, params: TrackerParams | None = None, first_track_id: int = 0, dynamic_classes: Iterable[str] = ()
+    ) -> None:
+        self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=dynamic_classes)
 
     @property
     def params(self) -> TrackerParams:

@@ -158,3 +158,18 @@ def test_triangulation_from_rays_around_an_object() -> None:
     assert np.linalg.norm(point - target) < 1e-6 and eig > 0.3
     q = map_problem(views, P, (0,))
     assert np.linalg.norm(q.start - target) < 1e-6
+
+
+def test_views_a_person_covers_do_not_retire_a_landmark_but_still_condemn_a_newcomer() -> None:
+    """A chair seen still, then with a person walking behind it whose depth shows through the chair's box: the
+    covered views' centroids walk with the person. Flagged occluded (by the tracker), they do not count as
+    motion for an established landmark; for a new candidate they do (a cup a person carries is covered by the
+    person too, and must not become a landmark)."""
+    still = [fake_view(i, i / 10, np.array([-0.45, 0.62, 0.47]), size=0.9) for i in range(10)]
+    walking = [np.array([-0.45, 0.62 + 0.05 * k, 0.47 + 0.04 * k]) for k in range(1, 11)]
+    views = still + [fake_view(10 + k, (10 + k) / 10, w, size=0.9) for k, w in enumerate(walking)]
+    for v in views[10:]:
+        v.occluded = True
+    assert coherent_motion(views, P)[0] and validate(views, P).reason == "motion"
+    assert not coherent_motion(views, P, trust_occluded=False)[0]
+    assert not views[-1].shows_motion(trust_occluded=False) and views[0].shows_motion(trust_occluded=False)

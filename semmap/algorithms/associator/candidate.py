@@ -81,6 +81,15 @@ class View:
     choice: int = 0
     inlier: bool = True  # agrees with its landmark's MAP centroid (used for the landmark's cloud)
     alt_world: np.ndarray | None = None  # (a, 3) cached world centroids
+    occluded: bool = False  # a dynamic object's box (a person) covers part of it: its depth may be the person's
+
+    def shows_motion(self, trust_occluded: bool) -> bool:
+        """May this view's centroid speak for the object's motion? Not when truncated (its centre slides with
+        what is in view); not when occluded unless `trust_occluded` (its centre may follow the person in front
+        of or behind the object). A new candidate trusts occluded views (a cup a person carries is covered by
+        the person: it must still not become a landmark); an established landmark does not (a person passing a
+        chair must not retire it)."""
+        return not self.truncated and (trust_occluded or not self.occluded)
 
     def __post_init__(self) -> None:
         if self.alt_world is None:
@@ -184,6 +193,7 @@ def make_view(
         pose.copy(),
         is_truncated(m, p.border_margin_px),
         alt_world=alt_world,
+        occluded=m.occluded,
     )
     if expected is not None and len(world) > 1:
         d = np.linalg.norm(alt_world - expected[0], axis=1)
@@ -259,7 +269,7 @@ class Validation:
     reason: str = ""
 
 
-def coherent_motion(views: list[View], p: MapperParams) -> tuple[bool, float, float]:
+def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = True) -> tuple[bool, float, float]:
     """(moving, speed, displacement) from the views of the last `motion_window_s`, split by time into 3 to 5
     equal segments.
 
@@ -267,11 +277,12 @@ def coherent_motion(views: list[View], p: MapperParams) -> tuple[bool, float, fl
     (max(min_motion_m, motion_size_factor * s)), at more than max_speed_mps, no step between consecutive
     segments goes back (beyond 10% of the displacement), no single step carries most of it (75% of it
     with 3 segments, 60% with 5), and the views sit within half a step of their segment's median.
-    Only whole views count: the visible part of a box cut by the image border slides as the object enters
+    Only views that may show motion count (`View.shows_motion`): the visible part of a box cut by the image
+    border slides as the object enters
     the image, and even its far edge moves with the viewpoint for a large object (a table's far edge).
     """
     recent = [v for v in views if within(views[-1].stamp - v.stamp, p.motion_window_s)] if views else []
-    use = [v for v in recent if not v.truncated]
+    use = [v for v in recent if v.shows_motion(trust_occluded)]
     if len(use) < p.motion_min_views or below(use[-1].stamp - use[0].stamp, p.min_motion_span_s):
         return False, 0.0, 0.0
     c = world_centroids(use)
@@ -304,7 +315,7 @@ def coherent_motion(views: list[View], p: MapperParams) -> tuple[bool, float, fl
 
 
 def track_motion(
-    stamps: np.ndarray, centroids: np.ndarray, truncated: np.ndarray, size: float, p: MapperParams,
+    stamps: np.ndarray, centroids: np.ndarray, unclear: np.ndarray, size: float, p: MapperParams,
     whole_only: bool = True,
 ) -> tuple[bool, float]:
     """(moving, displacement) over a whole track: its views' world centroids binned by `track_motion_bin_s`,
@@ -316,13 +327,14 @@ def track_motion(
     a long track, and walks, stops and turns; a steady-motion test over 1.5 s misses much of that, but where
     the person stood 3 s ago and stands now are metres apart. Why capped with size: a static object's bin
     medians scatter with its size (partial views), but a person's do not need 0.9 m of slack.
-    whole_only: only views clear of the image border count (a large static object's centroid slides with what
+    unclear: per view, not `View.shows_motion`.
+    whole_only: only clear views count (a large static object's centroid slides with what
     is in view: the synthetic room's table moves by more than its size allows); otherwise all views, while
     whole views are too few (for a track that must prove it stood still, see `_short_but_static`).
     """
     if len(stamps) < 2 * p.track_motion_bin_views:
         return False, 0.0
-    whole = ~truncated
+    whole = ~unclear
     enough = int(whole.sum()) >= 2 * p.track_motion_bin_views
     if whole_only and not enough:
         return False, 0.0
@@ -348,7 +360,7 @@ def motion_testable(views: list[View], p: MapperParams) -> bool:
     return len(whole) >= p.motion_min_views and reaches(whole[-1].stamp - whole[0].stamp, p.min_motion_span_s)
 
 
-def validate(views: list[View], p: MapperParams) -> Validation:
+def validate(views: list[View], p: MapperParams, trust_occluded: bool = True) -> Validation:
     """Is this candidate a static, stable object? (see module docstring).
 
     Views whose box touches the image border show a centroid that slides as the object enters or leaves
@@ -356,7 +368,7 @@ def validate(views: list[View], p: MapperParams) -> Validation:
     spread tests then run on all views.
     """
     recent = views[-p.validation_window :]
-    moving, speed, displacement = coherent_motion(recent, p)
+    moving, speed, displacement = coherent_motion(recent, p, trust_occluded)
     use = whole_views(recent, p.min_views)
     c = world_centroids(use)
     size = float(np.percentile([v.size for v in use], 80))

@@ -239,6 +239,7 @@ def view_to_state(v: View) -> dict[str, Any]:
         "metric": v.metric,
         "pose": [float(x) for x in v.pose.reshape(16)],
         "truncated": v.truncated,
+        "occluded": v.occluded,
         "choice": v.choice,
         "inlier": v.inlier,
     }
@@ -259,6 +260,7 @@ def view_from_state(d: dict[str, Any]) -> View:
         bool(d["truncated"]),
         int(d["choice"]),
         bool(d["inlier"]),
+        occluded=bool(d.get("occluded", False)),
     )
 
 

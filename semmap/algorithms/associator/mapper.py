@@ -55,7 +55,6 @@ from .candidate import (
     map_centroids,
     map_problem,
     motion_testable,
-    validate,
 )
 from .geometry import robust_box
 from .landmark_map import LandmarkMap, LandmarkState, view_from_state, view_to_state
@@ -240,7 +239,7 @@ class LandmarkMapper:
             cand = self._cands.get(tid)
             self._rejected.discard(tid)  # the tracker never reuses an id
             if cand is not None and cand.landmark_id is not None and cand.since_validation > 0:
-                reason = failure_reason(cand, validate(cand.views, p), p)  # its last views were not validated yet
+                reason = failure_reason(cand, p)  # its last views were not validated yet
                 if reason:
                     self._reject(cand, step, touched, moving=reason in MOVING)
                     self._rejected.discard(tid)
@@ -421,7 +420,9 @@ class LandmarkMapper:
                     "since_validation": c.since_validation,
                     "skipped": c.skipped,
                     "pending": [m.to_dict() for m in c.pending],
-                    "path": [[f, t, *(float(x) for x in w), bool(tr)] for f, (t, w, tr) in c.path.items()],
+                    "path": [
+                        [f, t, *(float(x) for x in w), bool(tr), bool(oc)] for f, (t, w, tr, oc) in c.path.items()
+                    ],
                 }
                 for c in self._cands.values()
             ],
@@ -447,7 +448,8 @@ class LandmarkMapper:
                 bool(d["held"]),
                 int(d["since_validation"]),
                 int(d["skipped"]),
-                {int(e[0]): (float(e[1]), np.array(e[2:5], dtype=np.float64), bool(e[5])) for e in d.get("path", [])},
+                {int(e[0]): (float(e[1]), np.array(e[2:5], dtype=np.float64), bool(e[5]), len(e) > 6 and bool(e[6]))
+                 for e in d.get("path", [])},
             )
             mapper._cands[c.track_id] = c
         return mapper

@@ -20,7 +20,6 @@ from semmap.core.stamps import below, within
 from .backproject import BackprojectParams
 from .candidate import (
     PoseLookup,
-    Validation,
     View,
     choose_surfaces,
     make_view,
@@ -44,9 +43,9 @@ class Candidate:
     held: bool = False
     since_validation: int = 0  # views added since the last validation
     skipped: int = 0  # measurements counted but not back-projected (min_view_interval_s)
-    # the whole track's views as (stamp, world centroid, truncated) by frame id, for `track_motion` (views are
+    # the whole track's views as (stamp, world centroid, truncated, occluded) by frame id, for `track_motion` (views are
     # trimmed to the validation window; this is not)
-    path: dict[int, tuple[float, np.ndarray, bool]] = field(default_factory=dict)
+    path: dict[int, tuple[float, np.ndarray, bool, bool]] = field(default_factory=dict)
 
 
 def resolve_pending(
@@ -83,7 +82,7 @@ def resolve_pending(
         v = make_view(m, T, cand.track_id, bp, params, expected)
         if v is not None:
             new_views.append(v)
-            cand.path[v.frame_id] = (v.stamp, v.world.copy(), v.truncated)
+            cand.path[v.frame_id] = (v.stamp, v.world.copy(), v.truncated, v.occluded)
             bisect.insort(kept, m.stamp)
     cand.pending = still
     cand.views.extend(new_views)
@@ -103,11 +102,13 @@ def validate_candidate(cand: Candidate, p: MapperParams) -> str:
     cand.since_validation = 0
     if cand.landmark_id is None:
         choose_surfaces(cand.views[-p.validation_window :], p)
-    return failure_reason(cand, validate(cand.views, p), p)
+    return failure_reason(cand, p)
 
 
-def failure_reason(cand: Candidate, v: Validation, p: MapperParams) -> str:
-    """Why the candidate fails: the recent-window tests' reason, else the whole-track motion test's."""
+def failure_reason(cand: Candidate, p: MapperParams) -> str:
+    """Why the candidate fails: the recent-window tests' reason, else the whole-track motion test's. A
+    candidate feeding a landmark does not trust occluded views for motion (`View.shows_motion`)."""
+    v = validate(cand.views, p, trust_occluded=cand.landmark_id is None)
     if not v.ok:
         return v.reason
     moving, _ = whole_track_motion(cand, p)
@@ -116,14 +117,15 @@ def failure_reason(cand: Candidate, v: Validation, p: MapperParams) -> str:
 
 def whole_track_motion(cand: Candidate, p: MapperParams, whole_only: bool = True) -> tuple[bool, float]:
     """`track_motion` over the candidate's whole track (the views still held as they are placed now)."""
+    trust_occluded = cand.landmark_id is None
     for view in cand.views:
-        cand.path[view.frame_id] = (view.stamp, view.world, view.truncated)
+        cand.path[view.frame_id] = (view.stamp, view.world, view.truncated, view.occluded)
     entries = list(cand.path.values())
     size = float(np.percentile([x.size for x in cand.views], 80))
     return track_motion(
         np.array([e[0] for e in entries]),
         np.stack([e[1] for e in entries]),
-        np.array([e[2] for e in entries], dtype=bool),
+        np.array([e[2] or (e[3] and not trust_occluded) for e in entries], dtype=bool),
         size,
         p,
         whole_only,

@@ -19,6 +19,7 @@ Rules (paper settings: sigma_iou 0.2, min tracklet size 5, max time since the la
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,11 +61,27 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / np.maximum(union, 1e-12)
 
 
+def occluded_by(boxes: np.ndarray, occluders: np.ndarray, min_overlap: float) -> np.ndarray:
+    """(N,) bool: is each box (N,4) covered by at least `min_overlap` of its own area by one of `occluders` (M,4)?
+    (Intersection over the box's area, not IOU: a person's box dwarfs the chair it passes.)"""
+    if not len(boxes) or not len(occluders):
+        return np.zeros(len(boxes), dtype=bool)
+    ax1, ay1, ax2, ay2 = (c[:, None] for c in boxes.T)
+    bx1, by1, bx2, by2 = occluders.T
+    iw = np.maximum(np.minimum(ax2, bx2) - np.maximum(ax1, bx1), 0.0)
+    ih = np.maximum(np.minimum(ay2, by2) - np.maximum(ay1, by1), 0.0)
+    area = np.maximum((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]), 1e-12)
+    return (iw * ih).max(axis=1) / area >= min_overlap
+
+
 class IouTracker:
     """Frame-by-frame IOU tracking; one instance per robot (see module docstring)."""
 
-    def __init__(self, params: TrackerParams | None = None, first_track_id: int = 0) -> None:
+    def __init__(
+        self, params: TrackerParams | None = None, first_track_id: int = 0, dynamic_classes: Iterable[str] = ()
+    ) -> None:
         self.params = params or TrackerParams()
+        self.dynamic_classes = frozenset(dynamic_classes)  # their boxes mark the boxes they cover `occluded`
         self._active: list[_Tracklet] = []  # kept in creation (= id) order
         self._next_id = first_track_id
         self._class_ids: dict[str, int] = {}
@@ -91,10 +108,12 @@ class IouTracker:
         }
 
     @classmethod
-    def from_state(cls, state: dict, params: TrackerParams | None = None) -> IouTracker:
+    def from_state(
+        cls, state: dict, params: TrackerParams | None = None, dynamic_classes: Iterable[str] = ()
+    ) -> IouTracker:
         """The tracker `state()` described (a MessageError if it is not one)."""
         try:
-            tracker = cls(params, first_track_id=int(state["next_id"]))
+            tracker = cls(params, first_track_id=int(state["next_id"]), dynamic_classes=dynamic_classes)
             tracker._class_ids = {str(k): int(v) for k, v in state["class_ids"].items()}
             tracker._active = [
                 _Tracklet(int(t["track_id"]), str(t["class"]), int(t["class_id"]),
@@ -157,6 +176,7 @@ class IouTracker:
                         continue
                     used_t.add(a)
                     assigned[b] = self._active[a]
+        occluded = self._occluded(detections)
         for j, det in enumerate(detections):
             track = assigned[j]
             if track is None:
@@ -168,7 +188,7 @@ class IouTracker:
             track.box = det.box
             track.last_stamp = stamp
             track.length += 1
-            track.pending.append(Measurement(frame_id, stamp, det, intrinsics, depth_scale))
+            track.pending.append(Measurement(frame_id, stamp, det, intrinsics, depth_scale, bool(occluded[j])))
             if track.candidate or track.length >= self.params.min_length:
                 out.candidates.append(
                     CandidateUpdate(
@@ -182,6 +202,22 @@ class IouTracker:
             )
         out.candidates.sort(key=lambda c: c.track_id)
         return out
+
+    def _occluded(self, detections: list[Detection]) -> np.ndarray:
+        """Per detection: covered by a box of a dynamic class (not its own) in this frame."""
+        dynamic = [i for i, d in enumerate(detections) if d.class_name in self.dynamic_classes]
+        if not dynamic:
+            return np.zeros(len(detections), dtype=bool)
+        boxes = np.array([d.box for d in detections], dtype=np.float64).reshape(-1, 4)
+        depth = np.array([d.depth_m for d in detections], dtype=np.float64)
+        covered = np.zeros(len(detections), dtype=bool)
+        for k in dynamic:
+            # in front of the object, or close enough behind it to show through it (a chair's back, a plant's
+            # leaves); a person metres behind is outside the object's depth band anyway
+            near = (depth <= 0) | (depth[k] <= 0) | (depth[k] <= depth + self.params.occlusion_depth_margin_m)
+            covered |= near & occluded_by(boxes, boxes[[k]], self.params.occlusion_min_overlap)
+        covered[dynamic] = False  # a person among people is tracked, never mapped: nothing to spare it from
+        return covered
 
 
 def depth_range(det: Detection, depth_scale: float, band_m: float) -> tuple[float, float]:

@@ -148,6 +148,16 @@ class TrackerParams(Section):
     dynamic_depth_band_m: Positive = Field(
         0.5, description="a dynamic object's depth range: its box's valid depths this close to its median"
     )
+    occlusion_min_overlap: Probability = Field(
+        0.1,
+        description="a box this much covered (intersection / its area) by a box of a dynamic class "
+        "(associator.dynamic_classes) in the same frame is marked occluded: the associator's motion tests leave "
+        "it out (a person passing in front of or behind a chair is not the chair moving)",
+    )
+    occlusion_depth_margin_m: NonNegative = Field(
+        1.0, description="...when that box's median depth is at most this much beyond the covered box's (further "
+        "behind, its depth is outside the object's band)"
+    )
 
 
 class OdometryConfig(Section):

@@ -42,10 +42,11 @@ class TrackerService(Service):
         # track ids must never repeat within a run (the associator keys candidates by them): without a journal to
         # continue from, a restarted tracker starts a clock-based block of ids
         first_id = int(time.time()) * TRACK_ID_BLOCK if self.resume and self.out_dir is None else 0
-        self.stage = TrackerStage(self.params, first_track_id=first_id)  # the per-frame policy (runtime/pipeline.py)
+        self.dynamic_classes = set(self.config.associator.dynamic_classes)
+        # the per-frame policy (runtime/pipeline.py)
+        self.stage = TrackerStage(self.params, first_track_id=first_id, dynamic_classes=self.dynamic_classes)
         self.pub = self.publisher(self.bus.keys.tracks)
         self.dynamic_pub = self.publisher(self.bus.keys.dynamic)
-        self.dynamic_classes = set(self.config.associator.dynamic_classes)
         self.moving: set[int] = set()  # track ids the associator rejected as moving
         self.last_dynamic: list[DynamicBox] = []  # of the last detected frame (carried over skipped frames)
         self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
@@ -76,7 +77,7 @@ class TrackerService(Service):
         for frame_id, tracks, _, _ in rows:
             self.remember(self.pub, Tracks.decode(tracks), frame_id)
         frame_id, _, state, _ = rows[-1]
-        self.stage.tracker = IouTracker.from_state(msgpack.unpackb(state), self.params)
+        self.stage.tracker = IouTracker.from_state(msgpack.unpackb(state), self.params, self.dynamic_classes)
         self.last_frame_id = frame_id
         self.reorder.mark_done(frame_id)
         self.log.info("resumed after frame %d (%d tracklets)", frame_id, self.tracker.active_count)
