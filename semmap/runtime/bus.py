@@ -73,9 +73,9 @@ class BusConfig:
 
     @classmethod
     def from_env(cls, connect: str | None = None, mode: str | None = None, listen: str | None = None,
-                 config_file: str | None = None) -> BusConfig:
+                 config_file: str | None = None, env_connect: bool = True) -> BusConfig:
         """Flags win over environment variables, which win over the Zenoh config file, which wins over the
-        embedded default."""
+        embedded default. env_connect=False: ignore SEMMAP_ZENOH_CONNECT (a router is what others dial)."""
         config_file = config_file or os.environ.get(ENV_ZENOH_CONFIG) or None
         if config_file and not os.path.isfile(config_file):
             raise BusError(f"Zenoh config file {config_file} does not exist (--zenoh-config / {ENV_ZENOH_CONFIG})")
@@ -86,7 +86,7 @@ class BusConfig:
         mode = mode_given or "peer"
         if mode not in MODES:
             raise BusError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
-        connect_spec = connect or os.environ.get(ENV_CONNECT)
+        connect_spec = connect or (os.environ.get(ENV_CONNECT) if env_connect else None)
         if connect_spec:
             explicit.add("connect")
         connect_list = _split(connect_spec)

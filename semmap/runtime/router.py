@@ -20,7 +20,7 @@ import threading
 
 import zenoh
 
-from semmap.runtime.bus import ENV_CONNECT, ENV_LISTEN, BusConfig, BusError, open_session
+from semmap.runtime.bus import ENV_LISTEN, BusConfig, BusError, open_session
 from semmap.runtime.service import HEALTH_FILE, configure_logging, touch_health
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # this host only; a container passes tcp/0.0.0.0:7447 explicitly
@@ -60,9 +60,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     # the router is what others connect to: it does not follow SEMMAP_ZENOH_CONNECT (semmap's image sets it for the
     # services, which would make the router dial itself; links to other routers go in its Zenoh config file)
-    os.environ.pop(ENV_CONNECT, None)
     try:
-        config = BusConfig.from_env(mode="router", listen=listen, config_file=args.zenoh_config)
+        config = BusConfig.from_env(mode="router", listen=listen, config_file=args.zenoh_config, env_connect=False)
         session = open_session(config, retries=5)
     except (BusError, zenoh.ZError) as exc:  # e.g. the port is taken, a bad configuration file
         log.error("%s", exc)
