@@ -59,3 +59,34 @@ def test_router_without_an_endpoint_is_a_usage_error() -> None:
         timeout=60,
     )
     assert result.returncode == 2 and "names no endpoint" in result.stderr
+
+
+def test_the_router_ignores_the_services_connect_variable_and_the_bus_config_can_too(monkeypatch) -> None:  # noqa: ANN001
+    """semmap's image sets SEMMAP_ZENOH_CONNECT for its services; the router runs from the same image and must
+    not dial it (itself, or a peer that is not up): it routes all the same."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    monkeypatch.setenv("SEMMAP_ZENOH_CONNECT", f"tcp/127.0.0.1:{free_loopback_port()}")
+    assert BusConfig.from_env(env_connect=False).connect == []
+    assert BusConfig.from_env().connect != []
+    router = subprocess.Popen(
+        [sys.executable, "-m", "semmap.runtime.router", "--listen", endpoint],
+        cwd=PROJECT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        client = BusConfig(mode="client", connect=[endpoint], listen=[])
+        a, b = Bus(client, "robot1"), Bus(client, "robot1")
+        got = threading.Event()
+        b.subscribe(b.keys.control, Control, lambda c: got.set())
+        pub = a.publisher(a.keys.control)
+        assert pub.wait_matching(10)
+        pub.put(Control("robot1", "stop"))
+        assert got.wait(10)
+        a.close()
+        b.close()
+    finally:
+        router.send_signal(signal.SIGTERM)
+        try:
+            router.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            router.kill()
+            router.wait()
