@@ -131,9 +131,9 @@ def detect_recording(
     n = _frame_count(ds, frames)
     model = None
     if kind == "onnx":
-        from semmap.runtime.model_store import packaged_model
+        from semmap.runtime.model_store import packaged_model, resolve_precision
 
-        model = Path(det_cfg["model"] or packaged_model(det_cfg["precision"]))
+        model = Path(det_cfg["model"] or packaged_model(resolve_precision(det_cfg["precision"], realtime=False)))
     model_id = None if model is None else (str(model), model.stat().st_size, int(model.stat().st_mtime))
     # the model file stands for `precision`; threads and queueing do not change detections
     key = _cache_key(

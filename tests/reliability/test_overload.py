@@ -35,6 +35,11 @@ def _check(stats: dict, frames: int) -> None:
 def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path, semmap_run) -> None:  # noqa: ANN001
     stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 300, 1)
     _check(stats, 300)
+    # real time with the default `detector.precision: auto` takes the int8 copy where there is one (issue 20)
+    from semmap.runtime.model_store import INT8_FILENAME, get_model_dir
+
+    expected = "int8" if (get_model_dir() / INT8_FILENAME).is_file() else "fp32"
+    assert f"({expected}, auto)" in (tmp_path / "logs" / "detector.log").read_text()
 
 
 @pytest.mark.slow

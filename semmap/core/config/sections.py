@@ -109,8 +109,10 @@ class DetectorConfig(Section):
     model: OptionalFile = Field(
         "", description='ONNX model file; "" = the converted YOLOv5s from `semmap models fetch` (see precision)'
     )
-    precision: Literal["fp32", "int8"] = Field(
-        "fp32", description="fp32 | int8 (~2x faster on CPU; `semmap models quantize DATASET` makes it)"
+    precision: Literal["auto", "fp32", "int8"] = Field(
+        "auto",
+        description="auto (int8 in real time where its copy exists, fp32 otherwise) | fp32 | int8 (~2x faster on "
+        "CPU, agrees with fp32 at F1 >= 0.93; `semmap models quantize DATASET` makes it, ./dev.sh does)",
     )
     names: OptionalFile = Field("", description="class names file for a bring-your-own model")
     confidence: Probability = Field(0.4, description="paper")

@@ -18,7 +18,7 @@ from semmap.algorithms.detector import create_detector, needs_model, resolve_kin
 from semmap.algorithms.detector.onnx_detector import DetectedBox
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, Detections, Frame
-from semmap.runtime.model_store import packaged_model
+from semmap.runtime.model_store import packaged_model, resolve_precision
 from semmap.runtime.pipeline import depth_detections
 from semmap.runtime.service import Service, service_main
 
@@ -38,10 +38,13 @@ class DetectorService(Service):
         self.kind = resolve_kind(cfg.kind, synthetic=False)
         self.every_n = cfg.every_n_frames
         self.stride = cfg.depth_patch_stride
-        model = Path(cfg.model or packaged_model(cfg.precision)) if needs_model(self.kind) else None
+        self.precision = resolve_precision(cfg.precision, realtime=not self.lockstep)
+        model = Path(cfg.model or packaged_model(self.precision)) if needs_model(self.kind) else None
         self.detector = create_detector(self.kind, cfg, model)
         if model is not None:
-            self.log.info("%s model %s on %s", self.kind, model, ", ".join(getattr(self.detector, "providers", [])))
+            self.log.info("%s model %s (%s%s) on %s", self.kind, model, self.precision,
+                          ", auto" if cfg.precision == "auto" and not cfg.model else "",
+                          ", ".join(getattr(self.detector, "providers", [])))
         self.pub = self.publisher(self.bus.keys.detections)
         # replica membership from liveliness tokens
         self._members: set[str] = {self.instance}
