@@ -10,17 +10,24 @@ A real backend process over a real Zenoh router, fed odometry and observations a
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, Observations, OdometryPose, ServiceStatus
 from semmap.services.backend.service import REALTIME_MAX_PENDING
-from tests.reliability.lockstep_feeder import LockstepFeeder, start_service
+from tests.reliability.lockstep_feeder import PROJECT, LockstepFeeder, start_service
 
 ROBOT = "rtend"
 FRAMES = 40
@@ -89,3 +96,44 @@ def test_backend_ends_a_realtime_stream_past_dropped_odometry_but_not_past_a_mis
         feeder.close()
         if proc.poll() is None:
             proc.kill()
+
+
+@pytest.mark.slow
+def test_a_realtime_run_whose_backend_hangs_still_fails_as_a_stall_naming_it(tmp_path: Path) -> None:
+    """The other half: a real time run is not ended by giving up frames while a service is stuck. The backend is
+    stopped (SIGSTOP: no progress, no status) once the stream runs; the run fails on its watchdog and says which
+    service it waited on. (The stopped backend's full socket slows the player down, as Zenoh's blocking congestion
+    control does; the other services move, slowly, until the stream is over, then nothing does.)"""
+    out = tmp_path / "run"
+    # the watchdog's limit is start_timeout_s + 2 * frame_timeout_s + 30 s (semmap/cli/run.py): 42 s here
+    proc = subprocess.Popen([sys.executable, "-m", "semmap.cli", "run", "synthetic:frames=150", "--out", str(out),
+                             "--realtime", "--no-viz", "--quiet", "--set", "run.start_timeout_s=10",
+                             "--set", "run.frame_timeout_s=1"], cwd=PROJECT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "CI": "true"})
+    stopped = 0
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "started backend (pid " in line:
+                stopped = int(line.split("(pid ")[1].split(")")[0])
+                break
+        assert stopped, "the backend was not started"
+        player_log = out / "logs" / "player.log"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (player_log.is_file() and "pipeline ready" in player_log.read_text()):
+            time.sleep(0.1)
+        os.kill(stopped, signal.SIGSTOP)
+        _, stderr = proc.communicate(timeout=400)
+    finally:
+        if stopped:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(stopped, signal.SIGCONT)
+        if proc.poll() is None:  # the orchestrator stops its services on SIGTERM
+            proc.terminate()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=40)
+            proc.kill()
+    assert proc.returncode == 1, stderr[-3000:]
+    assert "nothing moved for 42 s" in stderr and "waiting on backend (running, last frame" in stderr, stderr[-3000:]
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["outcome"] == "failed" and stats["failure"].startswith("nothing moved"), stats["failure"]
