@@ -11,7 +11,8 @@ class FrameReorderBuffer(Generic[T]):
     """Releases items strictly in frame-id order, each frame once.
 
     Frame ids start wherever the first item starts (a consumer may join a running stream). `max_pending` bounds
-    memory: when that many later frames are waiting, the missing one is given up and counted in `gaps`.
+    memory: when that many later frames are waiting, the missing ones are given up; `gaps` counts the frames
+    given up (there or in `give_up_before`), not frames announced as skipped.
     """
 
     def __init__(self, max_pending: int = 256) -> None:
@@ -53,8 +54,24 @@ class FrameReorderBuffer(Generic[T]):
                 ready.append(self.pending.pop(self.next_id))
                 self.next_id += 1
             elif len(self.pending) >= self.max_pending:
-                self.gaps += 1
-                self.next_id = min(self.pending)
+                self._give_up(min(self.pending))
             else:
                 break
         return ready
+
+    def give_up_before(self, frame_id: int) -> list[T]:
+        """Frames before `frame_id` that have not come never will (an in-order stream whose frame `frame_id` is
+        here, or is known to be the last): stop waiting for them and release what follows, like `pop_ready`."""
+        ready = self.pop_ready()
+        while self.next_id is not None and self.next_id < frame_id:  # (the next frame is missing: pop_ready stopped)
+            self._give_up(min([f for f in self.pending if f < frame_id] + [frame_id]))
+            ready += self.pop_ready()
+        return ready
+
+    def _give_up(self, upto: int) -> None:
+        """Move past every missing frame before `upto`: each one not announced as skipped counts as a gap."""
+        assert self.next_id is not None
+        announced = {f for f in self.skipped if self.next_id <= f < upto}
+        self.gaps += upto - self.next_id - len(announced)
+        self.skipped -= announced
+        self.next_id = upto

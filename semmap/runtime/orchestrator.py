@@ -308,7 +308,19 @@ class Orchestrator:
             self._last_motion, self._moved_at = motion, now
         elif self.plan.stall_s > 0 and now - self._moved_at > self.plan.stall_s:
             raise RunFailed(f"nothing moved for {self.plan.stall_s:.0f} s (no frame processed, no service "
-                            f"changed state) at {self._frames_done()} frames processed")
+                            f"changed state) at {self._frames_done()} frames processed; {self._waiting_on()}")
+
+    def _waiting_on(self) -> str:
+        """Which services hold the run back (the fewest frames done) and where they are: a stall names them."""
+        with self.lock:
+            done = {s.name: self.progress.get(s.name, -1) for s in self.plan.services if s.lockstep}
+            statuses = sorted(self.statuses.items())
+        if not done:
+            return "no service gates the stream"
+        low = min(done.values())
+        behind = [f"{i} ({s.state}, last frame {s.last_frame_id})" for i, s in statuses
+                  if s.service in done and done[s.service] == low]
+        return "waiting on " + (", ".join(behind) or ", ".join(n for n, f in done.items() if f == low))
 
     def _check_frames(self) -> None:
         """Every service finished: did they process every frame the player sent? (None, or fewer: a failure.)"""

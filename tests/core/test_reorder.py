@@ -47,3 +47,26 @@ def test_mark_done_moves_past_replayed_frames() -> None:
     buf.push(2, 2)
     buf.mark_done(1)
     assert buf.pop_ready() == [2]
+
+
+def test_give_up_before_releases_past_every_missing_frame_and_counts_them() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer(max_pending=8)
+    buf.push(0, 0)
+    assert buf.pop_ready() == [0]
+    buf.skip(2)  # announced: not a gap
+    for f in (4, 7, 9):  # 1, 3, 5, 6 and 8 never come; fewer than max_pending wait
+        buf.push(f, f)
+    assert buf.pop_ready() == [] and buf.gaps == 0
+    assert buf.give_up_before(9) == [4, 7, 9]
+    assert buf.gaps == 5 and buf.next_id == 10 and not buf.skipped
+    assert not buf.push(8, 8), "a frame given up that comes anyway is dropped"
+    assert buf.give_up_before(5) == [] and buf.gaps == 5, "nothing before the next frame to give up"
+
+
+def test_a_bounded_buffer_counts_every_frame_it_gives_up() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer(max_pending=2)
+    buf.push(0, 0)
+    buf.pop_ready()
+    buf.push(4, 4)
+    buf.push(5, 5)
+    assert buf.pop_ready() == [4, 5] and buf.gaps == 3

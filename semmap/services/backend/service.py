@@ -116,7 +116,13 @@ class BackendService(Service):
         self._release()
 
     def _release(self) -> None:
-        self.ready_odometry.extend(self.odometry.pop_ready())
+        self._take(self.odometry.pop_ready())
+
+    def _take(self, poses: list[OdometryPose]) -> None:
+        """Poses released in order; then handle what is ready."""
+        self.ready_odometry.extend(poses)
+        if self.odometry.gaps:  # real time: frames whose odometry never came (dropped upstream), given up
+            self.metrics.counters["frames_without_odometry"] = self.odometry.gaps
         self._drain()
 
     def _drain(self) -> None:
@@ -214,6 +220,17 @@ class BackendService(Service):
     def on_end_of_stream(self, control: Control) -> None:
         if self.last_frame_id >= control.last_frame_id:
             self.finish()
+
+    def tick(self) -> None:
+        """Real time, once the odometry of the stream's last frame is here: a frame still missing before it was
+        dropped upstream (the odometry keeps only the newest frames under load; poses come in order) and never
+        comes. Give it up, counted, so that the last frames go through: otherwise fewer than
+        REALTIME_MAX_PENDING later frames never release it and the run waits at its end until it fails. A last
+        frame whose odometry never comes releases nothing: that is a stall, and the run's watchdog says so."""
+        eos = self.end_of_stream
+        if self.lockstep or eos is None or self.finished or eos.last_frame_id not in self.odometry.pending:
+            return
+        self._take(self.odometry.give_up_before(eos.last_frame_id))
 
     def write_outputs(self) -> None:
         if self.out_dir is None or self.graph.num_frames == 0:
