@@ -130,6 +130,9 @@ def common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
+REANCHOR_AFTER = 3  # frame ids refused in a row on a signed stream before the service follows it (see above)
+
+
 class Service:
     """Base class of a service process. Subclasses set `name`, implement `setup()` and message handlers."""
 
@@ -164,6 +167,7 @@ class Service:
         # publisher must not make a service loop over an absurd gap or skip the frames in between)
         self.max_frame_gap = self.config.security.max_frame_gap
         self._newest: dict[str, int] = {}  # per stream, the newest frame id accepted
+        self._refused_ids: dict[str, list[int]] = {}  # per stream, the frame ids refused in a row
         self._gap_rejected: dict[str, int] = {}
         self._gap_lock = threading.Lock()
         self.newest_frame_id = -1  # over every stream: an end of stream before it is not believed
@@ -224,7 +228,11 @@ class Service:
 
     def _frame_id_plausible(self, stream: str, topic: str, message: Message) -> bool:
         """Frame ids move forward within a window: one more than `max_frame_gap` from the newest accepted on
-        this stream (either way) is refused and counted, so no absurd id drives a skip loop or a memory grab."""
+        this stream (either way) is refused and counted, so no absurd id drives a skip loop or a memory grab.
+
+        Except where the stream really moved on while this service was behind (stopped, starved, started late):
+        `REANCHOR_AFTER` refusals in a row on a signed stream (a peer of this run, not an open key), agreeing
+        within the window, make the stream's newest id theirs, or the service would refuse it forever."""
         frame_id = getattr(message, "frame_id", None)
         if not isinstance(frame_id, int) or isinstance(message, Progress) or self.max_frame_gap <= 0:
             return True
@@ -232,13 +240,27 @@ class Service:
             newest = self._newest.get(stream)
             if newest is None and self.bus.trust.key:  # in a run the stream starts where the run is
                 newest = max(self.last_frame_id, int(getattr(self.args, "frame_base", 0) or 0) - 1)
+            refused = self._refused_ids.setdefault(stream, [])
             if newest is not None and abs(frame_id - newest) > self.max_frame_gap:
+                refused.append(frame_id)
+                del refused[:-REANCHOR_AFTER]
+                signed = bool(self.bus.trust.key) and topic not in self.bus.trust.open_keys
+                if signed and len(refused) == REANCHOR_AFTER and max(refused) - min(refused) <= self.max_frame_gap:
+                    self.log.warning("%s moved on to frame %d while this service stood at %d: following it", topic,
+                                     frame_id, newest)
+                    counter = f"frame_gap_followed[{topic}]"
+                    self._gap_rejected[counter] = self._gap_rejected.get(counter, 0) + 1
+                    refused.clear()
+                    self._newest[stream] = frame_id
+                    self.newest_frame_id = max(self.newest_frame_id, frame_id)
+                    return True
                 counter = f"rejected_frame_gap[{topic}]"
                 n = self._gap_rejected[counter] = self._gap_rejected.get(counter, 0) + 1
                 if n <= 5:
                     self.log.warning("refused frame id %d on %s: the newest is %d (max gap %d)", frame_id, topic,
                                      newest, self.max_frame_gap)
                 return False
+            refused.clear()
             if newest is None or frame_id > newest:
                 self._newest[stream] = frame_id
                 self.newest_frame_id = max(self.newest_frame_id, frame_id)

@@ -137,3 +137,55 @@ def test_a_realtime_run_whose_backend_hangs_still_fails_as_a_stall_naming_it(tmp
     assert "nothing moved for 42 s" in stderr and "waiting on backend (running, last frame" in stderr, stderr[-3000:]
     stats = json.loads((out / "stats.json").read_text())
     assert stats["outcome"] == "failed" and stats["failure"].startswith("nothing moved"), stats["failure"]
+
+
+def test_a_service_that_fell_behind_follows_a_signed_stream_that_moved_on(tmp_path: Path, router, monkeypatch) -> None:  # noqa: ANN001
+    """In a run (signed messages), a service that stood still while the stream moved on by more than
+    `security.max_frame_gap` (stopped, starved, started late) used to refuse that stream forever: its reference
+    stayed where it stood. After REANCHOR_AFTER refusals in a row that agree with each other, it follows (counted);
+    an unsigned open stream never re-anchors (tests/security/test_hostile_peers.py: 2^40 stays refused)."""
+    from semmap.runtime.bus import Bus, BusConfig, RunTrust
+    from semmap.runtime.service import REANCHOR_AFTER
+
+    run_id, secret = "reanchor", RunTrust.new_secret()
+    monkeypatch.setenv("SEMMAP_RUN_ID", run_id)
+    monkeypatch.setenv("SEMMAP_RUN_KEY", secret)
+    keys = Keys(ROBOT)
+    client = BusConfig(mode="client", connect=[router.endpoint], listen=[])
+    buses = {role: Bus(client, ROBOT, RunTrust(run_id, bytes.fromhex(secret), role))
+             for role in ("odometry", "associator", "player", "orchestrator")}
+    odometry = buses["odometry"].publisher(keys.odometry)
+    observations = buses["associator"].publisher(keys.observations)
+    control = buses["player"].publisher(keys.control)
+    statuses: list[ServiceStatus] = []
+    buses["player"].subscribe(keys.status_all, ServiceStatus, statuses.append)
+    proc = start_service("backend", router.endpoint, ROBOT, tmp_path, "--mode", "realtime",
+                         "--set", "loop_closure.enabled=false")
+    log = tmp_path / "backend.log"
+    first, last = 1000, 1039  # the backend stands at frame -1; the stream is 1000 frames on
+    try:
+        assert odometry.wait_matching(30) and observations.wait_matching(30), "the backend did not come up"
+        for i in range(first, last + 1):
+            odometry.put(_pose(i))
+            observations.put(Observations(ROBOT, i, 0.1 * i))
+            time.sleep(0.01)
+        control.put(Control(ROBOT, "end_of_stream", last, last + 1))
+        deadline = time.monotonic() + 30
+        while f"finished (last frame {last})" not in log.read_text() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        text = log.read_text()
+        assert f"finished (last frame {last})" in text, text[-3000:]
+        assert "odometry moved on to frame" in text
+        buses["orchestrator"].publisher(keys.control).put(Control(ROBOT, "stop"))
+        assert proc.wait(timeout=30) == 0, log.read_text()[-3000:]
+        time.sleep(0.5)
+        counters = statuses[-1].counters
+        assert counters["frame_gap_followed[odometry]"] == 1, counters
+        assert counters["rejected_frame_gap[odometry]"] == REANCHOR_AFTER - 1, counters
+        followed = first + REANCHOR_AFTER - 1
+        assert len(np.loadtxt(tmp_path / "trajectory_optimized.tum")) == last + 1 - followed
+    finally:
+        for bus in buses.values():
+            bus.close()
+        if proc.poll() is None:
+            proc.kill()
