@@ -46,3 +46,21 @@ def test_a_saved_book_places_new_frames_as_the_live_one() -> None:
         np.testing.assert_allclose(saved(f), live(f), atol=1e-12)
     np.testing.assert_allclose(saved(390), live(390), atol=1e-12)
     assert PoseBook.from_state(None)(3) is None
+
+
+def test_a_saved_book_ignores_an_old_resent_delta_as_the_live_one() -> None:
+    """After a restart the backend may answer a resent frame with a correction the book applied before: a delta
+    older than the newest applied one changes nothing, in a restored book too."""
+    live = _book(20)
+    ids = np.arange(5)
+    newer = CorrectedPoses("r", 3, 19, ids, ids / 30.0, np.stack([_shifted(orbit_pose(f / 30), 0.002) for f in ids]),
+                           full=False)
+    live.set_corrected(newer)
+    saved = PoseBook.from_state(msgpack.unpackb(msgpack.packb(live.to_state(), use_bin_type=True),
+                                                strict_map_key=False))
+    older = CorrectedPoses("r", 2, 18, ids, ids / 30.0, np.stack([orbit_pose(f / 30) for f in ids]), full=False)
+    for book in (live, saved):
+        book.set_corrected(older)
+    for f in ids:
+        np.testing.assert_array_equal(saved(int(f)), live(int(f)))
+        np.testing.assert_array_equal(live(int(f)), _shifted(orbit_pose(f / 30), 0.002))

@@ -403,17 +403,26 @@ class LandmarkMapper:
     # ---- persistence
 
     def to_state(self) -> dict[str, Any]:
-        """Plain data (lists, numbers, bytes): the whole mapper, for SQLite / msgpack."""
+        """Plain data (lists, numbers, bytes): the whole mapper, for SQLite / msgpack.
+
+        A candidate tied to a landmark shares its View objects with it (validation re-chooses a shared view's
+        surface, a landmark update marks it an inlier or not, for both); `shared` records, per candidate view,
+        which landmark view it is, so that `from_state` links them again instead of making two copies that
+        would drift apart after a restart."""
+        where = {id(v): [lm.id, k] for lm in self.map.all() for k, v in enumerate(lm.views)}
         return {
             "version": STATE_VERSION,
             "map": self.map.to_state(),
             "rejected": sorted(self._rejected),
             "dirty": sorted(self._dirty),
+            # the camera of the latest measurement: absence checks of the next frame use it
+            "intrinsics": None if self._intrinsics is None else self._intrinsics.to_dict(),
             "candidates": [
                 {
                     "track_id": c.track_id,
                     "class": c.class_name,
                     "views": [view_to_state(v) for v in c.views],
+                    "shared": [where.get(id(v)) for v in c.views],
                     "frames": sorted(c.frames),
                     "landmark_id": c.landmark_id,
                     "held": c.held,
@@ -437,11 +446,15 @@ class LandmarkMapper:
         mapper.map = LandmarkMap.from_state(state["map"])
         mapper._rejected = {int(t) for t in state["rejected"]}
         mapper._dirty = {int(t) for t in state["dirty"]}
+        if state.get("intrinsics") is not None:
+            mapper._intrinsics = Intrinsics.from_dict(state["intrinsics"])
         for d in state["candidates"]:
+            shared = d.get("shared") or [None] * len(d["views"])
             c = Candidate(
                 int(d["track_id"]),
                 str(d["class"]),
-                [view_from_state(v) for v in d["views"]],
+                [view_from_state(v) if ref is None else mapper.map[int(ref[0])].views[int(ref[1])]
+                 for v, ref in zip(d["views"], shared, strict=True)],
                 {int(f) for f in d["frames"]},
                 [Measurement.from_dict(m) for m in d["pending"]],
                 None if d["landmark_id"] is None else int(d["landmark_id"]),

@@ -72,6 +72,7 @@ class PoseBook:
             "corrected": {f: self.corrected[f].tobytes() for f in frames if f in self.corrected},
             "alignment": None if self.alignment is None else self.alignment.tobytes(),
             "aligned_from": self.aligned_from,
+            "seq": self._seq,  # the newest correction applied: an older delta resent later is still ignored
         }
 
     @classmethod
@@ -86,6 +87,7 @@ class PoseBook:
         book.odometry = {int(f): pose(b) for f, b in state["odometry"].items()}
         book.corrected = {int(f): pose(b) for f, b in state["corrected"].items()}
         book._corrected_ids = sorted(book.corrected)
+        book._seq = int(state.get("seq", 0))
         if state.get("alignment") is not None:
             book.alignment, book.aligned_from = pose(state["alignment"]), int(state["aligned_from"])
         return book

@@ -55,6 +55,7 @@ class AssociatorService(Service):
         self.tracks: FrameReorderBuffer[Tracks] = FrameReorderBuffer(max_pending=100_000 if self.lockstep else 8)
         self.ready: list[Tracks] = []
         self.map_seq = 0
+        self.completed_frame = -1  # the newest frame completed (what a save includes)
         self.last_saved = 0.0
         self.dirty = False
         db = self.args.map_db or (self.out_dir / "map.sqlite" if self.out_dir is not None else None)
@@ -81,6 +82,8 @@ class AssociatorService(Service):
         self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
         self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
         self._replay_journal()
+        if self.stage.awaiting is not None:  # the replay ended on a frame held for the backend, which may never
+            self.obs_pub.put(self._awaited_observations)  # have got its observations: they go (again) now
         if self.snapshot:
             self._publish_map(MapperStep(), self.last_frame_id, 0.0, full=True)
 
@@ -179,10 +182,15 @@ class AssociatorService(Service):
             self.session_start = tracks.stamp
         if not self.tracks.push(tracks.frame_id, tracks):
             self.metrics.count("tracks_duplicates")
+            if self.muted:  # (a resent frame, journalled: it changed nothing then either)
+                return
             if self.stage.awaiting is not None and self.stage.awaiting[0].frame_id == tracks.frame_id:
                 self.obs_pub.put(self._awaited_observations)  # the backend may have lost them
-            elif not any(t.frame_id == tracks.frame_id for t in self.ready):
-                self.replay(tracks.frame_id)
+            elif (not any(t.frame_id == tracks.frame_id for t in self.ready) and not self.replay(tracks.frame_id)
+                  and tracks.frame_id <= self.completed_frame):
+                # completed before a crash (it is in the saved map) but its progress may have died with the
+                # process: say it again, or a lockstep run waits for it for ever
+                self.report_progress(tracks.frame_id)
             return
         self._release()
 
@@ -197,6 +205,9 @@ class AssociatorService(Service):
         self._drain()
 
     def on_corrected(self, msg: CorrectedPoses) -> None:
+        # journalled like the inputs: a replay must apply each correction where it came (between the same
+        # frames), or the frames after the last save are associated and refined against other poses
+        self._journal("corrected", msg)
         held = self.stage.corrected(msg)
         self.metrics.count("corrections")
         if held is not None:
@@ -230,13 +241,14 @@ class AssociatorService(Service):
                 self.emit(self.tags_pub, TagDetections(self.robot, tracks.frame_id, tracks.stamp,
                                                        [TagDetection.from_observation(o) for o in step.observations]),
                           tracks.frame_id)
-            # (replaying the journal: the backend has answered)
-            if self.muted or not self.stage.hold(tracks, step):
+            # (replaying the journal too: the backend's answer comes from the journal, where it came before)
+            if not self.stage.hold(tracks, step):
                 self._complete(tracks, step)
 
 
     def _complete(self, tracks: Tracks, step: MapperStep) -> None:
         step, refine_ms = self.stage.complete(tracks.frame_id, tracks.stamp, step)
+        self.completed_frame = max(self.completed_frame, tracks.frame_id)
         if refine_ms:
             self.metrics.time_ms("refine_ms", refine_ms)
         self._publish_map(step, tracks.frame_id, tracks.stamp, frame_sent_at=tracks.frame_sent_at,
@@ -282,7 +294,7 @@ class AssociatorService(Service):
             self._save()
 
     # -- persistence ----------------------------------------------------------------------------------------
-    def _journal(self, stream: str, message: Tracks | OdometryPose) -> None:
+    def _journal(self, stream: str, message: Tracks | OdometryPose | CorrectedPoses) -> None:
         if self.journal is not None and not self.muted:
             with self.metrics.timer("journal_ms"):
                 self.journal_seq = self.journal.append(stream, message.encode())
@@ -293,9 +305,15 @@ class AssociatorService(Service):
         state = self.store.load()
         if state is None:
             return
-        self.stage.mapper = LandmarkMapper.from_state(state, self.params)
-        self.stage.poses = PoseBook.from_state(state.get("poses"))
+        self.stage.restore(state)
         self.journal_seq = int(state.get("journal_seq", 0))
+        # frames up to the saved one are in the map: one that comes again (resent) is not mapped twice
+        self.completed_frame = int(state.get("completed_frame", -1))
+        if self.completed_frame >= 0:
+            self.tracks.mark_done(self.completed_frame)
+            self.last_frame_id = self.completed_frame
+        if state.get("session_start") is not None:
+            self.session_start = float(state["session_start"])
         if self.prior is not None:
             self.prior.restore(state.get("prior"))
         self.log.info("restored %d landmarks from %s", len(self.mapper.landmarks()), self.store.path)
@@ -306,7 +324,8 @@ class AssociatorService(Service):
         frames of a tracklet's views can flip its motion test and take an established landmark with it."""
         if self.journal is None or not self.restoring:
             return
-        kinds = {"odometry": (OdometryPose, self.on_odometry), "tracks": (Tracks, self.on_tracks)}
+        kinds = {"odometry": (OdometryPose, self.on_odometry), "tracks": (Tracks, self.on_tracks),
+                 "corrected": (CorrectedPoses, self.on_corrected)}
         n = 0
         self.muted = True
         try:
@@ -323,13 +342,15 @@ class AssociatorService(Service):
             self._save()
 
     def _save(self) -> None:
-        if self.muted:
+        # not while a frame is held for the backend: its tracks are in the journal up to here, and a save would
+        # drop them from it though the frame is not complete (a restart would never refine it)
+        if self.muted or self.stage.awaiting is not None:
             self.dirty = True
             return
         with self.metrics.timer("save_ms"):
             if self.store is not None:
-                self.store.save({**self.mapper.to_state(), "poses": self.poses.to_state(),
-                                 "journal_seq": self.journal_seq,
+                self.store.save({**self.stage.to_state(), "journal_seq": self.journal_seq,
+                                 "completed_frame": self.completed_frame, "session_start": self.session_start,
                                  "prior": None if self.prior is None else self.prior.to_state()})
                 if self.journal is not None:
                     self.journal.truncate(self.journal_seq)

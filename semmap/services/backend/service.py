@@ -24,7 +24,7 @@ from semmap.algorithms.backend.loop_closure import (
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
 from semmap.core.journal import FrameJournal
-from semmap.core.messages import Control, CorrectedPoses, Frame, MessageError, Observations, OdometryPose
+from semmap.core.messages import Control, Frame, MessageError, Observations, OdometryPose
 from semmap.core.reorder import FrameReorderBuffer
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
@@ -169,11 +169,6 @@ class BackendService(Service):
                       obs.frame_id, obs.alignment.inliers, 100 * obs.alignment.rms_m, len(obs.alignment.anchors))
         self.metrics.counters["relocalised_at_frame"] = obs.frame_id
 
-    def _corrected(self, frame_id: int, timing_ms: dict[str, float]) -> CorrectedPoses:
-        ids, stamps, poses = self.graph.corrected_poses()
-        lids, lpos = self.graph.landmark_positions()
-        return CorrectedPoses(self.robot, self.seq, frame_id, ids, stamps, poses, lids, lpos, timing_ms)
-
     def _ready(self, frame_id: int) -> bool:
         if frame_id not in self.observations:
             return False
@@ -205,7 +200,8 @@ class BackendService(Service):
             if self.write_odometry:
                 self.input_trajectory.append((pose.stamp, pose.pose))
             obs = Observations.decode(observations)
-            if self.stage.restore(pose, obs, None if keyframe is None else decode_keyframe(keyframe)):
+            step = self.stage.restore(pose, obs, None if keyframe is None else decode_keyframe(keyframe))
+            if step.realigned:
                 self._log_realigned(obs)
             self.odometry.mark_done(frame_id)
             self.last_frame_id = frame_id
@@ -213,8 +209,9 @@ class BackendService(Service):
         self.seq = n  # one correction went out per frame
         if n:
             # the old process may have journalled its last frame and died before that frame's correction left:
-            # the associator sends the frame's observations again and must get it (the same message)
-            self.remember(self.pub, self._corrected(self.last_frame_id, {}), self.last_frame_id)
+            # the associator sends the frame's observations again and must get it (the same message: the same
+            # delta, not the whole trajectory, which would hand it poses the clean run never sent)
+            self.remember(self.pub, step.message(self.robot, self.seq, self.last_frame_id, {}), self.last_frame_id)
             self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
 
     def on_end_of_stream(self, control: Control) -> None:
