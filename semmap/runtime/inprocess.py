@@ -333,13 +333,22 @@ def run_loop(
     mapper_ms, backend_ms = [], []
     for seq, det in enumerate(rec.detections, start=1):
         i, stamp = det.frame_id, det.stamp
+        # tracker (it needs only detections; the `rgbd` odometry waits for its dynamic objects, as in lockstep)
+        out = tracker.step(det)
+        dynamic = tracker.dynamic_objects(det, out)
         # odometry
         if odometry_poses is not None:
             pose = np.asarray(odometry_poses[i], dtype=np.float64)
         else:
-            pose = front.estimate(
-                OdometryInput(i, stamp, rec.gt[i], depth_scale=det.depth_scale, intrinsics=det.intrinsics.matrix)
-            )
+            data = OdometryInput(i, stamp, rec.gt[i], depth_scale=det.depth_scale, intrinsics=det.intrinsics.matrix)
+            if front.needs_images:
+                if depth_frames is None:
+                    raise ValueError(f"odometry {odometry} needs the recording's images (depth_frames)")
+                frame = on_the_wire(frame_message(ROBOT, depth_frames[i]))
+                data.rgb, data.depth = frame.rgb(), frame.depth()
+            if front.uses_dynamic:
+                data.dynamic = dynamic
+            pose = front.estimate(data)
         odo = OdometryPose(
             ROBOT,
             i,
@@ -352,8 +361,6 @@ def run_loop(
         )
         odo_traj.append((stamp, pose.copy()))
         associator.odometry(i, odo.pose)
-        # tracker
-        out = tracker.step(det)
         # associator
         t0 = time.perf_counter()
         step = associator.process(i, stamp, out.candidates, out.ended, None if det.skipped else out.boxes)
@@ -375,7 +382,8 @@ def run_loop(
         held = associator.corrected(done.message(ROBOT, seq, i))
         assert held is not None and held[0] is det
         t0 = time.perf_counter()
-        associator.complete(i, stamp, held[1])
+        completed, _ = associator.complete(i, stamp, held[1])
+        tracker.saw_moving(completed.moving_tracks)  # (the map update the tracker service listens to)
         mapper_ms[-1] += (time.perf_counter() - t0) * 1e3
         if verbose and (i + 1) % 100 == 0:
             print(
@@ -421,7 +429,10 @@ def closed_loop(
     over = [*(overrides or []), f"odometry.mode={odometry}", f"odometry.seed={seed}"]
     config = load_config(None, over)
     rec = detect_recording(data, frames, config, cache_dir, refresh, verbose)
-    odo_poses = rgbd_poses(data, frames, config, cache_dir, refresh, verbose) if odometry == "rgbd" else None
+    # `rgbd` poses are cached unless the front end leaves out dynamic objects: then they depend on the tracker and
+    # the associator (moving tracklets) and are estimated in the loop, frame by frame, as the services do
+    cached = odometry == "rgbd" and not make_frontend(odometry, config.odometry).uses_dynamic
+    odo_poses = rgbd_poses(data, frames, config, cache_dir, refresh, verbose) if cached else None
     return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=_open(data)), rec
 
 

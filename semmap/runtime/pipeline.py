@@ -28,14 +28,16 @@ from semmap.algorithms.backend.loop_closure import KeyframeCloud, LoopCloser, Lo
 from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
 from semmap.algorithms.backend.prior_alignment import PriorAlignment
 from semmap.algorithms.detector.onnx_detector import DetectedBox, depth_gate
-from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput, TrackerParams
+from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput, TrackerParams, depth_range
 from semmap.core.messages import (
     CorrectedPoses,
     DepthPatch,
     Detection,
     Detections,
+    DynamicBox,
     Frame,
     GroundTruthInstance,
+    MessageError,
     Observations,
     OdometryPose,
 )
@@ -105,12 +107,19 @@ def depth_detections(
 
 class TrackerStage:
     """IOU tracklets from one frame's detections. A skipped frame (not detected: stride, overload) only ages the
-    tracklets, which may end them: the associator must hear of it; a frame with no stamp ages nothing."""
+    tracklets, which may end them: the associator must hear of it; a frame with no stamp ages nothing.
+
+    Also the frame's dynamic objects (`dynamic_objects`, for a front end that leaves them out of its depth): the
+    boxes of tracklets of a dynamic class and of tracklets the associator saw moving (`saw_moving`); a skipped
+    frame repeats the last detected frame's boxes of tracklets still alive."""
 
     def __init__(
         self, params: TrackerParams | None = None, first_track_id: int = 0, dynamic_classes: Iterable[str] = ()
     ) -> None:
-        self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=dynamic_classes)
+        self.dynamic_classes = frozenset(dynamic_classes)
+        self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=self.dynamic_classes)
+        self.moving: set[int] = set()  # track ids the associator rejected as moving
+        self.last_dynamic: list[DynamicBox] = []  # of the last detected frame (carried over skipped frames)
 
     @property
     def params(self) -> TrackerParams:
@@ -120,6 +129,43 @@ class TrackerStage:
         if det.skipped:
             return TrackerOutput(ended=self.tracker.skip(det.frame_id, det.stamp).ended if det.stamp >= 0 else [])
         return self.tracker.update(det.frame_id, det.stamp, det.detections, det.intrinsics, det.depth_scale)
+
+    def saw_moving(self, track_ids: Iterable[int]) -> None:
+        """Tracklets the associator rejected as moving (its map updates' `moving_tracks`)."""
+        self.moving.update(track_ids)
+
+    def dynamic_objects(self, det: Detections, out: TrackerOutput) -> list[DynamicBox]:
+        """This frame's dynamic objects, after `step(det)` gave `out`."""
+        alive = self.tracker.active_ids()
+        if det.skipped:
+            boxes = [b for b in self.last_dynamic if b.track_id in alive]
+        else:
+            boxes = []
+            band = self.params.dynamic_depth_band_m
+            for tb, d in zip(out.boxes, det.detections, strict=True):  # (one tracked box per detection, in order)
+                reason = "class" if tb.class_name in self.dynamic_classes else (
+                    "moving" if tb.track_id in self.moving else "")
+                if reason:
+                    lo, hi = depth_range(d, det.depth_scale, band)
+                    boxes.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
+            self.last_dynamic = boxes
+        self.moving &= alive  # forget ended tracklets
+        return boxes
+
+    def state(self) -> dict:
+        """The tracker's state plus what the dynamic objects depend on (plain data, msgpack-able)."""
+        return {**self.tracker.state(), "moving": sorted(self.moving),
+                "last_dynamic": [b.to_dict() for b in self.last_dynamic]}
+
+    def restore(self, state: dict) -> None:
+        """Continue from `state()` (a MessageError if it is not one; older states without the dynamic part
+        restore the tracker alone)."""
+        self.tracker = IouTracker.from_state(state, self.params, self.dynamic_classes)
+        try:
+            self.moving = {int(t) for t in state.get("moving", [])}
+            self.last_dynamic = [DynamicBox.from_dict(b) for b in state.get("last_dynamic", [])]
+        except (TypeError, ValueError) as exc:
+            raise MessageError(f"not a tracker state: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------------------ associator

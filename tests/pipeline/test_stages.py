@@ -129,3 +129,35 @@ def test_a_backend_restored_from_its_journal_sends_what_the_live_one_sends() -> 
             assert delta.full == ref.full, f"frame {i}: a full message where the live backend sent a delta"
             for x, y in zip(delta.arrays(), ref.arrays(), strict=True):
                 np.testing.assert_array_equal(x, y)
+
+
+def test_the_tracker_stage_names_each_frames_dynamic_objects_and_keeps_them_over_a_restart() -> None:
+    """People by class, a tracklet the associator saw moving by that; a skipped frame repeats the last detected
+    frame's boxes of tracklets still alive; ended tracklets are forgotten; state() / restore() keep it all (a
+    restarted tracker masks the same depth for the `rgbd` front end as one that never stopped)."""
+    import msgpack
+
+    from semmap.core.messages import DepthPatch
+
+    depth = DepthPatch(300, 50, 2, np.full((175, 40), 2000, dtype=np.uint16))
+    person = Detection((300.0, 50.0, 380.0, 400.0), "person", 0.9, 2.0, depth)
+    cup = Detection((100.0, 100.0, 140.0, 140.0), "cup", 0.9, 1.0)
+    stage = TrackerStage(TrackerParams(min_length=2, max_age_s=0.5), dynamic_classes={"person"})
+    out = stage.step(detections(0, 0.0, [person, cup]))
+    boxes = stage.dynamic_objects(detections(0, 0.0, [person, cup]), out)
+    assert [(b.class_name, b.reason) for b in boxes] == [("person", "class")]
+    assert boxes[0].depth_min_m == boxes[0].depth_max_m == 2.0  # the person's depth range, for a `range` mask
+    cup_track = next(b.track_id for b in out.boxes if b.class_name == "cup")
+    stage.saw_moving([cup_track])
+    frame1 = detections(1, 1 / 30, [person, cup])
+    boxes = stage.dynamic_objects(frame1, stage.step(frame1))
+    assert sorted((b.class_name, b.reason) for b in boxes) == [("cup", "moving"), ("person", "class")]
+    restored = TrackerStage(TrackerParams(min_length=2, max_age_s=0.5), dynamic_classes={"person"})
+    restored.restore(msgpack.unpackb(msgpack.packb(stage.state())))
+    skipped = detections(2, 2 / 30, [], "stride")
+    for s in (stage, restored):
+        again = s.dynamic_objects(skipped, s.step(skipped))
+        assert [(b.track_id, b.reason) for b in again] == [(b.track_id, b.reason) for b in boxes]
+    late = detections(40, 40 / 30, [], "stride")  # both tracklets ended: nothing dynamic, nothing remembered
+    for s in (stage, restored):
+        assert s.dynamic_objects(late, s.step(late)) == [] and s.moving == set()

@@ -21,9 +21,9 @@ import time
 
 import msgpack
 
-from semmap.algorithms.tracker.iou_tracker import IouTracker, depth_range
+from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput
 from semmap.core.journal import FrameJournal
-from semmap.core.messages import Detections, DynamicBox, DynamicObjects, MapUpdate, Tracks
+from semmap.core.messages import Detections, DynamicObjects, MapUpdate, Tracks
 from semmap.core.reorder import FrameReorderBuffer
 from semmap.runtime.pipeline import TrackerStage
 from semmap.runtime.service import REPLAY_FRAMES, Service, service_main
@@ -42,13 +42,11 @@ class TrackerService(Service):
         # track ids must never repeat within a run (the associator keys candidates by them): without a journal to
         # continue from, a restarted tracker starts a clock-based block of ids
         first_id = int(time.time()) * TRACK_ID_BLOCK if self.resume and self.out_dir is None else 0
-        self.dynamic_classes = set(self.config.associator.dynamic_classes)
         # the per-frame policy (runtime/pipeline.py)
-        self.stage = TrackerStage(self.params, first_track_id=first_id, dynamic_classes=self.dynamic_classes)
+        self.stage = TrackerStage(self.params, first_track_id=first_id,
+                                  dynamic_classes=self.config.associator.dynamic_classes)
         self.pub = self.publisher(self.bus.keys.tracks)
         self.dynamic_pub = self.publisher(self.bus.keys.dynamic)
-        self.moving: set[int] = set()  # track ids the associator rejected as moving
-        self.last_dynamic: list[DynamicBox] = []  # of the last detected frame (carried over skipped frames)
         self.reorder: FrameReorderBuffer[Detections] = FrameReorderBuffer()
         self.journal = FrameJournal(self.out_dir / "tracker.sqlite") if self.out_dir is not None else None
         if self.journal is not None:
@@ -64,7 +62,7 @@ class TrackerService(Service):
         return self.stage.tracker
 
     def on_map_update(self, update: MapUpdate) -> None:
-        self.moving.update(update.moving_tracks)
+        self.stage.saw_moving(update.moving_tracks)
 
     def _restore(self) -> None:
         """Continue after a crash: the tracker's state after the last journalled frame; the outputs of the last
@@ -77,7 +75,7 @@ class TrackerService(Service):
         for frame_id, tracks, _, _ in rows:
             self.remember(self.pub, Tracks.decode(tracks), frame_id)
         frame_id, _, state, _ = rows[-1]
-        self.stage.tracker = IouTracker.from_state(msgpack.unpackb(state), self.params, self.dynamic_classes)
+        self.stage.restore(msgpack.unpackb(state))
         self.last_frame_id = frame_id
         self.reorder.mark_done(frame_id)
         self.log.info("resumed after frame %d (%d tracklets)", frame_id, self.tracker.active_count)
@@ -101,7 +99,7 @@ class TrackerService(Service):
         with self.metrics.timer("proposal_ms") as timer:
             out = self.stage.step(det)
         candidates, ended, boxes = out.candidates, out.ended, out.boxes
-        self._publish_dynamic(det, boxes)
+        self._publish_dynamic(det, out)
         self.metrics.count("frames")
         self.metrics.count("candidates_proposed", sum(1 for c in candidates if c.first))
         tracks = Tracks(self.robot, det.frame_id, det.stamp, candidates, ended, boxes, det.skipped,
@@ -109,32 +107,18 @@ class TrackerService(Service):
         self.emit(self.pub, tracks, det.frame_id)
         if self.journal is not None:
             with self.metrics.timer("journal_ms"):
-                self.journal.append(det.frame_id, tracks.encode(), msgpack.packb(self.tracker.state()))
+                self.journal.append(det.frame_id, tracks.encode(), msgpack.packb(self.stage.state()))
                 if det.frame_id % JOURNAL_TRIM_EVERY == 0:  # only the newest rows are ever read back
                     self.journal.trim(det.frame_id - REPLAY_FRAMES)
         self.report_progress(det.frame_id)
 
 
-    def _publish_dynamic(self, det: Detections, boxes: list) -> None:
-        """This frame's dynamic objects (see module docstring); a skipped frame repeats the last detected frame's
-        boxes of tracklets still alive."""
-        if det.skipped:
-            alive = self.tracker.active_ids()
-            out = [b for b in self.last_dynamic if b.track_id in alive]
-        else:
-            out = []
-            band = self.tracker.params.dynamic_depth_band_m
-            for tb, d in zip(boxes, det.detections, strict=True):  # (one tracked box per detection, in order)
-                reason = "class" if tb.class_name in self.dynamic_classes else (
-                    "moving" if tb.track_id in self.moving else "")
-                if reason:
-                    lo, hi = depth_range(d, det.depth_scale, band)
-                    out.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
-            self.last_dynamic = out
-        self.metrics.count("dynamic_boxes", len(out))
-        self.emit(self.dynamic_pub, DynamicObjects(self.robot, det.frame_id, det.stamp, out, det.skipped),
+    def _publish_dynamic(self, det: Detections, out: TrackerOutput) -> None:
+        """This frame's dynamic objects (see module docstring and `TrackerStage.dynamic_objects`)."""
+        boxes = self.stage.dynamic_objects(det, out)
+        self.metrics.count("dynamic_boxes", len(boxes))
+        self.emit(self.dynamic_pub, DynamicObjects(self.robot, det.frame_id, det.stamp, boxes, det.skipped),
                   det.frame_id)
-        self.moving &= self.tracker.active_ids()  # forget ended tracklets
 
 
 def main(argv: list[str] | None = None) -> int:
