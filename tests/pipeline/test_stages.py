@@ -158,6 +158,11 @@ def test_the_tracker_stage_names_each_frames_dynamic_objects_and_keeps_them_over
     for s in (stage, restored):
         again = s.dynamic_objects(skipped, s.step(skipped))
         assert [(b.track_id, b.reason) for b in again] == [(b.track_id, b.reason) for b in boxes]
+    missed = detections(3, 3 / 30, [cup])  # the detector misses the person once: its last box stays dynamic
+    for s in (stage, restored):
+        again = s.dynamic_objects(missed, s.step(missed))
+        assert sorted((b.class_name, b.reason) for b in again) == [("cup", "moving"), ("person", "class")]
+        assert next(b for b in again if b.class_name == "person").box == person.box
     late = detections(40, 40 / 30, [], "stride")  # both tracklets ended: nothing dynamic, nothing remembered
     for s in (stage, restored):
         assert s.dynamic_objects(late, s.step(late)) == [] and s.moving == set()

@@ -82,7 +82,7 @@ def _drift(c: OdometryConfig, _: str) -> FrontEnd:
 def _rgbd(c: OdometryConfig, _: str) -> FrontEnd:
     from .frontends import RgbdOdometry
 
-    return RgbdOdometry(c.rgbd_sigma_translation_m, c.rgbd_sigma_rotation_deg, c.dynamic_mask)
+    return RgbdOdometry(c.rgbd_sigma_translation_m, c.rgbd_sigma_rotation_deg, c.dynamic_mask, c.rgbd_min_fitness)
 
 
 def _file(c: OdometryConfig, path: str) -> FrontEnd:

@@ -192,6 +192,11 @@ class OdometryConfig(Section):
     gt_sigma_rotation_deg: Positive = 0.01
     rgbd_sigma_translation_m: Positive = 0.01
     rgbd_sigma_rotation_deg: Positive = 0.5
+    rgbd_min_fitness: Fraction = Field(
+        0.15,
+        description="rgbd: a frame pair registered on less than this fraction of its pixels is not trusted: the "
+        "previous step is repeated (counted as pairs_low_fitness; 0 = trust every pair)",
+    )
     dynamic_mask: Literal["box", "range", "none"] = Field(
         "box",
         description="rgbd: leave out the depth of the frame's dynamic objects (people, animals, things seen "

@@ -104,6 +104,7 @@ class OdometryService(Service):
             pose = self.to_session @ self.frontend.estimate(data)
         if hasattr(self.frontend, "far_matches"):  # file:PATH frames with no pose within 0.05 s
             self.metrics.counters["frames_unmatched"] = self.frontend.far_matches
+        self.metrics.counters.update(getattr(self.frontend, "counters", {}))  # e.g. rgbd's untrusted pairs
         sigma_t, sigma_r = self.frontend.sigmas
         self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
                                               keyframe=frame.frame_id % self.keyframe_every == 0,
