@@ -52,6 +52,34 @@ def test_rgbd_odometry_follows_the_real_camera(kitchen) -> None:
     assert moved > 0.02, "the camera moves in these frames"
 
 
+def test_rgbd_repeats_the_last_trusted_step_over_a_pair_it_barely_registers(kitchen) -> None:
+    """A frame whose depth is almost all gone (as when people fill the view and are left out) registers on a few
+    pixels: its pair is not trusted, the previous step is repeated and counted; with the gate off (0) the same
+    pair is taken as Open3D returns it."""
+    config = load_config().odometry
+
+    def frame(i: int, blank: bool = False) -> OdometryInput:
+        f = kitchen[i]
+        depth = f.depth.copy()
+        if blank:
+            keep = np.zeros_like(depth)
+            keep[180:240, 280:340] = depth[180:240, 280:340]  # 3600 of 307,200 pixels
+            depth = keep
+        return OdometryInput(i, f.stamp, f.gt_pose, f.rgb, depth, f.depth_scale, f.intrinsics.matrix)
+
+    gated = make_frontend("rgbd", config)
+    assert gated.min_fitness == config.rgbd_min_fitness > 0
+    p0, p1 = gated.estimate(frame(0)), gated.estimate(frame(1))
+    p2 = gated.estimate(frame(2, blank=True))
+    assert gated.counters["pairs_low_fitness"] == 1
+    np.testing.assert_allclose(p2, p1 @ np.linalg.inv(p0) @ p1, atol=1e-9)  # constant velocity
+    trusting = make_frontend("rgbd", config.model_copy(update={"rgbd_min_fitness": 0.0}))
+    for i in (0, 1):
+        trusting.estimate(frame(i))
+    trusting.estimate(frame(2, blank=True))
+    assert trusting.counters["pairs_low_fitness"] == 0
+
+
 def test_trajectory_file_is_matched_by_timestamp(tmp_path: Path) -> None:
     poses = []
     for i in range(10):
