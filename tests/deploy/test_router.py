@@ -16,6 +16,22 @@ from semmap.runtime.orchestrator import free_loopback_port
 PROJECT = Path(__file__).resolve().parents[2]
 
 
+def _assert_routes(endpoint: str) -> None:
+    """Two clients that only meet through the router exchange a message."""
+    client = BusConfig(mode="client", connect=[endpoint], listen=[])
+    a, b = Bus(client, "robot1"), Bus(client, "robot1")
+    try:
+        got = threading.Event()
+        b.subscribe(b.keys.control, Control, lambda c: got.set() if c.command == "stop" else None)
+        pub = a.publisher(a.keys.control)
+        assert pub.wait_matching(10)
+        pub.put(Control("robot1", "stop"))
+        assert got.wait(10)
+    finally:
+        a.close()
+        b.close()
+
+
 def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     health = tmp_path / "health"
@@ -26,16 +42,7 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
         text=True,
     )
     try:
-        client = BusConfig(mode="client", connect=[endpoint], listen=[])
-        a, b = Bus(client, "robot1"), Bus(client, "robot1")  # clients only meet through the router
-        got = threading.Event()
-        b.subscribe(b.keys.control, Control, lambda c: got.set() if c.command == "stop" else None)
-        pub = a.publisher(a.keys.control)
-        assert pub.wait_matching(10)
-        pub.put(Control("robot1", "stop"))
-        assert got.wait(10)
-        a.close()
-        b.close()
+        _assert_routes(endpoint)
         deadline = time.monotonic() + 10
         while not health.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -73,16 +80,7 @@ def test_the_router_ignores_the_services_connect_variable_and_the_bus_config_can
         cwd=PROJECT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
-        client = BusConfig(mode="client", connect=[endpoint], listen=[])
-        a, b = Bus(client, "robot1"), Bus(client, "robot1")
-        got = threading.Event()
-        b.subscribe(b.keys.control, Control, lambda c: got.set())
-        pub = a.publisher(a.keys.control)
-        assert pub.wait_matching(10)
-        pub.put(Control("robot1", "stop"))
-        assert got.wait(10)
-        a.close()
-        b.close()
+        _assert_routes(endpoint)
     finally:
         router.send_signal(signal.SIGTERM)
         try:
