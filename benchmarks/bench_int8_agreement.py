@@ -23,8 +23,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from semmap.algorithms.detector.onnx_detector import DetectedBox, OnnxDetector  # noqa: E402
-from semmap.datasets import find_data_root, open_dataset  # noqa: E402
-from semmap.runtime.model_store import default_model_path, quantize_int8, require_model  # noqa: E402
+from semmap.datasets import find_data_root  # noqa: E402
+from semmap.runtime.model_store import (  # noqa: E402
+    default_model_path,
+    quantize_int8,
+    require_model,
+    synthetic_calibration_images,
+)
 
 IOU_MATCH = 0.5
 CALIB_FRAMES = 32
@@ -77,17 +82,6 @@ def test_sets(root: Path | None, frames: int) -> dict[str, list[Path]]:
     return sets
 
 
-def synthetic_calibration(folder: Path) -> list[Path]:
-    """Frames of the built-in synthetic scene as PNGs: what every installation can calibrate on."""
-    dataset = open_dataset(f"synthetic:frames={CALIB_FRAMES * 4}")
-    paths = []
-    for i in range(0, len(dataset), 4):
-        path = folder / f"synthetic-{i:04d}.png"
-        cv2.imwrite(str(path), cv2.cvtColor(dataset[i].rgb, cv2.COLOR_RGB2BGR))
-        paths.append(path)
-    return paths
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=30, help="frames per dataset, evenly spread")
@@ -102,7 +96,8 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="semmap-int8-"))
     models: dict[str, Path] = {}
     if args.calib in ("synthetic", "both"):
-        models["int8, synthetic calibration"] = quantize_int8(fp32, synthetic_calibration(tmp), tmp / "syn.onnx")
+        synthetic = synthetic_calibration_images(tmp / "synthetic", CALIB_FRAMES)
+        models["int8, synthetic calibration"] = quantize_int8(fp32, synthetic, tmp / "syn.onnx")
     if args.calib in ("7scenes", "both") and "7-Scenes redkitchen" in sets:
         seven = spread(sorted((root / "7scenes-redkitchen").glob("frame-*.color.*")), CALIB_FRAMES)
         models["int8, 7-Scenes calibration"] = quantize_int8(fp32, seven, tmp / "seven.onnx")

@@ -250,3 +250,23 @@ def quantize_int8(model_path: Path, calib_images: Sequence[Path], out_path: Path
     out_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out_path, q.SerializeToString())
     return out_path
+
+
+def synthetic_calibration_images(folder: Path, count: int = 32) -> list[Path]:
+    """`count` frames of the built-in synthetic scene written as PNGs into `folder`.
+
+    Why: every installation has these frames, so an int8 copy can be made without any dataset; it agrees with
+    fp32 at F1 >= 0.93 on 7-Scenes, Bonn and KITTI (benchmarks/bench_int8_agreement.py, docs/PERFORMANCE.md).
+    """
+    import cv2
+
+    from semmap.datasets import open_dataset
+
+    dataset = open_dataset(f"synthetic:frames={count * 4}")
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i in range(0, len(dataset), 4):
+        path = folder / f"synthetic-{i:04d}.png"
+        cv2.imwrite(str(path), cv2.cvtColor(dataset[i].rgb, cv2.COLOR_RGB2BGR))
+        paths.append(path)
+    return paths

@@ -9,7 +9,7 @@ import numpy as np
 from backend_sim import Scene, drifting, observe, square_path
 
 from semmap.algorithms.associator.pose_book import PoseBook
-from semmap.algorithms.backend.corrections import CorrectionPublisher, CorrectionsParams, moved
+from semmap.algorithms.backend.corrections import CorrectionPublisher, CorrectionsParams, frames_riding_on, moved
 from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
 from semmap.core.messages import CorrectedPoses
 
@@ -111,3 +111,21 @@ def test_moved_measures_translation_and_rotation() -> None:
     b[2, :2, :2] = [[c, -s], [s, c]]
     assert moved(a, b, 0.001, 0.05).tolist() == [False, True, True]
     assert moved(a, b, 0.01, 0.5).tolist() == [False, False, False]
+
+
+def test_frames_riding_on_moved_nodes_matches_the_per_node_ranges() -> None:
+    """The vectorised lookup gives each moved node's frames, from it up to the next node (the first node also
+    carries the frames before it), as a loop over the nodes would."""
+    rng = np.random.default_rng(3)
+    ids = np.sort(rng.choice(5000, 1200, replace=False)).astype(np.int64)
+    nodes = np.sort(rng.choice(ids[3:], 150, replace=False))
+    moved = sorted(int(n) for n in rng.choice(nodes, 40, replace=False)) + [int(nodes[0]), int(nodes[-1])]
+    moved = sorted(set(moved))
+    expected = []
+    for node in moved:
+        j = int(np.searchsorted(nodes, node))
+        start = 0 if j == 0 else int(np.searchsorted(ids, node))
+        end = len(ids) if j + 1 >= len(nodes) else int(np.searchsorted(ids, nodes[j + 1]))
+        expected.extend(range(start, end))
+    assert frames_riding_on(ids, nodes, moved).tolist() == expected
+    assert frames_riding_on(ids, nodes, []).size == 0

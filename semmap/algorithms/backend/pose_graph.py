@@ -37,6 +37,8 @@ from semmap.core.messages import Observation, Observations, OdometryPose
 from . import factors
 
 MAX_FRAMES_WAITING_FOR_ODOMETRY = 300  # frames whose observations arrived before their odometry
+# a node is read again when its iSAM2 delta changed by more than this (rad or m) since its last read
+ESTIMATE_READ_TOLERANCE = 1e-5
 
 
 RETIRED_PRIOR_SIGMA_M = 1.0  # the loose prior that keeps a retired landmark's variable determined
@@ -394,9 +396,9 @@ class PoseGraph:
         rows = np.asarray(rows, dtype=np.int64)
         if not self._isam_nodes:
             return odom[rows].copy()
-        nodes = self._isam_nodes
-        k = [max(bisect.bisect_right(nodes, int(f)) - 1, 0) for f in ids[rows]]
-        node_rows = np.searchsorted(ids, [nodes[i] for i in k])
+        nodes = np.asarray(self._isam_nodes, dtype=np.int64)
+        k = np.maximum(np.searchsorted(nodes, ids[rows], side="right") - 1, 0)  # each row's node (vectorised)
+        node_rows = np.searchsorted(ids, nodes[k])
         est = self._est.rows[k]
         poses = carry_correction(est, odom[node_rows], odom[rows])
         is_node = node_rows == rows
@@ -487,7 +489,7 @@ class PoseGraph:
         and a relinearised node gets a new delta too, so a node whose delta is unchanged has an unchanged
         estimate. The delta comes as one vector ordered by key (landmarks 'l' before poses 'x'); comparing it to
         the delta each node had when last read is a vectorised pass, and only the nodes that moved (by more than
-        a hundredth of the relinearisation threshold, accumulated) are read. When many moved (a loop closed)
+        ESTIMATE_READ_TOLERANCE, accumulated) are read. When many moved (a loop closed)
         one whole read is cheaper than many single ones.
         """
         n = len(self._isam_nodes)
@@ -499,7 +501,7 @@ class PoseGraph:
             self._read_all_nodes(None)
             return
         delta = vec[start:].reshape(n, 6)
-        tol = 0.01 * self.params.relinearize_threshold
+        tol = ESTIMATE_READ_TOLERANCE
         with np.errstate(invalid="ignore"):
             stale = np.flatnonzero(~(np.abs(delta - self._ref.rows).max(axis=1) <= tol))  # NaN: a new node
         if len(stale) > max(64, n // 8):

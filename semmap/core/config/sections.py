@@ -172,7 +172,8 @@ class OdometryConfig(Section):
         "in semmap/algorithms/odometry (checked before a run starts)",
     )
     seed: int = 0
-    keyframe_every: AtLeastOne = Field(1, description="every n-th frame is a keyframe")
+    keyframe_every: AtLeastOne = Field(
+        10, description="every n-th frame is a keyframe: a pose-graph node (frames between ride on the previous one)")
     frame_offset: Numbers6 = Field(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
         description="x y z (m) roll pitch yaw (deg): every pose is given in a frame "
