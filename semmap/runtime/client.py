@@ -41,6 +41,9 @@ from semmap.runtime.bus import Bus, BusConfig
 from semmap.runtime.map_query import MapQuery
 
 PIPELINE_SERVICES = ("detector", "tracker", "associator", "backend")
+# what semmap's own front ends mark as keyframes: `odometry.keyframe_every`'s default, written out because the
+# light client ships without the configuration (tests/client/test_client_defaults.py keeps the two equal)
+DEFAULT_KEYFRAME_EVERY = 10
 
 
 class SemmapTimeout(TimeoutError):
@@ -50,9 +53,13 @@ class SemmapTimeout(TimeoutError):
 class SemmapClient:
     """One robot's connection to a running semmap (see module docstring)."""
 
-    def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None) -> None:
+    def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None,
+                 keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> None:
         self.bus = Bus(BusConfig.from_env(connect, mode), robot)
         self.robot = robot
+        if keyframe_every < 1:
+            raise ValueError(f"keyframe_every must be at least 1, got {keyframe_every}")
+        self.keyframe_every = int(keyframe_every)
         self._frames = self.bus.publisher(self.bus.keys.frames)
         self._poses = self.bus.publisher(self.bus.keys.odometry)
         self._control = self.bus.publisher(self.bus.keys.control)
@@ -153,10 +160,15 @@ class SemmapClient:
         self._frames.put(Frame.from_arrays(self.robot, frame_id, stamp, rgb, depth, depth_scale, intrinsics,
                                            None, instances))
 
-    def publish_pose(self, frame_id: int, stamp: float, pose: np.ndarray, keyframe: bool = True,
+    def publish_pose(self, frame_id: int, stamp: float, pose: np.ndarray, keyframe: bool | None = None,
                      sigma_translation: float = 0.01, sigma_rotation: float = 0.005, source: str = "external") -> None:
-        """The camera-to-world pose of frame `frame_id`, with per-frame motion sigmas (m, rad)."""
-        self._poses.put(OdometryPose(self.robot, frame_id, stamp, np.asarray(pose, float), keyframe,
+        """The camera-to-world pose of frame `frame_id`, with per-frame motion sigmas (m, rad).
+
+        `keyframe`: whether the frame becomes a pose-graph node (your SLAM's keyframes); None marks every
+        `keyframe_every`-th frame, as semmap's own front ends do (`odometry.keyframe_every`)."""
+        if keyframe is None:
+            keyframe = frame_id % self.keyframe_every == 0
+        self._poses.put(OdometryPose(self.robot, frame_id, stamp, np.asarray(pose, float), bool(keyframe),
                                      sigma_translation, sigma_rotation, source))
 
     def wait_frame_done(self, frame_id: int, services: Iterable[str] = PIPELINE_SERVICES,

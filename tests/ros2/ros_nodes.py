@@ -208,11 +208,14 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
     node.create_subscription(MarkerArray, "/semmap/landmarks", on_markers, latched)
     node.create_subscription(PathMsg, "/semmap/trajectory", on_path, latched)
     node.create_subscription(String, "/semmap/bridge_status", on_status, 10)
-    node.create_subscription(MarkerArray, "/semmap/dynamic", on_dynamic, RELIABLE)
+    dynamic = node.create_subscription(MarkerArray, "/semmap/dynamic", on_dynamic, RELIABLE)
     deadline = time.monotonic() + timeout_s
     done_at = None
+    ready = out.with_suffix(".ready")
     while time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
+        if not ready.exists() and dynamic.get_publisher_count() > 0:
+            ready.write_text("matched")  # the bridge's volatile topic reaches us: frames may start (see test)
         status = state["status"] or {}
         if done_at is None and status.get("frames_done", 0) >= frames and status.get("ended"):
             done_at = time.monotonic()

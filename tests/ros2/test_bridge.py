@@ -124,6 +124,11 @@ def _bridge_session(
             ],
         )
         start("listener", [sys.executable, str(NODES), "listen", str(listened), str(frames)])
+        # /semmap/dynamic is volatile (a late subscriber misses what went before): frames start once it is matched
+        deadline = time.monotonic() + 60
+        while not listened.with_suffix(".ready").exists():
+            assert time.monotonic() < deadline and procs["listener"].poll() is None, (logs / "bridge.log").read_text()
+            time.sleep(0.1)
         start("camera", [sys.executable, str(NODES), "publish", str(dataset), str(frames), "--bad"])
         assert procs["camera"].wait(timeout=300) == 0, (logs / "camera.log").read_text()[-3000:]
         assert procs["listener"].wait(timeout=400) == 0, (logs / "bridge.log").read_text()[-3000:]
