@@ -60,7 +60,17 @@ def test_a_stuck_reader_holds_at_most_latest_frames() -> None:
         assert pub.wait_matching(10.0)
         rng = np.random.default_rng(0)
         frames = [_frame(i, rng) for i in range(8)]
-        for i in range(200):
+        # frame 0 first, until the reader holds it: a route that is still being set up may lose the first puts
+        # (seen as got[0] == 3 on a busy machine), which would say nothing about the reader's queue
+        deadline = time.monotonic() + 10.0
+        zero_puts = 0
+        while not got and time.monotonic() < deadline:
+            frames[0].frame_id = 0
+            pub.put(frames[0])
+            zero_puts += 1
+            time.sleep(0.2)
+        assert got, "frame 0 never arrived"
+        for i in range(1, 200):
             frame = frames[i % len(frames)]
             frame.frame_id = i
             pub.put(frame)
@@ -75,7 +85,8 @@ def test_a_stuck_reader_holds_at_most_latest_frames() -> None:
             time.sleep(0.05)
         assert got[0] == 0 and got[-1] == 199, got
         assert len(got) <= 1 + 2, got  # the stuck one, then only the newest two
-        assert len(got) + receiver.dropped["frames"] == 200
+        # every frame read or counted as dropped (a repeated frame 0 that was in flight counts too)
+        assert 200 <= len(got) + receiver.dropped["frames"] <= 199 + zero_puts
     finally:
         release.set()
         sender.close()
