@@ -55,11 +55,11 @@ class SemmapClient:
 
     def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None,
                  keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> None:
-        self.bus = Bus(BusConfig.from_env(connect, mode), robot)
-        self.robot = robot
-        if keyframe_every < 1:
+        if keyframe_every < 1:  # refused before a session opens, so nothing is left behind
             raise ValueError(f"keyframe_every must be at least 1, got {keyframe_every}")
         self.keyframe_every = int(keyframe_every)
+        self.bus = Bus(BusConfig.from_env(connect, mode), robot)
+        self.robot = robot
         self._frames = self.bus.publisher(self.bus.keys.frames)
         self._poses = self.bus.publisher(self.bus.keys.odometry)
         self._control = self.bus.publisher(self.bus.keys.control)
