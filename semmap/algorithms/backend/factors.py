@@ -46,9 +46,10 @@ def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseMod
     raise ValueError(f"unknown robust kernel {kernel!r}: use one of {', '.join(ROBUST_KERNELS)}")
 
 
-def prior_factor(key: int, pose: np.ndarray, sigma_translation: float, sigma_rotation: float) -> gtsam.NonlinearFactor:
+def prior_factor(key: int, pose: np.ndarray, sigma_translation: float, sigma_rotation: float,
+                 kernel: str = "none", k: float = 1.345) -> gtsam.NonlinearFactor:
     noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(sigma_translation, sigma_rotation))
-    return gtsam.PriorFactorPose3(key, pose3(pose), noise)
+    return gtsam.PriorFactorPose3(key, pose3(pose), robust(noise, kernel, k))
 
 
 def between_factor(key_a: int, key_b: int, relative: np.ndarray, sigma_translation: float, sigma_rotation: float,

@@ -44,6 +44,16 @@ ESTIMATE_READ_TOLERANCE = 1e-5
 RETIRED_PRIOR_SIGMA_M = 1.0  # the loose prior that keeps a retired landmark's variable determined
 
 
+def robust_weight(kernel: str, k: float, residual: float) -> float:
+    """The M-estimator's weight at a whitened residual (what iSAM2 gives that factor when it linearises)."""
+    kernel = kernel.lower()
+    if kernel == "huber":
+        return 1.0 if residual <= k else k / residual
+    if kernel == "cauchy":
+        return 1.0 / (1.0 + (residual / k) ** 2)
+    return 1.0
+
+
 class PoseGraphError(ValueError):
     """A call the graph cannot honour (unknown frame, bad pose or sigma)."""
 
@@ -126,6 +136,7 @@ class PoseGraph:
         isam_params = gtsam.ISAM2Params()
         isam_params.relinearizeSkip = self.params.relinearize_skip
         isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
+        self._isam_params = isam_params
         self._isam = gtsam.ISAM2(isam_params)
         # odometry: every frame that had one, sorted ids for interpolation and chain noise
         self._odom: dict[int, _Odometry] = {}
@@ -159,8 +170,17 @@ class PoseGraph:
         self._est = GrowingRows((4, 4), 0.0)
         self._ref = GrowingRows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
         self._moved_nodes: set[int] = set()  # nodes whose estimate changed since `take_moved_nodes()`
-        self._obs_tags: dict[int, list[Hashable]] = {}  # root -> tags of its observation factors (to retire them)
+        self._obs_tags: dict[int, set[Hashable]] = {}  # root -> tags of its observation factors (to retire them)
         self._obs_seq = 0
+        # what settling needs to turn a factor on a settled node into a prior on what stays (see _settle_oldest)
+        self._obs_records: dict[Hashable, tuple[int, int, int, np.ndarray, float]] = {}  # frame, root, var, pt, sigma
+        self._rel_records: dict[Hashable, tuple[int, int, np.ndarray, float, float, str]] = {}
+        self._rel_seq = 0
+        self._settled_points: dict[int, tuple[float, np.ndarray]] = {}  # var -> (information, information * point)
+        # the first _n_settled entries of _isam_nodes are settled: their estimate is kept, they are not in iSAM2,
+        # and no factor touches a frame up to _settled_horizon any more
+        self._n_settled = 0
+        self._settled_horizon = -1
         self._retired: set[int] = set()  # roots of landmarks whose object moved: no factor of theirs pulls
         self.last_update_ms = 0.0
         # (m, rad) of the first pose's prior instead of the params': a session relocalised against a prior map
@@ -171,6 +191,7 @@ class PoseGraph:
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
             "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
             "landmarks_retired": 0, "factors_retired": 0, "observations_retired": 0,
+            "nodes_settled": 0, "settles": 0, "observations_settled": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -263,7 +284,7 @@ class PoseGraph:
             return
         self.counters["merges"] += 1
         self._parent[a] = s
-        self._obs_tags.setdefault(s, []).extend(self._obs_tags.pop(a, []))
+        self._obs_tags.setdefault(s, set()).update(self._obs_tags.pop(a, set()))
         self._count[s] = self._count.get(s, 0) + self._count.pop(a, 0)
         va, vs = self._var.pop(a, None), self._var.get(s)
         if va is not None and vs is not None:
@@ -289,8 +310,11 @@ class PoseGraph:
         self._retired.add(root)
         self.counters["landmarks_retired"] += 1
         self._waiting.pop(root, None)
-        for tag in self._obs_tags.pop(root, []):
+        for tag in self._obs_tags.pop(root, set()):
             self._drop(tag)
+            self._obs_records.pop(tag, None)
+            if tag[0] == "settled":
+                self._settled_points.pop(tag[1], None)
             self.counters["factors_retired"] += 1
         var = self._var.get(root)
         if var is not None:
@@ -316,8 +340,13 @@ class PoseGraph:
         self._ensure_node(int(frame_a))
         self._ensure_node(int(frame_b))
         kernel = self.params.relative_pose_kernel if robust else "none"
-        self._push(None, factors.between_factor(X(int(frame_a)), X(int(frame_b)), T_ab, sigma_translation,
-                                                sigma_rotation, kernel, self.params.robust_k))
+        tag = ("rel", self._rel_seq)
+        self._rel_seq += 1
+        self._rel_records[tag] = (int(frame_a), int(frame_b), T_ab, float(sigma_translation), float(sigma_rotation),
+                                  kernel)
+        factor = self._relative_factor(tag)
+        if factor is not None:
+            self._push(tag, factor)
         self.counters["relative_pose_constraints"] += 1
 
     def add_odometry_message(self, msg: OdometryPose) -> None:
@@ -336,31 +365,130 @@ class PoseGraph:
     def update(self) -> None:
         """One iSAM2 step with everything added since the last call (call once per frame)."""
         start = time.perf_counter()
-        graph = gtsam.NonlinearFactorGraph()
-        tags: list[Hashable | None] = []
-        for tag, factor in self._new_factors:
-            if factor is not None:
-                graph.add(factor)
-                tags.append(tag)
-        result = self._isam.update(graph, self._new_values, self._remove)
-        for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
-            if tag is not None:
-                self._factor_ids[tag] = int(index)
+        self._isam_update(self._new_values)
         for node in sorted(self._pending_nodes):
             i = bisect.bisect_left(self._isam_nodes, node)
             self._isam_nodes.insert(i, node)
             self._est.insert(i, np.eye(4))  # (read in _refresh_estimates below: its reference delta is NaN)
             self._ref.insert(i, np.full(6, np.nan))
         self._isam_vars.update(self._pending_vars)
-        self._new_factors, self._new_tag_pos, self._remove = [], {}, []
         self._new_values = gtsam.Values()
         self._pending_nodes, self._pending_vars = [], []
         self._estimate = None
         # the nodes' estimates are needed every frame (new nodes start from them, the service publishes them);
         # reading them is iSAM2's deferred back-substitution, so it belongs to the update's time
         self._refresh_estimates()
+        window = self.params.active_window_nodes
+        if window and len(self._isam_nodes) - self._n_settled >= window + self.params.settle_batch_nodes:
+            self._settle_oldest(window)
         self.counters["updates"] += 1
         self.last_update_ms = (time.perf_counter() - start) * 1e3
+
+    def _isam_update(self, values: gtsam.Values) -> None:
+        """Hand the pending factors, removals and `values` to iSAM2 and remember where the tagged factors went."""
+        graph = gtsam.NonlinearFactorGraph()
+        tags: list[Hashable | None] = []
+        for tag, factor in self._new_factors:
+            if factor is not None:
+                graph.add(factor)
+                tags.append(tag)
+        result = self._isam.update(graph, values, self._remove)
+        for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
+            if tag is not None:
+                self._factor_ids[tag] = int(index)
+        self._new_factors, self._new_tag_pos, self._remove = [], {}, []
+
+    # ------------------------------------------------------------------------------------------ settling
+
+    def _settle_oldest(self, window: int) -> None:
+        """Settle every node but the newest `window`: bounded cost per update, however long the trajectory.
+
+        Why: iSAM2 re-eliminates the path from a touched variable to the root, and landmarks and loop closures tie
+        the newest node to the whole trajectory, so an update grew with it (19 ms p95 after 10,000 frames against
+        1 ms after 1,000). A settled node keeps its last estimate (frames riding on it too) and leaves iSAM2; each
+        factor that tied it to what stays becomes a prior on what stays, with the settled estimate as a constant:
+        the odometry into the window a pose prior on its first node, a loop closure a pose prior on its live end,
+        and every observation from a settled node part of one isotropic prior per landmark variable (information
+        summed, each weighted by the robust kernel at the current estimate). iSAM2 cannot drop variables, so it is
+        rebuilt from the factors that stay: one batch solve of the window every `settle_batch_nodes` nodes.
+        This is conditioning, not marginalisation: settled poses count as exact, which is what a map that keeps
+        its landmarks fixed does; the landmarks still move with what the window sees.
+        """
+        s = self._n_settled
+        newly = self._isam_nodes[s : len(self._isam_nodes) - window]
+        estimate = self._isam.calculateEstimate()
+        self._settled_horizon = newly[-1]
+        self._n_settled += len(newly)
+        settled_keys = {X(n) for n in newly}
+        index_tag = {index: tag for tag, index in self._factor_ids.items()}
+        self._factor_ids, self._remove = {}, []
+        old = self._isam.getFactorsUnsafe()
+        kept: list[tuple[Hashable | None, gtsam.NonlinearFactor]] = []
+        touched: dict[int, int] = {}  # landmark variable -> its root, whose settled prior is to be rewritten
+        for index in range(old.size()):
+            factor = old.at(index)
+            if factor is None:  # removed earlier
+                continue
+            tag = index_tag.get(index)
+            if settled_keys.isdisjoint(factor.keys()):  # noqa: SIM118 (a gtsam factor, not a dict)
+                kept.append((tag, factor))
+                continue
+            kind = tag[0] if isinstance(tag, tuple) else None
+            if kind == "odo":
+                self._add_chain(tag[1], tag[2])
+            elif kind == "rel":
+                relative = self._relative_factor(tag)
+                if relative is not None:
+                    self._push(tag, relative)
+            elif kind == "obs":
+                frame_id, root, var, point, sigma = self._obs_records.pop(tag)
+                self._obs_tags.get(self._root(root), set()).discard(tag)
+                self._settle_observation(frame_id, root, var, point, sigma, estimate.atPoint3(L(var)))
+                touched[var] = root
+            elif kind != "prior":  # (every factor on a pose node is tagged: this would be a bookkeeping bug)
+                raise PoseGraphError(f"cannot settle an untagged factor on keys {factor.keys()}")
+        for var, root in touched.items():
+            self._push_settled_prior(var, root)
+        replaced = {tag for tag, _ in self._new_factors if tag is not None}
+        self._new_factors = [(t, f) for t, f in kept if t is None or t not in replaced] + self._new_factors
+        values = gtsam.Values(estimate)
+        for node in newly:
+            values.erase(X(node))
+        self._isam = gtsam.ISAM2(self._isam_params)
+        self._isam_update(values)
+        self._estimate = None
+        self._ref.rows[self._n_settled :] = np.nan  # a new iSAM2: read every live node again
+        self._refresh_estimates()
+        self.counters["nodes_settled"] += len(newly)
+        self.counters["settles"] += 1
+
+    def _landmark_estimate(self, var: int) -> np.ndarray:
+        key = L(var)
+        if self._new_values.exists(key):
+            return np.asarray(self._new_values.atPoint3(key), dtype=np.float64)
+        return np.asarray(self._isam.calculateEstimatePoint3(key), dtype=np.float64)
+
+    def _settle_observation(self, frame_id: int, root: int, var: int, point: np.ndarray, sigma: float,
+                            landmark: np.ndarray) -> None:
+        """Fold one observation from a settled frame into its landmark variable's settled prior."""
+        pose = self._frame_pose(frame_id)
+        world = pose[:3, :3] @ point + pose[:3, 3]
+        if self._root(root) in self._retired:
+            return
+        residual = float(np.linalg.norm(world - np.asarray(landmark, dtype=np.float64))) / sigma
+        information = robust_weight(self.params.robust_kernel, self.params.robust_k, residual) / sigma**2
+        total, weighted = self._settled_points.get(var, (0.0, np.zeros(3)))
+        self._settled_points[var] = (total + information, weighted + information * world)
+        self.counters["observations_settled"] += 1
+
+    def _push_settled_prior(self, var: int, root: int) -> None:
+        if var not in self._settled_points:
+            return
+        total, weighted = self._settled_points[var]
+        tag = ("settled", var)
+        self._drop(tag)
+        self._push(tag, factors.point_prior_factor(L(var), weighted / total, 1.0 / math.sqrt(total)))
+        self._obs_tags.setdefault(self._root(root), set()).add(tag)
 
     # ------------------------------------------------------------------------------------------ outputs
 
@@ -492,7 +620,8 @@ class PoseGraph:
         ESTIMATE_READ_TOLERANCE, accumulated) are read. When many moved (a loop closed)
         one whole read is cheaper than many single ones.
         """
-        n = len(self._isam_nodes)
+        s = self._n_settled  # settled nodes come first and never move
+        n = len(self._isam_nodes) - s
         if n == 0:
             return
         vec = self._isam.getDelta().vector()
@@ -503,27 +632,31 @@ class PoseGraph:
         delta = vec[start:].reshape(n, 6)
         tol = ESTIMATE_READ_TOLERANCE
         with np.errstate(invalid="ignore"):
-            stale = np.flatnonzero(~(np.abs(delta - self._ref.rows).max(axis=1) <= tol))  # NaN: a new node
+            stale = np.flatnonzero(~(np.abs(delta - self._ref.rows[s:]).max(axis=1) <= tol))  # NaN: a new node
         if len(stale) > max(64, n // 8):
             self._read_all_nodes(delta)
             return
         est = self._est.rows
         for k in stale:
-            est[k] = self._isam.calculateEstimatePose3(X(self._isam_nodes[k])).matrix()
-        self._ref.rows[stale] = delta[stale]
-        self._moved_nodes.update(self._isam_nodes[k] for k in stale)
+            est[s + k] = self._isam.calculateEstimatePose3(X(self._isam_nodes[s + k])).matrix()
+        self._ref.rows[s + stale] = delta[stale]
+        self._moved_nodes.update(self._isam_nodes[s + k] for k in stale)
         self.counters["estimates_read"] += len(stale)
 
     def _read_all_nodes(self, delta: np.ndarray | None) -> None:
+        """Read every node still in iSAM2 (the settled ones keep their rows)."""
+        s = self._n_settled
         self._estimate = self._isam.calculateEstimate()
         rows = gtsam.utilities.extractPose3(self._estimate)  # key order == frame order (only X are Pose3)
-        est = np.zeros((len(rows), 4, 4))
+        est = self._est.rows[s:]
+        if len(rows) != len(est):
+            raise PoseGraphError(f"iSAM2 holds {len(rows)} poses, the graph expects {len(est)}")
         est[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         est[:, :3, 3] = rows[:, 9:]
+        est[:, 3, :3] = 0.0
         est[:, 3, 3] = 1.0
-        self._est.replace(est)
-        self._ref.replace(delta.copy() if delta is not None else np.full((len(rows), 6), np.nan))
-        self._moved_nodes.update(self._isam_nodes)
+        self._ref.rows[s:] = delta if delta is not None else np.nan
+        self._moved_nodes.update(self._isam_nodes[s:])
         self.counters["estimate_full_reads"] += 1
 
     def _root(self, landmark_id: int) -> int:
@@ -547,6 +680,12 @@ class PoseGraph:
             self._remove.append(self._factor_ids.pop(tag))
             self.counters["factors_replaced"] += 1
 
+    def _frame_pose(self, frame_id: int) -> np.ndarray:
+        """A frame's current pose: its node's estimate (pending or solved), else interpolated."""
+        if frame_id in self._node_set:
+            return self._node_pose(frame_id)
+        return self.corrected_pose(frame_id)
+
     def _node_pose(self, node: int) -> np.ndarray:
         key = X(node)
         if self._new_values.exists(key):
@@ -554,7 +693,7 @@ class PoseGraph:
         return self._est.rows[bisect.bisect_left(self._isam_nodes, node)].copy()
 
     def _ensure_node(self, frame_id: int) -> None:
-        if frame_id in self._node_set:
+        if frame_id in self._node_set or frame_id <= self._settled_horizon:  # (a settled frame gets no new node)
             return
         i = bisect.bisect_left(self._nodes, frame_id)
         prev = self._nodes[i - 1] if i > 0 else None
@@ -590,9 +729,30 @@ class PoseGraph:
 
     def _add_chain(self, a: int, b: int) -> None:
         """Odometry between consecutive nodes, with the sigmas of `odometry_sigmas_between`."""
+        if b <= self._settled_horizon:  # both settled: nothing to constrain
+            return
         sigma_t, sigma_r = self.odometry_sigmas_between(a, b)
         relative = inv_rigid(self._odom[a].pose) @ self._odom[b].pose
-        self._push(("odo", a, b), factors.between_factor(X(a), X(b), relative, sigma_t, sigma_r))
+        if a <= self._settled_horizon:  # from a settled node: a prior on b where the odometry puts it
+            factor = factors.prior_factor(X(b), self._frame_pose(a) @ relative, sigma_t, sigma_r)
+        else:
+            factor = factors.between_factor(X(a), X(b), relative, sigma_t, sigma_r)
+        self._push(("odo", a, b), factor)
+
+    def _relative_factor(self, tag: Hashable) -> gtsam.NonlinearFactor | None:
+        """A relative-pose constraint as a factor: between two live nodes, a prior on the live one when the other
+        is settled, nothing when both are (the record is then forgotten)."""
+        a, b, T_ab, sigma_t, sigma_r, kernel = self._rel_records[tag]
+        k = self.params.robust_k
+        settled_a, settled_b = a <= self._settled_horizon, b <= self._settled_horizon
+        if settled_a and settled_b:
+            del self._rel_records[tag]
+            return None
+        if settled_a:
+            return factors.prior_factor(X(b), self._frame_pose(a) @ T_ab, sigma_t, sigma_r, kernel, k)
+        if settled_b:
+            return factors.prior_factor(X(a), self._frame_pose(b) @ inv_rigid(T_ab), sigma_t, sigma_r, kernel, k)
+        return factors.between_factor(X(a), X(b), T_ab, sigma_t, sigma_r, kernel, k)
 
     def _observation_sigma(self, obs: Observation) -> float:
         p = self.params
@@ -602,14 +762,19 @@ class PoseGraph:
         return max(float(obs.sigma), model, 1e-4)
 
     def _add_observation_factor(self, frame_id: int, obs: Observation, root: int) -> None:
+        var, point, sigma = self._var[root], np.asarray(obs.point_camera, float), self._observation_sigma(obs)
+        if frame_id <= self._settled_horizon:  # seen from a settled frame (a late message): straight into the prior
+            self._settle_observation(frame_id, root, var, point, sigma, self._landmark_estimate(var))
+            self._push_settled_prior(var, root)
+            return
         self._ensure_node(frame_id)
-        factor = factors.observation_factor(X(frame_id), L(self._var[root]), np.asarray(obs.point_camera, float),
-                                            self._observation_sigma(obs), self.params.robust_kernel,
+        factor = factors.observation_factor(X(frame_id), L(var), point, sigma, self.params.robust_kernel,
                                             self.params.robust_k)
         tag = ("obs", self._obs_seq)
         self._obs_seq += 1
         self._push(tag, factor)
-        self._obs_tags.setdefault(root, []).append(tag)
+        self._obs_tags.setdefault(root, set()).add(tag)
+        self._obs_records[tag] = (frame_id, root, var, point, sigma)
         self.counters["observation_factors"] += 1
 
     def _activate(self, root: int) -> None:
@@ -617,8 +782,9 @@ class PoseGraph:
         waiting = self._waiting.pop(root, [])
         for frame_id, _ in waiting:
             self._ensure_node(frame_id)
-        world = [self._node_pose(f)[:3, :3] @ np.asarray(o.point_camera, float) + self._node_pose(f)[:3, 3]
-                 for f, o in waiting]
+        poses = [self._frame_pose(f) for f, _ in waiting]
+        world = [T[:3, :3] @ np.asarray(o.point_camera, float) + T[:3, 3]
+                 for T, (_, o) in zip(poses, waiting, strict=True)]
         self._var[root] = root
         self._new_values.insert(L(root), np.median(np.array(world), axis=0))
         self._pending_vars.append(root)

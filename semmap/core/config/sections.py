@@ -252,6 +252,14 @@ class BackendParams(Section):
     merge_sigma_m: Positive = 0.001
     relinearize_threshold: Positive = 0.001
     relinearize_skip: AtLeastOne = 1
+    active_window_nodes: Count = Field(
+        300,
+        description="pose nodes iSAM2 keeps solving; older ones are settled (their estimate kept, their factors "
+        "turned into priors on what stays) so an update costs the same after hours as after a minute; 0 = never",
+    )
+    settle_batch_nodes: AtLeastOne = Field(
+        100, description="nodes settled at once, when the window holds this many more (the graph is rebuilt then)"
+    )
 
 
 class LoopClosureParams(Section):
