@@ -102,15 +102,22 @@ def _prior(n: int = 3) -> LandmarkMap:
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
 
-def _session(prior: LandmarkMap) -> tuple[PriorSession, object]:
+def _session(prior: LandmarkMap, detected_from: np.ndarray | None = None) -> tuple[PriorSession, object]:
+    """A relocalised session over `prior`, each landmark with one view: detected by a camera at
+    `detected_from` (default: the origin, where the tests' camera stands)."""
+    from types import SimpleNamespace
+
     from semmap.algorithms.associator.mapper import LandmarkMapper
 
     s = PriorSession(prior, PriorParams(missing_after_frames=3))
     s.transform = np.eye(4)  # relocalised (identity frame) for the test
     mapper = LandmarkMapper()
     mapper.adopt_landmarks(prior.all())
+    pose = np.eye(4)
+    if detected_from is not None:
+        pose[:3, 3] = detected_from
     for lm in mapper.map.all():  # a view so it counts as a mapped object
-        lm.views = [object()]  # type: ignore[list-item]
+        lm.views = [SimpleNamespace(pose=pose)]  # type: ignore[list-item]
     return s, mapper
 
 
@@ -124,6 +131,31 @@ def test_prior_landmark_in_view_and_undetected_goes_missing_only_after_several_f
     assert s.status == {0: "prior", 1: "missing", 2: "missing"}
     assert s.update(mapper, 3, camera, seen, K, touched=[2]) == [2]  # associated again: present
     assert s.status[2] == "present"
+
+
+def test_a_landmark_looked_at_from_a_side_never_detected_is_not_missing() -> None:
+    """Detectors find many objects from some sides only: misses count only from directions it was detected from."""
+    s, mapper = _session(_prior(), detected_from=np.array([0.0, 0.0, 4.0]))  # seen from behind the cups only
+    for frame in range(20):
+        s.update(mapper, frame, np.eye(4), [], K, touched=[])
+    assert set(s.status.values()) == {"prior"}
+    s, mapper = _session(_prior(), detected_from=np.array([0.3, 0.4, -0.5]))  # ~15 degrees off: it counts
+    for frame in range(3):
+        s.update(mapper, frame, np.eye(4), [], K, touched=[])
+    assert set(s.status.values()) == {"missing"}
+
+
+def test_a_box_of_a_class_the_landmark_was_ever_detected_as_counts_as_seen() -> None:
+    s, mapper = _session(_prior(1))  # one cup, in the middle of the view... that was once boxed as a bowl
+    mapper.map.all()[0].class_votes = {"cup": 20, "bowl": 3}
+    bowl = [TrackedBox(1, "bowl", (200.0, 160.0, 280.0, 260.0), 5, True)]
+    vase = [TrackedBox(1, "vase", (200.0, 160.0, 280.0, 260.0), 5, True)]
+    for frame in range(10):
+        s.update(mapper, frame, np.eye(4), bowl, K, touched=[])
+    assert s.status == {0: "prior"}
+    for frame in range(10, 13):
+        s.update(mapper, frame, np.eye(4), vase, K, touched=[])
+    assert s.status == {0: "missing"}
 
 
 def test_out_of_view_occluded_or_skipped_frames_never_count() -> None:

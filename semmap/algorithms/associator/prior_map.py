@@ -13,8 +13,10 @@ trajectory on them.
 
 Status per landmark (map.json): `prior` until the session sees it again (`present`), `missing` once it should
 have been seen (its centre projects well inside the image, between `missing_min_depth_m` and
-`missing_max_depth_m`, its disk at least `missing_min_px` across, no other landmark in front of it) in enough
-detected frames in a row without a detection of its class on it: `missing_after_frames`, or more for a class
+`missing_max_depth_m`, its disk at least `missing_min_px` across, no other landmark in front of it, and looked at
+from within `missing_max_view_angle_deg` of a direction it was detected from) in enough
+detected frames in a row without a box on it of a class it was ever detected as (a detector calls one
+microwave a tv or a laptop from some viewpoints): `missing_after_frames`, or more for a class
 the detector often misses in plain view. That rate is learnt from this session's present landmarks of the
 class (in plain view, a box on them or not; Beta(4, 1) before any evidence), and the run must be unlikely
 (< `missing_miss_probability`) for an object still there: on 7-Scenes the detector boxes a dining table or the
@@ -208,16 +210,30 @@ class PriorSession:
             blocked[i] = False
             if blocked.any():
                 continue
-            r_px = max(2.0, radius[i] * k.fx / z[i])
             lm = lms[i]
+            if not self._seen_from_here(lm, np.asarray(T, dtype=np.float64)[:3, 3]):
+                continue
+            r_px = max(2.0, radius[i] * k.fx / z[i])
+            names = lm.class_votes.keys() | {lm.class_name}  # a box of any class it was detected as
             seen = any(
-                b.class_name == lm.class_name
+                b.class_name in names
                 and b.box[0] - r_px <= u <= b.box[2] + r_px
                 and b.box[1] - r_px <= v <= b.box[3] + r_px
                 for b in boxes
             )
             out.append((i, seen))
         return out
+
+    def _seen_from_here(self, lm: LandmarkState, camera: np.ndarray) -> bool:
+        """Is the camera looking at the landmark from a direction it was detected from (within
+        `missing_max_view_angle_deg`)? Only there does a miss say something about the object."""
+        if not lm.views:
+            return False
+        here = lm.centroid - camera
+        here = here / max(float(np.linalg.norm(here)), 1e-9)
+        seen = lm.centroid[None, :] - np.stack([v.pose[:3, 3] for v in lm.views])
+        seen = seen / np.maximum(np.linalg.norm(seen, axis=1), 1e-9)[:, None]
+        return bool((seen @ here).max() >= math.cos(math.radians(self.params.missing_max_view_angle_deg)))
 
     def with_status(self, landmarks: list[Landmark]) -> list[Landmark]:
         return [lm if lm.id not in self.status else _status(lm, self.status[lm.id]) for lm in landmarks]
