@@ -37,8 +37,9 @@ def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: l
         elif name == "associator":
             extra = (["--await-backend"] if "backend" in chosen else []) + (
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
-        elif name == "backend" and data == "external":  # no odometry service: record the SLAM's input poses
-            extra = ["--write-odometry"]
+        elif name == "backend":
+            extra = (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
+                ["--expect-alignment"] if prior_map is not None else [])
         elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
             extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
         elif name == "viz":

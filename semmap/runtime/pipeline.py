@@ -315,9 +315,11 @@ class BackendStage:
         backend: BackendParams | None = None,
         loop_closure: LoopClosureParams | None = None,
         corrections: CorrectionsParams | None = None,
+        expect_alignment: bool = False,
     ) -> None:
         self.graph = PoseGraph(backend or BackendParams())
-        self.aligner = PriorAlignment()  # a session that relocalises against a prior map (docs/MAPS.md)
+        # a session that relocalises against a prior map (docs/MAPS.md); only such a session keeps its frames
+        self.aligner = PriorAlignment(expected=expect_alignment)
         self.closer = LoopCloser(loop_closure)
         self.corrections = CorrectionPublisher(corrections or CorrectionsParams())
 
@@ -327,7 +329,8 @@ class BackendStage:
     def add(self, pose: OdometryPose, obs: Observations) -> bool:
         """One frame into the graph (no update); True when its alignment moved the graph into the prior's frame."""
         realigned = False
-        if obs.alignment is not None and self.aligner.alignment is None:
+        # (a backend not started for a prior map kept no frames to rebuild from: the service counts and logs it)
+        if obs.alignment is not None and self.aligner.alignment is None and self.aligner.expected:
             self.graph = self.aligner.realign(self.graph, obs.alignment)
             realigned = True
         self.aligner.add(self.graph, pose, obs)

@@ -285,3 +285,23 @@ def test_a_class_the_detector_often_misses_needs_a_longer_run_to_go_missing() ->
     restored = PriorSession(_prior(2), PriorParams(missing_after_frames=3))
     restored.restore(s.to_state())
     assert restored.class_seen == s.class_seen
+
+
+def test_only_a_backend_started_for_a_prior_map_keeps_its_frames_and_realigns() -> None:
+    """Keeping every handled frame (to rebuild in the prior frame) costs ~1 KB a frame for the whole run: a run
+    without a prior map keeps none, and ignores an alignment (forged, or sent to the wrong backend)."""
+    from semmap.runtime.pipeline import BackendStage
+
+    landmarks = {i: np.array(p, float) for i, p in enumerate([(0, 3, 1), (2, 3, 0.5), (-2, 3, 1.5)])}
+    alignment = MapAlignment(OFFSET, [(i, tuple(p)) for i, p in landmarks.items()], 0.01, 3, 0.03)
+    for expected in (False, True):
+        stage = BackendStage(expect_alignment=expected)
+        for f in range(30):
+            truth = look_at(np.array([0.05 * f - 1, 0.0, 1.0]), np.array([0.0, 3.0, 1.0]))
+            obs = Observations("r", f, f / 30, [_observe(truth, landmarks[i], i) for i in landmarks])
+            obs.alignment = alignment if f == 20 else None
+            step = stage.step(OdometryPose("r", f, f / 30, np.linalg.inv(OFFSET) @ truth, True, 0.001, 0.001, "gt"),
+                              obs, None)
+            assert step.realigned == (expected and f == 20)
+            assert len(stage.aligner.handled) == (f + 1 if expected and f < 20 else 0)
+        assert stage.graph.counters.get("anchors", 0) == (3 if expected else 0)

@@ -25,14 +25,16 @@ FIRST_PRIOR_ROTATION_DEG = 3.0
 
 
 class PriorAlignment:
-    """Keeps the frames handled so far (odometry + observations, a few hundred bytes each) to rebuild once."""
+    """Keeps the frames handled so far (odometry + observations, ~1 KB each) to rebuild once: only in a session
+    started from a prior map (`expected`); any other run would keep every frame's messages for nothing."""
 
-    def __init__(self) -> None:
+    def __init__(self, expected: bool = True) -> None:
+        self.expected = expected
         self.alignment: MapAlignment | None = None
         self.handled: list[tuple[OdometryPose, Observations]] = []
 
     def add(self, graph: PoseGraph, pose: OdometryPose, obs: Observations) -> None:
-        if self.alignment is None:
+        if self.alignment is None and self.expected:
             self.handled.append((pose, obs))
         graph.add_odometry_message(self._aligned(pose))
         graph.add_observations_message(obs)

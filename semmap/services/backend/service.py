@@ -42,7 +42,8 @@ class BackendService(Service):
 
     def setup(self) -> None:
         # the per-frame policy (graph update, loop closure, corrections) is the stage's (semmap/runtime/pipeline.py)
-        self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections)
+        self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections,
+                                  expect_alignment=bool(getattr(self.args, "expect_alignment", False)))
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
         self.pub = self.publisher(self.bus.keys.corrected_poses)
@@ -137,6 +138,10 @@ class BackendService(Service):
             step = self.stage.step(pose, obs, cloud)
             if step.realigned:
                 self._log_realigned(obs)
+            elif obs.alignment is not None and not self.stage.aligner.expected:
+                self.metrics.count("alignments_ignored")
+                self.log.warning("frame %d carries a prior-map alignment, but this backend was not started for a "
+                                 "prior map (--expect-alignment): ignored", obs.frame_id)
             self.metrics.time_ms("update_ms", step.update_ms)
             if cloud is not None:
                 self._loop_closed(cloud, step.closure, step.loop_closure_ms or 0.0)
@@ -241,6 +246,9 @@ class BackendService(Service):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--write-odometry", action="store_true",
                         help="also write the odometry it received as trajectory_odometry.tum (external runs)")
+    parser.add_argument("--expect-alignment", action="store_true",
+                        help="the associator starts from a prior map (--prior-map): keep the frames handled until "
+                        "it relocalises, to rebuild the graph in the prior map's frame")
 
 
 def main(argv: list[str] | None = None) -> int:
