@@ -58,7 +58,7 @@ class PoseGraphError(ValueError):
     """A call the graph cannot honour (unknown frame, bad pose or sigma)."""
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame for the whole run: no per-instance dict
 class _Odometry:
     stamp: float
     pose: np.ndarray
