@@ -34,16 +34,28 @@ def pose_sigmas(sigma_translation: float, sigma_rotation: float) -> np.ndarray:
     return np.array([sigma_rotation] * 3 + [sigma_translation] * 3, dtype=np.float64)
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
-    """Wrap a Gaussian model in an M-estimator: one wrong association then pulls with bounded force."""
+def m_estimator(kernel: str, k: float) -> gtsam.noiseModel.mEstimator.Base | None:
+    """GTSAM's M-estimator for a kernel name (None for "none")."""
     kernel = kernel.lower()
     if kernel == "none":
-        return base
+        return None
     if kernel == "huber":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+        return gtsam.noiseModel.mEstimator.Huber.Create(k)
     if kernel == "cauchy":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+        return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     raise ValueError(f"unknown robust kernel {kernel!r}: use one of {', '.join(ROBUST_KERNELS)}")
+
+
+def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
+    """Wrap a Gaussian model in an M-estimator: one wrong association then pulls with bounded force."""
+    estimator = m_estimator(kernel, k)
+    return base if estimator is None else gtsam.noiseModel.Robust.Create(estimator, base)
+
+
+def robust_weight(kernel: str, k: float, residual: float) -> float:
+    """The M-estimator's weight at a whitened residual (what iSAM2 gives that factor when it linearises)."""
+    estimator = m_estimator(kernel, k)
+    return 1.0 if estimator is None else float(estimator.weight(residual))
 
 
 def prior_factor(key: int, pose: np.ndarray, sigma_translation: float, sigma_rotation: float,

@@ -35,6 +35,7 @@ from semmap.core.geometry import carry_correction, correction, inv_rigid
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 from . import factors
+from .factors import robust_weight
 
 MAX_FRAMES_WAITING_FOR_ODOMETRY = 300  # frames whose observations arrived before their odometry
 # a node is read again when its iSAM2 delta changed by more than this (rad or m) since its last read
@@ -42,16 +43,6 @@ ESTIMATE_READ_TOLERANCE = 1e-5
 
 
 RETIRED_PRIOR_SIGMA_M = 1.0  # the loose prior that keeps a retired landmark's variable determined
-
-
-def robust_weight(kernel: str, k: float, residual: float) -> float:
-    """The M-estimator's weight at a whitened residual (what iSAM2 gives that factor when it linearises)."""
-    kernel = kernel.lower()
-    if kernel == "huber":
-        return 1.0 if residual <= k else k / residual
-    if kernel == "cauchy":
-        return 1.0 / (1.0 + (residual / k) ** 2)
-    return 1.0
 
 
 class PoseGraphError(ValueError):
@@ -165,7 +156,6 @@ class PoseGraph:
         self._isam_vars: set[int] = set()
         self._pending_vars: list[int] = []
         self._unposed: dict[int, list[Observation]] = {}  # observations that arrived before their odometry
-        self._estimate: gtsam.Values | None = None  # the whole estimate, computed only when asked (O(graph))
         # per-node estimates kept up to date incrementally (see _refresh_estimates), aligned with _isam_nodes
         self._est = GrowingRows((4, 4), 0.0)
         self._ref = GrowingRows((6,), np.nan)  # iSAM2's delta of each node when its estimate was last read
@@ -318,10 +308,7 @@ class PoseGraph:
             self.counters["factors_retired"] += 1
         var = self._var.get(root)
         if var is not None:
-            key = L(var)
-            point = (self._new_values.atPoint3(key) if self._new_values.exists(key)
-                     else self._values().atPoint3(key))
-            self._push(None, factors.point_prior_factor(key, point, RETIRED_PRIOR_SIGMA_M))
+            self._push(None, factors.point_prior_factor(L(var), self._landmark_estimate(var), RETIRED_PRIOR_SIGMA_M))
 
     def add_relative_pose_constraint(self, frame_a: int, frame_b: int, T_ab: np.ndarray, sigma_translation: float,
                                      sigma_rotation: float, robust: bool = True) -> None:
@@ -374,7 +361,6 @@ class PoseGraph:
         self._isam_vars.update(self._pending_vars)
         self._new_values = gtsam.Values()
         self._pending_nodes, self._pending_vars = [], []
-        self._estimate = None
         # the nodes' estimates are needed every frame (new nodes start from them, the service publishes them);
         # reading them is iSAM2's deferred back-substitution, so it belongs to the update's time
         self._refresh_estimates()
@@ -456,7 +442,6 @@ class PoseGraph:
             values.erase(X(node))
         self._isam = gtsam.ISAM2(self._isam_params)
         self._isam_update(values)
-        self._estimate = None
         self._ref.rows[self._n_settled :] = np.nan  # a new iSAM2: read every live node again
         self._refresh_estimates()
         self.counters["nodes_settled"] += len(newly)
@@ -471,10 +456,10 @@ class PoseGraph:
     def _settle_observation(self, frame_id: int, root: int, var: int, point: np.ndarray, sigma: float,
                             landmark: np.ndarray) -> None:
         """Fold one observation from a settled frame into its landmark variable's settled prior."""
-        pose = self._frame_pose(frame_id)
-        world = pose[:3, :3] @ point + pose[:3, 3]
         if self._root(root) in self._retired:
             return
+        pose = self._frame_pose(frame_id)
+        world = pose[:3, :3] @ point + pose[:3, 3]
         residual = float(np.linalg.norm(world - np.asarray(landmark, dtype=np.float64))) / sigma
         information = robust_weight(self.params.robust_kernel, self.params.robust_k, residual) / sigma**2
         total, weighted = self._settled_points.get(var, (0.0, np.zeros(3)))
@@ -594,11 +579,6 @@ class PoseGraph:
 
     # ------------------------------------------------------------------------------------------ internals
 
-    def _values(self) -> gtsam.Values:
-        if self._estimate is None:  # only before the first update
-            self._estimate = self._isam.calculateEstimate()
-        return self._estimate
-
     def take_moved_nodes(self) -> list[int]:
         """The nodes (frame ids, ascending) whose estimate changed since the last call: new nodes and those iSAM2
         moved (relinearised or re-solved). Frames between two nodes ride on the earlier one."""
@@ -646,8 +626,7 @@ class PoseGraph:
     def _read_all_nodes(self, delta: np.ndarray | None) -> None:
         """Read every node still in iSAM2 (the settled ones keep their rows)."""
         s = self._n_settled
-        self._estimate = self._isam.calculateEstimate()
-        rows = gtsam.utilities.extractPose3(self._estimate)  # key order == frame order (only X are Pose3)
+        rows = gtsam.utilities.extractPose3(self._isam.calculateEstimate())  # key order == frame order (only X)
         est = self._est.rows[s:]
         if len(rows) != len(est):
             raise PoseGraphError(f"iSAM2 holds {len(rows)} poses, the graph expects {len(est)}")
