@@ -39,7 +39,7 @@ def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: l
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
         elif name == "backend":
             extra = (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
-                ["--expect-alignment"] if prior_map is not None else [])
+                ["--prior-map", str(prior_map)] if prior_map is not None else [])
         elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
             extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
         elif name == "viz":

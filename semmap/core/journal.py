@@ -54,6 +54,16 @@ class FrameJournal:
         self.db.execute("DELETE FROM extras")
 
 
+def read_extras(path: Path) -> list[tuple[int, bytes]]:
+    """(frame_id, extra) of another run's FrameJournal, in frame order, opened read-only (a saved run may sit on
+    a read-only disk and is never changed by reading it); sqlite3.Error when it is not such a journal."""
+    db = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, timeout=10)
+    try:
+        return db.execute("SELECT frame_id, body FROM extras ORDER BY frame_id").fetchall()
+    finally:
+        db.close()
+
+
 class MessageJournal:
     """(seq, stream, blob) rows in arrival order: the inputs a service handled since its last snapshot.
 

@@ -345,7 +345,8 @@ class BackendStage:
         closure, closure_ms = None, None
         if cloud is not None:
             t0 = time.perf_counter()
-            closure = self.closer.close(self.graph, cloud)
+            # once in the prior map's frame, the map's keyframes are registration targets too
+            closure = self.closer.close(self.graph, cloud, against_prior=self.aligner.alignment is not None)
             closure_ms = (time.perf_counter() - t0) * 1e3
             timing["loop_closure"] = closure_ms
         t0 = time.perf_counter()

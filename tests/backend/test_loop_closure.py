@@ -24,7 +24,7 @@ from semmap.algorithms.backend.loop_closure import (
     icp_point_to_plane,
     voxel_downsample,
 )
-from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph, PoseGraphError
 from semmap.datasets.base import Dataset, FrameData
 from semmap.datasets.synthetic import SyntheticDataset
 
@@ -264,6 +264,92 @@ def test_a_journalled_keyframe_restores_the_same_graph(room: SyntheticDataset) -
     assert list(restored.keyframes) == list(closer.keyframes) == [0]
     np.testing.assert_array_equal(restored.keyframes[0].with_normals(RADIUS)[0],
                                   closer.keyframes[0].with_normals(RADIUS)[0])
+
+
+# ------------------------------------------------------------------------------------------ a prior map's keyframes
+
+
+def _session_in_the_map_frame(room: SyntheticDataset, first: int, error: np.ndarray) -> PoseGraph:
+    """A relocalised session's graph: frames `first`.. of the room, every pose `error` off in the map frame (what
+    an object fit leaves), the first pose's prior loosened as after a relocalisation."""
+    graph = PoseGraph(BackendParams())
+    graph.first_prior = (0.1, math.radians(5.0))
+    for i in range(first, FRAMES):
+        graph.add_odometry(i, room.stamp(i), error @ room.camera_pose(i), 0.003, math.radians(0.3),
+                           keyframe=i % 10 == 0)
+        graph.update()
+    return graph
+
+
+def test_a_prior_keyframe_places_the_session_in_the_map_frame(room: SyntheticDataset) -> None:
+    """The prior run's keyframe at frame 0's place, held at its pose in the map: the session's revisit of that
+    place registers to it and the pose prior pulls the session from the object fit's error onto the map."""
+    error = _pose(3.0, (0.06, -0.03, 0.05), axis=2)
+    graph = _session_in_the_map_frame(room, FRAMES - 11, error)
+    truth = room.camera_pose(FRAMES - 1)
+    before = graph.corrected_pose(FRAMES - 1)
+    start_before = np.linalg.norm(graph.corrected_pose(FRAMES - 11)[:3, 3] - room.camera_pose(FRAMES - 11)[:3, 3])
+    closer = LoopCloser(LoopClosureParams())
+    closer.set_prior([(_cloud(closer, room, 0), room.camera_pose(0))])
+    assert closer.counters["prior_keyframes"] == 1
+    revisit = _cloud(closer, room, FRAMES - 1)
+    # not yet in the map's frame: the prior's keyframes are not looked at (and it has none of its own)
+    assert closer.close(graph, revisit, against_prior=False) is None and closer.counters["prior_searched"] == 0
+    closer.keyframes.clear()
+    closure = closer.close(graph, revisit, against_prior=True)
+    assert closure is not None and closure.T_wa is not None and closure.frame_a == 0
+    assert closer.counters["prior_accepted"] == 1 and graph.counters["pose_priors"] == 1
+    assert not closer.keyframes  # its place is the prior's
+    after = graph.corrected_pose(FRAMES - 1)
+    moved_from = np.linalg.norm(before[:3, 3] - truth[:3, 3])
+    assert moved_from > 0.06 and np.linalg.norm(after[:3, 3] - truth[:3, 3]) < 0.2 * moved_from
+    assert _rotation_error_deg(after, truth) < 0.5 < _rotation_error_deg(before, truth)
+    # the rest of the session moves with it (odometry chain)
+    start_after = np.linalg.norm(graph.corrected_pose(FRAMES - 11)[:3, 3] - room.camera_pose(FRAMES - 11)[:3, 3])
+    assert start_after < 0.5 * start_before
+
+
+def test_no_prior_closure_far_from_every_prior_keyframe(room: SyntheticDataset) -> None:
+    graph = _session_in_the_map_frame(room, FRAMES - 11, np.eye(4))
+    closer = LoopCloser(LoopClosureParams())
+    closer.set_prior([(_cloud(closer, room, 60), room.camera_pose(60))])  # the other side of the room
+    assert closer.close(graph, _cloud(closer, room, FRAMES - 1), against_prior=True) is None
+    assert closer.counters["prior_searched"] == 0 and list(closer.keyframes) == [FRAMES - 1]
+    # clouds too small to register are not kept as targets at all
+    closer.set_prior([(KeyframeCloud(0, 0.0, np.zeros((10, 3), np.float32)), np.eye(4))])
+    assert closer.prior == [] and closer.counters["prior_keyframes"] == 0
+
+
+def test_a_journalled_prior_closure_restores_the_same_graph(room: SyntheticDataset) -> None:
+    error = _pose(3.0, (0.06, -0.03, 0.05), axis=2)
+    live = _session_in_the_map_frame(room, FRAMES - 11, error)
+    closer = LoopCloser(LoopClosureParams())
+    closer.set_prior([(_cloud(closer, room, 0), room.camera_pose(0))])
+    record = encode_keyframe(_cloud(closer, room, FRAMES - 1), closer.close(live, _cloud(closer, room, FRAMES - 1),
+                                                                            against_prior=True))
+    cloud, closure = decode_keyframe(record)
+    assert closure is not None and np.array_equal(closure.T_wa, room.camera_pose(0))
+    replayed = _session_in_the_map_frame(room, FRAMES - 11, error)
+    LoopCloser(LoopClosureParams()).restore(replayed, cloud, closure)  # (no prior needed: the journal holds T_wa)
+    assert np.array_equal(live.corrected_poses()[2], replayed.corrected_poses()[2])
+
+
+def test_pose_priors_are_checked_and_a_settled_frame_takes_none(room: SyntheticDataset) -> None:
+    graph = _session_in_the_map_frame(room, FRAMES - 11, np.eye(4))
+    pose = room.camera_pose(FRAMES - 1)
+    with pytest.raises(PoseGraphError, match="no odometry"):
+        graph.add_pose_prior(FRAMES + 5, pose, 0.01, 0.01)
+    with pytest.raises(PoseGraphError, match="finite"):
+        graph.add_pose_prior(FRAMES - 1, np.full((4, 4), np.nan), 0.01, 0.01)
+    with pytest.raises(PoseGraphError, match="positive"):
+        graph.add_pose_prior(FRAMES - 1, pose, 0.0, 0.01)
+    settling = PoseGraph(BackendParams(active_window_nodes=3, settle_batch_nodes=2))
+    for i in range(8):
+        settling.add_odometry(i, float(i), _pose(0.0, (0.1 * i, 0.0, 0.0)), 0.01, 0.01)
+        settling.update()
+    assert settling.counters["nodes_settled"] > 0
+    settling.add_pose_prior(0, np.eye(4), 0.01, 0.01)
+    assert settling.counters["pose_priors_on_settled"] == 1 and settling.counters["pose_priors"] == 0
 
 
 # ------------------------------------------------------------------------------------------------ real revisits

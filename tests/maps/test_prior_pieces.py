@@ -305,3 +305,35 @@ def test_only_a_backend_started_for_a_prior_map_keeps_its_frames_and_realigns() 
             assert step.realigned == (expected and f == 20)
             assert len(stage.aligner.handled) == (f + 1 if expected and f < 20 else 0)
         assert stage.graph.counters.get("anchors", 0) == (3 if expected else 0)
+
+
+def test_a_prior_runs_keyframes_are_read_with_their_optimised_poses(tmp_path: Path) -> None:
+    """backend.sqlite's keyframe clouds joined by stamp with trajectory_optimized.tum, read-only; a damaged row or a
+    keyframe without a pose is skipped and counted, a run without them says why."""
+    from semmap.algorithms.backend.loop_closure import KeyframeCloud, encode_keyframe
+    from semmap.core.journal import FrameJournal
+    from semmap.datasets.trajectory_io import write_tum
+    from semmap.runtime.prior_keyframes import load_prior_keyframes
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "map.sqlite").write_bytes(b"")
+    assert "backend.sqlite" in (load_prior_keyframes(run / "map.sqlite").missing or "")
+    rng = np.random.default_rng(0)
+    journal = FrameJournal(run / "backend.sqlite")
+    poses = [frame_offset([0.1 * i, 0.0, 0.0, 0.0, 0.0, 5.0 * i]) for i in range(4)]
+    for i in range(4):
+        journal.append(10 * i, b"odometry", b"observations")
+        cloud = KeyframeCloud(10 * i, 0.5 * i + 1e6, rng.normal(size=(300, 3)).astype(np.float32))
+        journal.append_extra(10 * i, encode_keyframe(cloud, None) if i != 2 else b"\xc1 not msgpack")
+    journal.db.close()
+    # frame 30's stamp is not in the trajectory (a run that stopped before writing it, say)
+    write_tum(run / "trajectory_optimized.tum", [(0.5 * i + 1e6, poses[i]) for i in range(3)])
+    before = (run / "backend.sqlite").read_bytes()
+    prior = load_prior_keyframes(run / "map.sqlite")
+    assert prior.missing is None and prior.unreadable == 1 and prior.without_pose == 1
+    assert [c.frame_id for c, _ in prior.keyframes] == [0, 10]
+    np.testing.assert_allclose(prior.keyframes[1][1], poses[1], atol=1e-8)
+    assert (run / "backend.sqlite").read_bytes() == before
+    (run / "backend.sqlite").write_bytes(b"not a database")
+    assert "unreadable" in (load_prior_keyframes(run / "map.sqlite").missing or "")

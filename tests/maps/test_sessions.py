@@ -72,6 +72,9 @@ def test_second_session_relocalises_and_maps_in_the_prior_frame(sessions: dict[s
     assert np.linalg.norm(D[:3, 3]) < 0.15 and rotation_angle_deg(D[:3, :3]) < 3.0
     stats = json.loads((sessions["day2"] / "stats.json").read_text())
     assert stats["services"]["associator"]["counters"]["relocalised"] == 1
+    # once relocalised, its keyframes register to day 1's (whole depth frames: two moved objects do not stop it)
+    backend = stats["services"]["backend"]["counters"]
+    assert backend["prior_keyframes"] > 10 and backend["loop_prior_accepted"] > 0, backend
     # the optimised trajectory is in the prior (dataset) frame, anchored by the prior landmarks
     gt = {round(t, 4): p for t, p in read_tum(sessions["day2"] / "groundtruth.tum")}
     opt = read_tum(sessions["day2"] / "trajectory_optimized.tum")

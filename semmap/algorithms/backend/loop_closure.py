@@ -166,6 +166,9 @@ class LoopClosure:
     rmse_m: float
     constraint: float
     correction_m: float  # how far the registration moved frame b from where the current estimate had it
+    # frame a is a prior map's keyframe (frame_a: the prior run's id) held at this pose of the map: the
+    # closure places frame b in the map's frame (a pose prior) instead of relative to a frame of this run
+    T_wa: np.ndarray | None = None
 
 
 def _angle_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
@@ -188,10 +191,25 @@ class LoopCloser:
     def __init__(self, params: LoopClosureParams | None = None) -> None:
         self.params = params or LoopClosureParams()
         self.keyframes: OrderedDict[int, KeyframeCloud] = OrderedDict()
+        # a prior map's keyframes and their poses in its frame (set_prior): targets once the session is in it
+        self.prior: list[KeyframeCloud] = []
+        self.prior_poses = np.zeros((0, 4, 4))
         self.counters: dict[str, int] = {"keyframes": 0, "searched": 0, "registered": 0, "accepted": 0,
                                          "rejected_fitness": 0, "rejected_rmse": 0, "rejected_degenerate": 0,
                                          "evicted": 0, "empty_clouds": 0,
-                                         "skipped_precise_odometry": 0, "rejected_correction": 0}
+                                         "skipped_precise_odometry": 0, "rejected_correction": 0,
+                                         "prior_keyframes": 0, "prior_searched": 0, "prior_accepted": 0}
+
+    def set_prior(self, keyframes: list[tuple[KeyframeCloud, np.ndarray]]) -> None:
+        """A prior map's keyframe clouds with their camera-to-world poses in the map's frame (at most
+        `max_keyframes`, the newest kept). Why: a session relocalised by its objects alone stays degrees off in
+        orientation (object centroids move with the viewpoint); registering its keyframes to the map's whole
+        depth frames holds it to the map's trajectory as a revisit within one run would."""
+        usable = [(c, np.asarray(T, np.float64)) for c, T in keyframes if len(c.points) >= MIN_POINTS]
+        usable = usable[-self.params.max_keyframes:]
+        self.prior = [c for c, _ in usable]
+        self.prior_poses = np.stack([T for _, T in usable]) if usable else np.zeros((0, 4, 4))
+        self.counters["prior_keyframes"] = len(self.prior)
 
     def wants(self, frame_id: int) -> bool:
         """Whether `frame_id` is a keyframe whose cloud the closer uses."""
@@ -205,19 +223,28 @@ class LoopCloser:
         return KeyframeCloud(int(frame_id), float(stamp), voxel_downsample(points, p.voxel_m).astype(np.float32))
 
     def process(self, cloud: KeyframeCloud, frame_ids: np.ndarray, poses: np.ndarray,
-                odometry_sigmas: Callable[[int, int], tuple[float, float]] | None = None) -> LoopClosure | None:
+                odometry_sigmas: Callable[[int, int], tuple[float, float]] | None = None,
+                against_prior: bool = False) -> LoopClosure | None:
         """Try to close a loop from `cloud`'s keyframe, then keep its cloud unless it closed one.
 
         `frame_ids` (sorted) and `poses` (N, 4, 4) are the current corrected camera-to-world poses; both the new
         keyframe and the earlier ones are looked up there. `odometry_sigmas(a, b)` (m, rad), when given, is what
         the front end declares for the motion between two frames: a registration less certain than that (with
         ground-truth odometry, say) would only blur the trajectory, so such pairs are not tried.
+        `against_prior` (the poses are in the prior map's frame): the nearest prior keyframe is tried first, and
+        the run's own only when that gives no closure.
         """
         self.counters["keyframes"] += 1
         if len(cloud.points) < MIN_POINTS:
             self.counters["empty_clouds"] += 1
             return None
-        closure = self._close(cloud, np.asarray(frame_ids), np.asarray(poses), odometry_sigmas)
+        frame_ids, poses = np.asarray(frame_ids), np.asarray(poses)
+        closure = None
+        me = self._lookup(frame_ids, cloud.frame_id)
+        if against_prior and len(self.prior) and me is not None:
+            closure = self._close_prior(cloud, poses[me])
+        if closure is None:
+            closure = self._close(cloud, frame_ids, poses, odometry_sigmas)
         if closure is None:
             self.keep(cloud)
         return closure
@@ -269,8 +296,29 @@ class LoopCloser:
         self.counters["searched"] += 1
         score = np.where(near, dist + angle / 50.0, np.inf)  # 50 deg weigh like a metre
         best = int(np.argmin(score))
-        target = old[best]
-        init = np.linalg.inv(their[best]) @ mine
+        return self._register(cloud, old[best], np.linalg.inv(their[best]) @ mine)
+
+    def _close_prior(self, cloud: KeyframeCloud, mine: np.ndarray) -> LoopClosure | None:
+        """Against the nearest prior keyframe (same radius and angle as a revisit; no minimum age)."""
+        p = self.params
+        dist = np.linalg.norm(self.prior_poses[:, :3, 3] - mine[:3, 3], axis=1)
+        angle = _angle_deg(self.prior_poses[:, :3, :3], mine[:3, :3][None])
+        near = (dist < p.max_distance_m) & (angle < p.max_angle_deg)
+        if not near.any():
+            return None
+        self.counters["prior_searched"] += 1
+        best = int(np.argmin(np.where(near, dist + angle / 50.0, np.inf)))
+        T_wa = self.prior_poses[best]
+        closure = self._register(cloud, self.prior[best], np.linalg.inv(T_wa) @ mine, T_wa.copy())
+        if closure is not None:
+            self.counters["prior_accepted"] += 1
+        return closure
+
+    def _register(self, cloud: KeyframeCloud, target: KeyframeCloud, init: np.ndarray,
+                  target_pose: np.ndarray | None = None) -> LoopClosure | None:
+        """ICP of `cloud` onto `target` from `init` (the current estimate of T_target_cloud), coarse then fine,
+        and the acceptance tests; `target_pose`: the prior map's pose of a prior keyframe."""
+        p = self.params
         points, normals = target.with_normals(p.normal_radius_m)
         tree = cKDTree(points)
         # the coarse pass only needs to get into the fine pass's basin: a quarter of the points do
@@ -294,17 +342,19 @@ class LoopCloser:
             return None
         self.counters["accepted"] += 1
         return LoopClosure(target.frame_id, cloud.frame_id, fine.transform, fine.fitness, fine.rmse_m,
-                           fine.constraint, correction)
+                           fine.constraint, correction, target_pose)
 
-    def close(self, graph: PoseGraph, cloud: KeyframeCloud) -> LoopClosure | None:
+    def close(self, graph: PoseGraph, cloud: KeyframeCloud, against_prior: bool = False) -> LoopClosure | None:
         """After `graph.update()` for `cloud`'s frame: look for a closure and, if one is found, add it to the
-        graph and update again (so the published poses include it)."""
+        graph and update again (so the published poses include it). `against_prior`: the graph is in the prior
+        map's frame, so its keyframes are targets too."""
         # only the poses it looks at (the kept keyframes' and its own), not the whole trajectory
         ids, _ = graph.frame_table()
         wanted = np.array(sorted({*self.keyframes, cloud.frame_id}), dtype=np.int64)
         rows = np.minimum(np.searchsorted(ids, wanted), max(len(ids) - 1, 0))
         ok = ids[rows] == wanted if len(ids) else np.zeros(len(wanted), bool)
-        closure = self.process(cloud, wanted[ok], graph.corrected_rows(rows[ok]), graph.odometry_sigmas_between)
+        closure = self.process(cloud, wanted[ok], graph.corrected_rows(rows[ok]), graph.odometry_sigmas_between,
+                               against_prior)
         if closure is not None:
             self.add_to(graph, closure)
         return closure
@@ -320,10 +370,13 @@ class LoopCloser:
             self.keep(cloud)
 
     def add_to(self, graph: PoseGraph, closure: LoopClosure) -> None:
-        """Add a closure (found now or read back from a journal) as a relative-pose factor, then update."""
-        graph.add_relative_pose_constraint(closure.frame_a, closure.frame_b, closure.T_ab,
-                                           self.params.sigma_translation_m,
-                                           math.radians(self.params.sigma_rotation_deg))
+        """Add a closure (found now or read back from a journal) as a relative-pose factor (a pose prior when it
+        is to a prior map's keyframe), then update."""
+        sigma_t, sigma_r = self.params.sigma_translation_m, math.radians(self.params.sigma_rotation_deg)
+        if closure.T_wa is not None:
+            graph.add_pose_prior(closure.frame_b, closure.T_wa @ closure.T_ab, sigma_t, sigma_r)
+        else:
+            graph.add_relative_pose_constraint(closure.frame_a, closure.frame_b, closure.T_ab, sigma_t, sigma_r)
         graph.update()
 
 
@@ -338,7 +391,8 @@ def encode_keyframe(cloud: KeyframeCloud, closure: LoopClosure | None) -> bytes:
     if closure is not None:
         record["closure"] = {"frame_a": closure.frame_a, "T_ab": np.asarray(closure.T_ab, "<f8").tobytes(),
                              "fitness": closure.fitness, "rmse_m": closure.rmse_m,
-                             "constraint": closure.constraint, "correction_m": closure.correction_m}
+                             "constraint": closure.constraint, "correction_m": closure.correction_m,
+                             "T_wa": None if closure.T_wa is None else np.asarray(closure.T_wa, "<f8").tobytes()}
     return msgpack.packb(record, use_bin_type=True)
 
 
@@ -350,5 +404,7 @@ def decode_keyframe(body: bytes) -> tuple[KeyframeCloud, LoopClosure | None]:
     if c is None:
         return cloud, None
     T_ab = np.frombuffer(c["T_ab"], dtype="<f8").reshape(4, 4).copy()
+    T_wa = c.get("T_wa")  # (absent in a journal written before prior-map closures)
+    T_wa = None if T_wa is None else np.frombuffer(T_wa, dtype="<f8").reshape(4, 4).copy()
     return cloud, LoopClosure(int(c["frame_a"]), cloud.frame_id, T_ab, float(c["fitness"]), float(c["rmse_m"]),
-                              float(c["constraint"]), float(c["correction_m"]))
+                              float(c["constraint"]), float(c["correction_m"]), T_wa)

@@ -181,7 +181,8 @@ class PoseGraph:
             "observations_waiting_for_odometry": 0, "merges": 0, "relative_pose_constraints": 0, "updates": 0,
             "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
             "landmarks_retired": 0, "factors_retired": 0, "observations_retired": 0,
-            "nodes_settled": 0, "settles": 0, "observations_settled": 0,
+            "nodes_settled": 0, "settles": 0, "observations_settled": 0, "pose_priors": 0,
+            "pose_priors_on_settled": 0,
         }
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -335,6 +336,30 @@ class PoseGraph:
         if factor is not None:
             self._push(tag, factor)
         self.counters["relative_pose_constraints"] += 1
+
+    def add_pose_prior(self, frame_id: int, pose: np.ndarray, sigma_translation: float, sigma_rotation: float,
+                       robust: bool = True) -> None:
+        """A measured world pose of a frame, e.g. from ICP against a prior map's keyframe whose pose the map
+        holds fixed. Robust (`relative_pose_kernel`) by default. On a settled frame it has nothing left to move
+        and is dropped (counted)."""
+        frame_id = int(frame_id)
+        if frame_id not in self._odom:
+            raise PoseGraphError(f"pose prior on frame {frame_id}, which has no odometry")
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise PoseGraphError("a pose prior must be a finite 4x4")
+        if not (sigma_translation > 0 and sigma_rotation > 0):
+            raise PoseGraphError("pose prior sigmas must be positive")
+        if frame_id <= self._settled_horizon:
+            self.counters["pose_priors_on_settled"] += 1
+            return
+        self._ensure_node(frame_id)
+        kernel = self.params.relative_pose_kernel if robust else "none"
+        # tagged "prior": when its node settles, the factor goes with it (see _settle_oldest)
+        self._push(("prior", "pose", self._rel_seq), factors.prior_factor(
+            X(frame_id), pose, float(sigma_translation), float(sigma_rotation), kernel, self.params.robust_k))
+        self._rel_seq += 1
+        self.counters["pose_priors"] += 1
 
     def add_odometry_message(self, msg: OdometryPose) -> None:
         self.add_odometry(msg.frame_id, msg.stamp, msg.pose, msg.sigma_translation, msg.sigma_rotation, msg.keyframe)

@@ -14,6 +14,7 @@ depth too, so a replay closes the same loops.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from semmap.algorithms.backend.loop_closure import (
     KeyframeCloud,
@@ -28,6 +29,7 @@ from semmap.core.messages import Control, Frame, MessageError, Observations, Odo
 from semmap.core.reorder import FrameReorderBuffer
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
+from semmap.runtime.prior_keyframes import load_prior_keyframes
 from semmap.runtime.service import Service, service_main
 
 REALTIME_MAX_PENDING = 8
@@ -42,8 +44,11 @@ class BackendService(Service):
 
     def setup(self) -> None:
         # the per-frame policy (graph update, loop closure, corrections) is the stage's (semmap/runtime/pipeline.py)
+        prior_map = getattr(self.args, "prior_map", None)
         self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections,
-                                  expect_alignment=bool(getattr(self.args, "expect_alignment", False)))
+                                  expect_alignment=prior_map is not None)
+        if prior_map is not None and self.closer.params.enabled:
+            self._load_prior_keyframes(Path(prior_map))
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
         self.pub = self.publisher(self.bus.keys.corrected_poses)
@@ -66,6 +71,21 @@ class BackendService(Service):
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
         if self.closer.params.enabled:
             self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
+
+    def _load_prior_keyframes(self, map_db: Path) -> None:
+        """The prior run's keyframes, to register this session's to once it has relocalised."""
+        prior = load_prior_keyframes(map_db)
+        self.closer.set_prior(prior.keyframes)
+        self.metrics.counters["prior_keyframes"] = len(self.closer.prior)
+        if prior.unreadable or prior.without_pose:
+            self.metrics.counters["prior_keyframes_skipped"] = prior.unreadable + prior.without_pose
+            self.log.warning("prior map: %d of its run's keyframes unreadable, %d without an optimised pose: skipped",
+                             prior.unreadable, prior.without_pose)
+        if prior.missing is not None:
+            self.log.warning("prior map: no keyframes of its run (%s): this session is held to the map by its "
+                             "objects only", prior.missing)
+        else:
+            self.log.info("prior map: %d keyframes of its run to register to once relocalised", len(self.closer.prior))
 
     @property
     def graph(self) -> PoseGraph:
@@ -141,7 +161,7 @@ class BackendService(Service):
             elif obs.alignment is not None and not self.stage.aligner.expected:
                 self.metrics.count("alignments_ignored")
                 self.log.warning("frame %d carries a prior-map alignment, but this backend was not started for a "
-                                 "prior map (--expect-alignment): ignored", obs.frame_id)
+                                 "prior map (--prior-map): ignored", obs.frame_id)
             self.metrics.time_ms("update_ms", step.update_ms)
             if cloud is not None:
                 self._loop_closed(cloud, step.closure, step.loop_closure_ms or 0.0)
@@ -188,11 +208,11 @@ class BackendService(Service):
             self.journal.append_extra(cloud.frame_id, encode_keyframe(cloud, closure))
         if closure is not None:
             self.metrics.count("loop_closures")
-            self.log.info("loop closure: frame %d to frame %d (fitness %.2f, rmse %.1f cm, moved %.1f cm)",
-                          closure.frame_b, closure.frame_a, closure.fitness, 100 * closure.rmse_m,
-                          100 * closure.correction_m)
+            self.log.info("loop closure: frame %d to %sframe %d (fitness %.2f, rmse %.1f cm, moved %.1f cm)",
+                          closure.frame_b, "the prior run's " if closure.T_wa is not None else "",
+                          closure.frame_a, closure.fitness, 100 * closure.rmse_m, 100 * closure.correction_m)
         for name in ("registered", "rejected_fitness", "rejected_rmse", "rejected_degenerate",
-                     "rejected_correction", "evicted"):
+                     "rejected_correction", "evicted", "prior_searched", "prior_accepted"):
             self.metrics.counters[f"loop_{name}"] = self.closer.counters[name]
         self.metrics.counters["loop_kept_keyframes"] = len(self.closer.keyframes)
         self.metrics.counters["loop_kept_kb"] = self.closer.nbytes // 1024
@@ -246,9 +266,10 @@ class BackendService(Service):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--write-odometry", action="store_true",
                         help="also write the odometry it received as trajectory_odometry.tum (external runs)")
-    parser.add_argument("--expect-alignment", action="store_true",
-                        help="the associator starts from a prior map (--prior-map): keep the frames handled until "
-                        "it relocalises, to rebuild the graph in the prior map's frame")
+    parser.add_argument("--prior-map", default=None, metavar="MAP_SQLITE",
+                        help="the associator starts from this prior map: keep the frames handled until it "
+                        "relocalises, to rebuild the graph in the map's frame, then register keyframes to the "
+                        "map's run's keyframes (its backend.sqlite and trajectory_optimized.tum)")
 
 
 def main(argv: list[str] | None = None) -> int:
