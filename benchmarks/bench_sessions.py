@@ -25,7 +25,8 @@ drift, not relocalisation. Then prints:
   centroid distances of the pairs, and what either map has that the other has not;
 - the optimised trajectory of session 2 in the prior frame: ATE against the ground truth without any alignment
   (the frame must be right, not just the shape), and with SE(3) alignment, next to its odometry's;
-- with `--merge`: the merged map against the relocalised run's, paired the same way.
+- with `--merge`: the merged map against the relocalised run's, paired the same way (`semmap merge`, which
+  re-optimises session 2's trajectory in session 1's frame, and `semmap merge --rigid`, which does not).
 `--analyse-only` reads the runs already in `--work`.
 """
 
@@ -125,6 +126,7 @@ def main() -> None:
         if args.merge:
             run(["run", args.data, "--out", str(work / "s2_alone"), *moved])
             run(["merge", str(work / "s1"), str(work / "s2_alone"), "--out", str(work / "merged")])
+            run(["merge", str(work / "s1"), str(work / "s2_alone"), "--out", str(work / "merged_rigid"), "--rigid"])
 
     truth = frame_offset(offset)
     fit = json.loads((work / "s2" / "relocalization.json").read_text())
@@ -203,6 +205,9 @@ def main() -> None:
         compare(
             "semmap merge of the two sessions vs the relocalised run", read_map_json(work / "merged" / "map.json"), s2
         )
+    if (work / "merged_rigid" / "map.json").is_file():
+        compare("  the same with --rigid (session 2 alone moved by the objects' fit only)",
+                read_map_json(work / "merged_rigid" / "map.json"), s2)
 
 
 if __name__ == "__main__":

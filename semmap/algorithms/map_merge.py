@@ -10,11 +10,13 @@ within a gate of `max(gate_m, gate_radius_factor * larger radius)`: a large obje
   reported as `moved`; what is left is `missing` (in A, not in B) or `added` (in B, not in A). A landmark that B
   itself marks `missing` (a relocalised session looked and did not find it) counts as absent from B; one that B
   marks `prior` (carried over, never looked at) is reported `unseen`, not missing.
-- merge: a pair becomes one landmark (the older id, A's), observations summed, first/last seen the
-  earliest/latest; where both maps come with their clouds (run directories), its centre and extent are the
-  robust box of the two clouds fused (as the mapper fuses views: a large object seen from two sides is centred
-  on both sides, not on the mean of two partial centres, which was 10 cm off for a fridge), otherwise the
-  observation-weighted mean and the larger extent; unpaired landmarks of B join with new ids after A's. The
+- merge: landmarks are paired as for diff, then (with clouds) unpaired same-class landmarks whose clouds overlap
+  (two sides of one table, centres 40 cm apart); a pair becomes one landmark (the older id, A's), observations
+  summed, first/last seen the earliest/latest; where both maps come with their clouds (run directories), its
+  centre and extent are the robust box of the two clouds fused (as the mapper fuses views: a large object seen
+  from two sides is centred on both sides, not on the mean of two partial centres, which was 10 cm off for a
+  fridge), otherwise the observation-weighted mean and the larger extent; unpaired landmarks of B join with new
+  ids after A's. The
   result is in A's frame.
 """
 
@@ -36,6 +38,11 @@ class MatchParams:
     gate_radius_factor: float = 0.5
     moved_m: float = 0.3  # a paired landmark whose centre moved more than this is reported moved
     move_radius_m: float = 6.0  # unpaired same-class landmarks within this are one object carried elsewhere
+    # merge, with clouds: unpaired same-class landmarks are one object when this share of either's cloud lies
+    # within touch_m of the other's (two sides of a table, centres 40 cm apart; 7-Scenes: one object's two maps
+    # overlap 0.5-1.0, neighbours of one class 0.0-0.11)
+    touch_m: float = 0.05
+    overlap_share: float = 0.5
 
 
 @dataclass
@@ -151,6 +158,7 @@ def merge_maps(
     p = params or MatchParams()
     clouds_a, clouds_b_in_a = clouds_a or {}, clouds_b_in_a or {}
     pairs = _pair(a, b_in_a, lambda x, y: _gate(x, y, p))
+    pairs += _pair_overlapping(a, b_in_a, pairs, clouds_a, clouds_b_in_a, p)
     fused = {a[i].id: _fuse(a[i], b_in_a[j], clouds_a.get(a[i].id), clouds_b_in_a.get(b_in_a[j].id)) for i, j in pairs}
     paired_b = {j for _, j in pairs}
     out = [fused.get(lm.id, lm) for lm in a]
@@ -160,6 +168,36 @@ def merge_maps(
             out.append(replace(lm, id=next_id))
             next_id += 1
     return sorted(out, key=lambda lm: lm.id)
+
+
+def _pair_overlapping(a: Sequence[Landmark], b: Sequence[Landmark], pairs: list[tuple[int, int]],
+                      clouds_a: dict[int, np.ndarray], clouds_b: dict[int, np.ndarray],
+                      p: MatchParams) -> list[tuple[int, int]]:
+    """One-to-one pairs (indices) among the landmarks `pairs` left, same class, whose clouds overlap (see
+    MatchParams.overlap_share), most overlapping first."""
+    from scipy.spatial import cKDTree
+
+    used_a, used_b = {i for i, _ in pairs}, {j for _, j in pairs}
+    cand = []
+    for i, x in enumerate(a):
+        cx = clouds_a.get(x.id)
+        if i in used_a or cx is None or len(cx) < 4:
+            continue
+        for j, y in enumerate(b):
+            cy = clouds_b.get(y.id)
+            if j in used_b or y.class_name != x.class_name or cy is None or len(cy) < 4:
+                continue
+            share = max(float(np.mean(cKDTree(cy).query(cx, distance_upper_bound=p.touch_m)[0] <= p.touch_m)),
+                        float(np.mean(cKDTree(cx).query(cy, distance_upper_bound=p.touch_m)[0] <= p.touch_m)))
+            if share >= p.overlap_share:
+                cand.append((-share, x.id, y.id, i, j))
+    out = []
+    for _, _, _, i, j in sorted(cand):
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            out.append((i, j))
+    return out
 
 
 def _fuse(x: Landmark, y: Landmark, cx: np.ndarray | None = None, cy: np.ndarray | None = None) -> Landmark:

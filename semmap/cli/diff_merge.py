@@ -2,7 +2,10 @@
 
 A map argument is a run directory (its map.json, with the landmark clouds of its map.sqlite when present), a
 map.json, or a map.sqlite. Unless `--same-frame`, B is registered to A by its objects first; a registration
-that is not certain (too few agreeing objects, an ambiguous layout) is an error (exit 2), not a guess.
+that is not certain (too few agreeing objects, an ambiguous layout) is an error (exit 2), not a guess. `merge`
+then re-optimises B's trajectory in A's frame where B is a run directory (its backend journal replayed with A's
+objects and A's run's keyframes: semmap/runtime/map_refit.py), so B's own drift does not go into the merged map;
+`--rigid` moves B by the fit alone.
 """
 
 from __future__ import annotations
@@ -69,10 +72,18 @@ def prior_map_path(arg: str | Path, out_dir: Path) -> Path:
     return db.resolve()
 
 
+def _map_db(arg: str | Path) -> Path | None:
+    """The map.sqlite of a map argument (a run directory, its map.json or map.sqlite), where there is one."""
+    path = Path(arg)
+    db = path / "map.sqlite" if path.is_dir() else (path if path.suffix == ".sqlite" else path.parent / "map.sqlite")
+    return db if db.is_file() else None
+
+
 def _registered(
-    args: argparse.Namespace,
+    args: argparse.Namespace, refit: bool = False,
 ) -> tuple[list[Landmark], list[Landmark], RelocResult | None, dict[int, np.ndarray], dict[int, np.ndarray]]:
-    """A, B in A's frame, the fit, and both maps' clouds (B's in A's frame)."""
+    """A, B in A's frame, the fit, and both maps' clouds (B's in A's frame). `refit`: B's trajectory re-optimised
+    in A's frame where B's run holds its backend journal (semmap/runtime/map_refit.py), else B moved rigidly."""
     from semmap.algorithms.map_merge import register as register_maps
     from semmap.algorithms.map_merge import transform_landmark
     from semmap.algorithms.relocalize import apply
@@ -90,7 +101,28 @@ def _registered(
         )
     T = attempt.result.transform
     moved = {i: apply(T, c) for i, c in clouds_b.items()}
-    return a, [transform_landmark(lm, T) for lm in b], attempt.result, clouds_a, moved
+    rigid = [transform_landmark(lm, T) for lm in b]
+    b_db = _map_db(args.b)
+    if not refit or b_db is None:
+        return a, rigid, attempt.result, clouds_a, moved
+    from dataclasses import replace
+
+    from semmap.runtime.map_refit import refit_run
+
+    result = refit_run(b_db, _map_db(args.a), attempt.result, a)
+    if isinstance(result, str):
+        print(f"B moved by the objects' fit alone (its trajectory not re-optimised: {result})", file=sys.stderr)
+        return a, rigid, attempt.result, clouds_a, moved
+    print(f"B's trajectory re-optimised in A's frame: {result.frames} frames, {result.closures_to_a} of its "
+          f"keyframes registered to A's {result.prior_keyframes}"
+          + (f", {result.skipped} journal rows unreadable (skipped)" if result.skipped else ""), file=sys.stderr)
+    # B's landmarks as its map lists them (ids, status, counts), each where the re-optimised views put it
+    refitted = {lm.id: lm for lm in result.landmarks}
+    placed = [replace(lm, centroid=refitted[lm.id].centroid, extent=refitted[lm.id].extent,
+                      radius=refitted[lm.id].radius) if lm.id in refitted else moved_lm
+              for lm, moved_lm in zip(b, rigid, strict=True)]
+    clouds = {i: result.clouds.get(i, c) for i, c in moved.items()}
+    return a, placed, attempt.result, clouds_a, clouds
 
 
 def _fit_line(fit: RelocResult | None) -> str:
@@ -159,7 +191,7 @@ def _diff(args: argparse.Namespace) -> int:
 def _merge(args: argparse.Namespace) -> int:
     from semmap.core.messages import MessageError
     try:
-        a, b, fit, clouds_a, clouds_b = _registered(args)
+        a, b, fit, clouds_a, clouds_b = _registered(args, refit=not args.rigid)
     except MessageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -213,4 +245,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _common(m)
     m.add_argument("--out", required=True, help="output directory (writes OUT/map.json) or .json file")
+    m.add_argument("--rigid", action="store_true",
+                   help="move B by the objects' fit alone; by default, where B is a run directory, its trajectory "
+                   "is re-optimised in A's frame first (its keyframes registered to A's run's), which removes B's "
+                   "own drift")
     m.set_defaults(func=_merge)

@@ -54,12 +54,27 @@ class FrameJournal:
         self.db.execute("DELETE FROM extras")
 
 
+def _read_only(path: Path) -> sqlite3.Connection:
+    """Another run's journal, read-only: a saved run may sit on a read-only disk and is never changed by reading
+    it (sqlite3.Error when it is not a database)."""
+    return sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, timeout=10)
+
+
 def read_extras(path: Path) -> list[tuple[int, bytes]]:
-    """(frame_id, extra) of another run's FrameJournal, in frame order, opened read-only (a saved run may sit on
-    a read-only disk and is never changed by reading it); sqlite3.Error when it is not such a journal."""
-    db = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, timeout=10)
+    """(frame_id, extra) of another run's FrameJournal, in frame order."""
+    db = _read_only(path)
     try:
         return db.execute("SELECT frame_id, body FROM extras ORDER BY frame_id").fetchall()
+    finally:
+        db.close()
+
+
+def read_frames(path: Path) -> Iterator[tuple[int, bytes, bytes, bytes | None]]:
+    """(frame_id, a, b, extra or None) of another run's FrameJournal, in frame order, streamed."""
+    db = _read_only(path)
+    try:
+        yield from db.execute("SELECT f.frame_id, f.a, f.b, e.body FROM frames f "
+                              "LEFT JOIN extras e ON e.frame_id = f.frame_id ORDER BY f.frame_id")
     finally:
         db.close()
 

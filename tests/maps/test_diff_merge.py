@@ -132,3 +132,30 @@ def test_cli_refuses_a_map_of_another_version(tmp_path: Path) -> None:
     (tmp_path / "b.json").write_text(json.dumps(body))
     out = _cli("diff", str(tmp_path / "a.json"), str(tmp_path / "b.json"))
     assert out.returncode == 2 and "newer semmap" in out.stderr
+
+
+def test_merge_pairs_two_sides_of_one_object_by_their_clouds() -> None:
+    """Two maps of one table, each from its own side: centres 40 cm apart (beyond the gate), clouds overlapping
+    where both saw the top. With clouds they are one landmark; a same-class neighbour that does not touch is not."""
+    rng = np.random.default_rng(0)
+    top = rng.uniform([-0.6, -0.4, 0.7], [0.6, 0.4, 0.75], (800, 3))
+    side_a, side_b = top[top[:, 0] < 0.2], top[top[:, 0] > -0.2]
+    table_a = Landmark(0, "dining table", tuple(side_a.mean(0)), 0.3, (0.8, 0.8, 0.05), 40, 0.0, 10.0)
+    table_b = Landmark(7, "dining table", tuple(side_b.mean(0)), 0.3, (0.8, 0.8, 0.05), 60, 20.0, 30.0)
+    assert np.linalg.norm(np.subtract(table_a.centroid, table_b.centroid)) > 0.35
+    other = rng.uniform([1.5, -0.4, 0.7], [2.7, 0.4, 0.75], (400, 3))  # another table beside it
+    table_c = Landmark(8, "dining table", tuple(other.mean(0)), 0.3, (0.8, 0.8, 0.05), 30, 20.0, 30.0)
+    merged = merge_maps([table_a], [table_b, table_c], None, {0: side_a}, {7: side_b, 8: other})
+    assert [(lm.id, lm.observations) for lm in merged] == [(0, 100), (1, 30)]
+    assert abs(merged[0].centroid[0] - top[:, 0].mean()) < 0.05  # centred on both sides
+    assert len(merge_maps([table_a], [table_b, table_c])) == 3  # no clouds: the centres decide
+
+
+def test_refit_needs_the_run_beside_the_map(tmp_path: Path) -> None:
+    from semmap.runtime.map_refit import refit_run
+
+    a = _room()
+    b, _ = _second_session(a)
+    fit = register(a, b).result
+    assert fit is not None
+    assert "backend.sqlite not found" in refit_run(tmp_path / "map.sqlite", None, fit, a)

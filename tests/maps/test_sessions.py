@@ -134,6 +134,8 @@ def test_diff_names_the_changes(sessions: dict[str, Path]) -> None:
 def test_merge_of_two_sessions_equals_the_relocalised_run(sessions: dict[str, Path], tmp_path: Path) -> None:
     out = _cli("merge", str(sessions["day1"]), str(sessions["day2_alone"]), "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
+    # day 2 alone was replayed in day 1's frame, its keyframes registered to day 1's
+    assert "trajectory re-optimised in A's frame: 150 frames" in out.stderr, out.stderr
     merged = read_map_json(tmp_path / "map.json")
     relocalised = read_map_json(sessions["day2"] / "map.json")
     # the same objects: one-to-one, same class, centroids within 10 cm
