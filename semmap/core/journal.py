@@ -60,11 +60,11 @@ def _read_only(path: Path) -> sqlite3.Connection:
     return sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, timeout=10)
 
 
-def read_extras(path: Path) -> list[tuple[int, bytes]]:
-    """(frame_id, extra) of another run's FrameJournal, in frame order."""
+def read_extras(path: Path) -> Iterator[tuple[int, bytes]]:
+    """(frame_id, extra) of another run's FrameJournal, in frame order, streamed."""
     db = _read_only(path)
     try:
-        return db.execute("SELECT frame_id, body FROM extras ORDER BY frame_id").fetchall()
+        yield from db.execute("SELECT frame_id, body FROM extras ORDER BY frame_id")
     finally:
         db.close()
 

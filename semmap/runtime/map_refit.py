@@ -30,6 +30,18 @@ from semmap.runtime.pipeline import BackendStage
 from semmap.runtime.prior_keyframes import load_prior_keyframes
 
 
+def _own_alignment(journal: Path) -> MapAlignment | None:
+    """The alignment B's own backend received, if B was started from a prior map."""
+    for _, _, observations, _ in read_frames(journal):
+        try:
+            alignment = Observations.decode(observations).alignment
+        except MessageError:
+            continue
+        if alignment is not None:
+            return alignment
+    return None
+
+
 @dataclass
 class Refit:
     landmarks: list[Landmark]  # B's, in A's frame
@@ -57,12 +69,20 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
     except (KeyError, TypeError, ValueError) as exc:
         return f"{b_map_db}: unreadable map state: {exc}"
     a_at = {lm.id: lm.centroid for lm in a_landmarks}
-    alignment = MapAlignment(fit.transform.copy(), [(b_id, a_at[a_id]) for b_id, a_id in fit.matches if a_id in a_at],
-                             config.associator.prior_anchor_sigma_m, fit.inliers,
-                             float(fit.cloud_rms_m if fit.refined and fit.cloud_rms_m is not None else fit.rms_m))
+    try:
+        own = _own_alignment(journal)
+    except sqlite3.Error as exc:
+        return f"{journal}: unreadable: {exc}"
+    # B's map is in B's map frame; its odometry in B's session frame, which differ where B was itself started
+    # from a prior map and relocalised: then the odometry goes through B's own alignment first
+    to_a = fit.transform if own is None else fit.transform @ own.transform
+    anchors = [(b_id, a_at[a_id]) for b_id, a_id in fit.matches if a_id in a_at]
+    residual = fit.cloud_rms_m if fit.refined and fit.cloud_rms_m is not None else fit.rms_m
+    alignment = MapAlignment(np.array(to_a, dtype=np.float64), anchors, config.associator.prior_anchor_sigma_m,
+                             fit.inliers, float(residual))
     stage = BackendStage(config.backend, config.loop_closure, config.corrections, expect_alignment=True)
     if a_map_db is not None and config.loop_closure.enabled:
-        stage.closer.set_prior(load_prior_keyframes(Path(a_map_db)).keyframes)
+        stage.closer.set_prior(load_prior_keyframes(Path(a_map_db), config.loop_closure.max_keyframes).keyframes)
     out = Refit([], {}, prior_keyframes=len(stage.closer.prior))
     try:
         for _, odometry, observations, keyframe in read_frames(journal):
@@ -72,7 +92,7 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
             except (MessageError, msgpack.UnpackException, ValueError, KeyError, TypeError):
                 out.skipped += 1
                 continue
-            # B's own alignment (if it was itself relocalised) gives way to A's, given at its first frame
+            # B's own alignment (if it was itself relocalised) is folded into A's, given at its first frame
             obs = dataclasses.replace(obs, alignment=alignment if out.frames == 0 else None)
             stage.step(pose, obs, cloud)
             out.frames += 1

@@ -9,6 +9,7 @@ without them (a merged map, a copied map.sqlite) still relocalises by its object
 from __future__ import annotations
 
 import sqlite3
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,9 +32,10 @@ class PriorKeyframes:
     missing: str | None = None  # why there are none at all, when so
 
 
-def load_prior_keyframes(map_db: Path) -> PriorKeyframes:
-    """The keyframes of the run whose map is `map_db` (its directory's backend.sqlite and
-    trajectory_optimized.tum). Never raises for what is missing or damaged: it is reported in the result."""
+def load_prior_keyframes(map_db: Path, max_keyframes: int = 1000) -> PriorKeyframes:
+    """The newest `max_keyframes` keyframes of the run whose map is `map_db` (its directory's backend.sqlite and
+    trajectory_optimized.tum), streamed: a long run's journal is not held whole. Never raises for what is missing
+    or damaged: it is reported in the result."""
     run_dir = Path(map_db).parent
     journal, trajectory = run_dir / "backend.sqlite", run_dir / "trajectory_optimized.tum"
     out = PriorKeyframes()
@@ -42,9 +44,8 @@ def load_prior_keyframes(map_db: Path) -> PriorKeyframes:
             out.missing = f"{path} not found"
             return out
     try:
-        rows = read_extras(journal)
         poses = read_tum(trajectory)
-    except (sqlite3.Error, DatasetError, OSError) as exc:
+    except (DatasetError, OSError) as exc:
         out.missing = f"unreadable: {exc}"
         return out
     if not poses:
@@ -53,15 +54,21 @@ def load_prior_keyframes(map_db: Path) -> PriorKeyframes:
     stamps = np.array([t for t, _ in poses])
     order = np.argsort(stamps, kind="stable")
     stamps = stamps[order]
-    for _, body in rows:
-        try:
-            cloud, _ = decode_keyframe(body)
-        except (msgpack.UnpackException, ValueError, KeyError, TypeError):  # (a damaged row: the rest still serve)
-            out.unreadable += 1
-            continue
-        k = int(np.searchsorted(stamps, cloud.stamp - STAMP_TOLERANCE_S))
-        if k >= len(stamps) or abs(stamps[k] - cloud.stamp) > STAMP_TOLERANCE_S:
-            out.without_pose += 1
-            continue
-        out.keyframes.append((cloud, poses[int(order[k])][1]))
+    kept: deque[tuple[KeyframeCloud, np.ndarray]] = deque(maxlen=max_keyframes)
+    try:
+        for _, body in read_extras(journal):
+            try:
+                cloud, _ = decode_keyframe(body)
+            except (msgpack.UnpackException, ValueError, KeyError, TypeError):  # (a damaged row: the rest serve)
+                out.unreadable += 1
+                continue
+            k = int(np.searchsorted(stamps, cloud.stamp - STAMP_TOLERANCE_S))
+            if k >= len(stamps) or abs(stamps[k] - cloud.stamp) > STAMP_TOLERANCE_S:
+                out.without_pose += 1
+                continue
+            kept.append((cloud, poses[int(order[k])][1]))
+    except sqlite3.Error as exc:
+        out.missing = f"unreadable: {exc}"
+        return out
+    out.keyframes = list(kept)
     return out

@@ -335,5 +335,6 @@ def test_a_prior_runs_keyframes_are_read_with_their_optimised_poses(tmp_path: Pa
     assert [c.frame_id for c, _ in prior.keyframes] == [0, 10]
     np.testing.assert_allclose(prior.keyframes[1][1], poses[1], atol=1e-8)
     assert (run / "backend.sqlite").read_bytes() == before
+    assert [c.frame_id for c, _ in load_prior_keyframes(run / "map.sqlite", max_keyframes=1).keyframes] == [10]
     (run / "backend.sqlite").write_bytes(b"not a database")
     assert "unreadable" in (load_prior_keyframes(run / "map.sqlite").missing or "")

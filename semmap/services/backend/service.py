@@ -74,7 +74,7 @@ class BackendService(Service):
 
     def _load_prior_keyframes(self, map_db: Path) -> None:
         """The prior run's keyframes, to register this session's to once it has relocalised."""
-        prior = load_prior_keyframes(map_db)
+        prior = load_prior_keyframes(map_db, self.closer.params.max_keyframes)
         self.closer.set_prior(prior.keyframes)
         self.metrics.counters["prior_keyframes"] = len(self.closer.prior)
         if prior.unreadable or prior.without_pose:
