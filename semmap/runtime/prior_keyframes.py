@@ -36,7 +36,7 @@ def load_prior_keyframes(map_db: Path, max_keyframes: int = 1000) -> PriorKeyfra
     """The newest `max_keyframes` keyframes of the run whose map is `map_db` (its directory's backend.sqlite and
     trajectory_optimized.tum), streamed: a long run's journal is not held whole. Never raises for what is missing
     or damaged: it is reported in the result."""
-    run_dir = Path(map_db).parent
+    run_dir = Path(map_db) if Path(map_db).is_dir() else Path(map_db).parent  # (a run directory or its map)
     journal, trajectory = run_dir / "backend.sqlite", run_dir / "trajectory_optimized.tum"
     out = PriorKeyframes()
     for path in (journal, trajectory):

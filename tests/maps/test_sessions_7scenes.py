@@ -86,6 +86,10 @@ def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[st
     final, at_frame = optimised @ np.linalg.inv(pose), truth[round(stamp, 4)] @ np.linalg.inv(pose)
     assert rotation_angle_deg((np.linalg.inv(at_frame) @ final)[:3, :3]) <= 3.0
     assert np.linalg.norm(final[:3, :3] @ camera + final[:3, 3] - (at_frame[:3, :3] @ camera + at_frame[:3, 3])) < 0.1
+    # which the backend writes next to the object fit
+    written = json.loads((s2 / "relocalization_final.json").read_text())
+    assert written["frame_id"] == fit["frame_id"] and written["prior_keyframe_closures"] >= 10
+    np.testing.assert_allclose(np.array(written["transform"]).reshape(4, 4), final, atol=1e-4)
     backend = json.loads((s2 / "stats.json").read_text())["services"]["backend"]["counters"]
     assert backend["prior_keyframes"] >= 40 and backend["loop_prior_accepted"] >= 10, backend
 

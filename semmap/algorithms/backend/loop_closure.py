@@ -185,7 +185,8 @@ class LoopCloser:
     fine. A closure is accepted with enough overlap (`min_fitness`), a small residual (`max_rmse_m`), geometry
     that pins all three translations (`min_constraint`) and a plausible correction of the estimate
     (`max_correction_m`: a symmetric room can fit well in the wrong place). A keyframe that closed a loop is not
-    kept (its place already is); at most `max_keyframes` are kept, the oldest go first.
+    kept (its place already is); at most `max_keyframes` are kept, the oldest go first. A prior map's keyframes
+    (`set_prior`) are fixed targets in the map's frame, tried first once the session is in it.
     """
 
     def __init__(self, params: LoopClosureParams | None = None) -> None:

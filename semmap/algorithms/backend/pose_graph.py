@@ -557,6 +557,10 @@ class PoseGraph:
             return corrected
         return carry_correction(corrected, self._odom[node].pose, self._odom[frame_id].pose)
 
+    def odometry_pose(self, frame_id: int) -> np.ndarray:
+        """The odometry 4x4 of one frame as the graph took it (KeyError if it never had odometry)."""
+        return self._odom[int(frame_id)].pose.copy()
+
     def odometry_sigmas_between(self, a: int, b: int) -> tuple[float, float]:
         """(m, rad) sigmas the front end declares for the motion from frame a to frame b (a < b, both with
         odometry): per-frame variances add up; frames without odometry count with b's sigmas."""

@@ -8,13 +8,17 @@ consume the same key.
 Loop closures (`loop_closure:` config, on by default): the depth image of every n-th frame comes from the
 frames key; at a revisit the keyframe is registered to an earlier one by ICP (semmap/algorithms/backend/loop_closure.py)
 and the relative pose joins the graph before that frame's poses go out. In lockstep a keyframe waits for its
-depth too, so a replay closes the same loops.
+depth too, so a replay closes the same loops. A session started from a prior map (`--prior-map`) also registers
+its keyframes to the prior run's once it has relocalised (semmap/runtime/prior_keyframes.py, docs/MAPS.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+
+import numpy as np
 
 from semmap.algorithms.backend.loop_closure import (
     KeyframeCloud,
@@ -24,8 +28,10 @@ from semmap.algorithms.backend.loop_closure import (
     encode_keyframe,
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
+from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.core.journal import FrameJournal
 from semmap.core.messages import Control, Frame, MessageError, Observations, OdometryPose
+from semmap.core.outputs import atomic_write_text
 from semmap.core.reorder import FrameReorderBuffer
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
@@ -259,8 +265,32 @@ class BackendService(Service):
             return
         ids, stamps, poses = self.graph.corrected_poses()
         write_tum(self.out_dir / "trajectory_optimized.tum", zip(stamps.tolist(), poses, strict=True))
+        final = self.stage.final_alignment()
+        if final is not None:
+            self._write_final_alignment(*final)
         if self.write_odometry and self.input_trajectory:
             write_tum(self.out_dir / "trajectory_odometry.tum", self.input_trajectory)
+
+
+    def _write_final_alignment(self, frame_id: int, transform: np.ndarray) -> None:
+        """DIR/relocalization_final.json: the session-to-map transform the run ends with, next to the object fit
+        it started from (relocalization.json, the associator's): what the graph corrected."""
+        fit = self.stage.aligner.alignment
+        assert self.out_dir is not None and fit is not None
+        change = np.linalg.inv(fit.transform) @ transform
+        degrees = rotation_angle_deg(change[:3, :3])
+        # that frame's camera in the session's own frame, placed by the fit and by the final transform
+        camera = (np.linalg.inv(fit.transform) @ self.graph.odometry_pose(frame_id))[:3, 3]
+        moved = float(np.linalg.norm(transform[:3, :3] @ camera + transform[:3, 3]
+                                     - (fit.transform[:3, :3] @ camera + fit.transform[:3, 3])))
+        body = {"frame_id": frame_id, "transform": [round(float(v), 9) for v in transform.reshape(16)],
+                "object_fit_transform": [round(float(v), 9) for v in np.asarray(fit.transform).reshape(16)],
+                "correction_deg": round(degrees, 4), "correction_m_at_camera": round(moved, 4),
+                "prior_keyframe_closures": self.closer.counters["prior_accepted"]}
+        atomic_write_text(self.out_dir / "relocalization_final.json", json.dumps(body, indent=1) + "\n")
+        self.log.info("relocalisation at frame %d: the final estimate moved the object fit by %.2f deg, %.1f cm at "
+                      "that frame's camera (%d keyframes registered to the prior run's)", frame_id, degrees,
+                      100 * moved, self.closer.counters["prior_accepted"])
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
