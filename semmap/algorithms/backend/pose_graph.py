@@ -49,6 +49,17 @@ class PoseGraphError(ValueError):
     """A call the graph cannot honour (unknown frame, bad pose or sigma)."""
 
 
+def _checked_pose(pose: np.ndarray, sigma_translation: float, sigma_rotation: float, name: str,
+                  what: str) -> np.ndarray:
+    """A measured pose as float64 4x4, refused when not finite or its sigmas are not positive."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise PoseGraphError(f"{name} must be a finite 4x4")
+    if not (sigma_translation > 0 and sigma_rotation > 0):
+        raise PoseGraphError(f"{what} sigmas must be positive")
+    return pose
+
+
 @dataclass(slots=True)  # one per frame for the whole run: no per-instance dict
 class _Odometry:
     stamp: float
@@ -318,11 +329,7 @@ class PoseGraph:
         for f in (frame_a, frame_b):
             if int(f) not in self._odom:
                 raise PoseGraphError(f"relative pose constraint on frame {f}, which has no odometry")
-        T_ab = np.asarray(T_ab, dtype=np.float64)
-        if T_ab.shape != (4, 4) or not np.all(np.isfinite(T_ab)):
-            raise PoseGraphError("T_ab must be a finite 4x4")
-        if not (sigma_translation > 0 and sigma_rotation > 0):
-            raise PoseGraphError("relative pose sigmas must be positive")
+        T_ab = _checked_pose(T_ab, sigma_translation, sigma_rotation, "T_ab", "relative pose")
         if int(frame_a) == int(frame_b):
             raise PoseGraphError("a relative pose constraint needs two different frames")
         self._ensure_node(int(frame_a))
@@ -345,11 +352,7 @@ class PoseGraph:
         frame_id = int(frame_id)
         if frame_id not in self._odom:
             raise PoseGraphError(f"pose prior on frame {frame_id}, which has no odometry")
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise PoseGraphError("a pose prior must be a finite 4x4")
-        if not (sigma_translation > 0 and sigma_rotation > 0):
-            raise PoseGraphError("pose prior sigmas must be positive")
+        pose = _checked_pose(pose, sigma_translation, sigma_rotation, "a pose prior", "pose prior")
         if frame_id <= self._settled_horizon:
             self.counters["pose_priors_on_settled"] += 1
             return
