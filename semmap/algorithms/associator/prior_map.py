@@ -113,7 +113,11 @@ class PriorSession:
         for session_id, prior_id in fit.matches:
             if session_id in mapper.map and prior_id in mapper.map:
                 mapper.fuse(prior_id, session_id, step)
-                self.status[prior_id] = "present"
+        # a prior landmark that absorbed one of this session's (a fit match, or one the re-placed session now
+        # overlaps) was seen again: it is present, and its misses from now on are the detector's
+        for gone, kept in step.merges:
+            if kept in self.status and gone not in self.prior_ids:
+                self.status[kept] = "present"
         alignment = MapAlignment(
             fit.transform.copy(),
             [(lm.id, (float(lm.centroid[0]), float(lm.centroid[1]), float(lm.centroid[2]))) for lm in adopted],
