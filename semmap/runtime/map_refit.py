@@ -21,6 +21,7 @@ import numpy as np
 
 from semmap.algorithms.associator.mapper import LandmarkMapper
 from semmap.algorithms.backend.loop_closure import decode_keyframe
+from semmap.algorithms.backend.pose_graph import PoseGraphError
 from semmap.algorithms.relocalize import RelocResult
 from semmap.core.config import Config
 from semmap.core.journal import read_frames
@@ -94,7 +95,11 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
                 continue
             # B's own alignment (if it was itself relocalised) is folded into A's, given at its first frame
             obs = dataclasses.replace(obs, alignment=alignment if out.frames == 0 else None)
-            stage.step(pose, obs, cloud)
+            try:
+                stage.step(pose, obs, cloud)
+            except PoseGraphError:  # (a row the graph refuses, e.g. a pose that is not rigid: skipped)
+                out.skipped += 1
+                continue
             out.frames += 1
     except sqlite3.Error as exc:
         return f"{journal}: unreadable: {exc}"

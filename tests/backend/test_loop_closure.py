@@ -318,6 +318,13 @@ def test_no_prior_closure_far_from_every_prior_keyframe(room: SyntheticDataset) 
     # clouds too small to register are not kept as targets at all
     closer.set_prior([(KeyframeCloud(0, 0.0, np.zeros((10, 3), np.float32)), np.eye(4))])
     assert closer.prior == [] and closer.counters["prior_keyframes"] == 0
+    # damaged ones (from another run's journal): non-finite points are dropped, a non-finite pose drops the cloud
+    points = np.random.default_rng(0).normal(size=(300, 3)).astype(np.float32)
+    points[:5] = np.nan
+    bad_pose = np.eye(4)
+    bad_pose[0, 3] = np.inf
+    closer.set_prior([(KeyframeCloud(1, 0.0, points), np.eye(4)), (KeyframeCloud(2, 0.0, points), bad_pose)])
+    assert [c.frame_id for c in closer.prior] == [1] and len(closer.prior[0].points) == 295
 
 
 def test_a_journalled_prior_closure_restores_the_same_graph(room: SyntheticDataset) -> None:

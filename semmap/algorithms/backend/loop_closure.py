@@ -206,7 +206,13 @@ class LoopCloser:
         `max_keyframes`, the newest kept). Why: a session relocalised by its objects alone stays degrees off in
         orientation (object centroids move with the viewpoint); registering its keyframes to the map's whole
         depth frames holds it to the map's trajectory as a revisit within one run would."""
-        usable = [(c, np.asarray(T, np.float64)) for c, T in keyframes if len(c.points) >= MIN_POINTS]
+        usable = []
+        for cloud, T in keyframes:
+            T = np.asarray(T, np.float64)
+            finite = np.isfinite(cloud.points).all(axis=1)  # (a damaged journal row must not poison the KD-tree)
+            if T.shape == (4, 4) and np.isfinite(T).all() and finite.sum() >= MIN_POINTS:
+                usable.append((cloud if finite.all() else KeyframeCloud(cloud.frame_id, cloud.stamp,
+                                                                        cloud.points[finite]), T))
         usable = usable[-self.params.max_keyframes:]
         self.prior = [c for c, _ in usable]
         self.prior_poses = np.stack([T for _, T in usable]) if usable else np.zeros((0, 4, 4))
