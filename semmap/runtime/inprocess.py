@@ -3,7 +3,8 @@
     python -m semmap.runtime.inprocess DATA [--odometry gt+drift] [--seed N] [--frames N] [--set sec.key=val]...
         [--refresh-cache] [--cache-dir DIR] [--json-out FILE] [--out DIR] [-v]
 
-DATA is a dataset folder (e.g. ../shared/data/7scenes-redkitchen) or `synthetic[:frames=N,seed=S]`.
+DATA is a dataset folder (e.g. ../shared/data/7scenes-redkitchen) or `synthetic[:frames=N,seed=S]`;
+`--set run.start_frame=N` plays it from frame N on, renumbered from 0, as `semmap run --start-frame N` does.
 (`benchmarks/closed_loop.py` is the same command.)
 
 It runs, frame by frame, the same stage objects as the services, in the order of a lockstep `semmap run`:
@@ -52,7 +53,7 @@ from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, Observations, OdometryPose
 from semmap.datasets import open_dataset
-from semmap.datasets.base import FrameData, ObjectTruth
+from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.map_store import write_map_json
 from semmap.runtime.pipeline import (
@@ -97,9 +98,11 @@ def _cache_key(*parts: object) -> str:
 
 
 @functools.lru_cache(maxsize=2)
-def _open(data: str):  # noqa: ANN202 - a semmap Dataset
-    """Opened once per run (the synthetic scene builds its meshes on opening)."""
-    return open_dataset(data)
+def _open(data: str, start_frame: int = 0):  # noqa: ANN202 - a semmap Dataset
+    """Opened once per run (the synthetic scene builds its meshes on opening); from `run.start_frame` on,
+    renumbered from 0, as the player plays it."""
+    ds = open_dataset(data)
+    return WindowDataset(ds, int(start_frame)) if start_frame > 0 else ds
 
 
 def _frame_count(ds, frames: int) -> int:  # noqa: ANN001
@@ -127,7 +130,7 @@ def detect_recording(
     det_cfg = config.detector.model_dump()
     synthetic = _is_synthetic(data)
     kind = resolve_kind(det_cfg["kind"], synthetic)
-    ds = _open(data)
+    ds = _open(data, config.run.start_frame)
     n = _frame_count(ds, frames)
     model = None
     if kind == "onnx":
@@ -140,6 +143,7 @@ def detect_recording(
         CACHE_VERSION,
         str(Path(data).resolve()) if not synthetic else data,
         n,
+        config.run.start_frame,
         kind,
         model_id,
         {k: det_cfg[k] for k in sorted(det_cfg) if k not in ("threads", "queue", "precision")},
@@ -218,7 +222,7 @@ def rgbd_poses(
     data: str, frames: int, config: Config, cache_dir: Path = CACHE_DIR, refresh: bool = False, verbose: bool = True
 ) -> list[np.ndarray]:
     """The `rgbd` front end's poses for every frame (Open3D, slow: cached)."""
-    ds = _open(data)
+    ds = _open(data, config.run.start_frame)
     n = _frame_count(ds, frames)
     cfg = config.odometry
     code = hashlib.sha1(Path(make_frontend.__code__.co_filename).read_bytes()).hexdigest()  # the front end's code
@@ -227,6 +231,7 @@ def rgbd_poses(
         "rgbd",
         str(Path(data).resolve()),
         n,
+        config.run.start_frame,
         code,
         {k: v for k, v in cfg.model_dump().items() if k.startswith("rgbd_")},
     )
@@ -433,7 +438,7 @@ def closed_loop(
     # the associator (moving tracklets) and are estimated in the loop, frame by frame, as the services do
     cached = odometry == "rgbd" and not make_frontend(odometry, config.odometry).uses_dynamic
     odo_poses = rgbd_poses(data, frames, config, cache_dir, refresh, verbose) if cached else None
-    return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=_open(data)), rec
+    return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=_open(data, config.run.start_frame)), rec
 
 
 # ------------------------------------------------------------------------------------------------ tracker + mapper
