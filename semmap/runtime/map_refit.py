@@ -107,6 +107,7 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
         return f"{journal} holds no frames"
     ids, _, poses = stage.graph.corrected_poses()
     by_frame = {int(f): poses[i] for i, f in enumerate(ids)}
+    mapper.move_frame(fit.transform)  # (B's map frame to A's: what no replayed pose re-places, e.g. frozen views)
     mapper.refine(by_frame.get)
     out.landmarks = mapper.landmarks()
     out.clouds = {lm.id: lm.cloud for lm in mapper.map.all() if len(lm.cloud)}

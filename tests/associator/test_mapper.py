@@ -340,3 +340,21 @@ def test_a_restored_mapper_counts_absence_in_its_first_frame_as_the_live_one() -
     (lm,) = mapper.map.all()
     assert lm.absent_total > 0
     assert restored.map[lm.id].absent_total == lm.absent_total
+
+
+def test_the_whole_map_moves_to_another_frame() -> None:
+    """`move_frame` (semmap merge: B into A's frame) takes every view along; the next refine re-estimates each
+    landmark there, also those no pose lookup reaches."""
+    from scipy.spatial.transform import Rotation
+
+    mapper, _ = run(lambda t: [CUP], range(90))
+    before = {lm.id: np.array(lm.centroid) for lm in mapper.landmarks()}
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    T[:3, 3] = [1.0, -2.0, 0.5]
+    mapper.move_frame(T)
+    mapper.refine(lambda frame_id: None)  # no new pose for any frame
+    after = {lm.id: np.array(lm.centroid) for lm in mapper.landmarks()}
+    assert before.keys() == after.keys() and before
+    for i, c in before.items():  # (the fused cloud's voxel grid is axis-aligned in the world: a few mm differ)
+        assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - after[i]) < 0.01

@@ -56,7 +56,7 @@ from .candidate import (
     map_problem,
     motion_testable,
 )
-from .geometry import robust_box
+from .geometry import robust_box, transform
 from .landmark_map import LandmarkMap, LandmarkState, view_from_state, view_to_state
 from .landmark_update import absorb, incremental, merge_pass, recompute, views_cloud
 from .observation import observation
@@ -389,6 +389,21 @@ class LandmarkMapper:
         """Landmarks of a prior map join this map under their own ids (the session's ids start after them)."""
         for lm in landmarks:
             self.map.insert(lm)
+
+    def move_frame(self, T: np.ndarray) -> None:
+        """Take the whole map into another frame by the rigid `T` (every stored view's pose, landmarks' and
+        candidates'); the next `refine` re-estimates every landmark there. Why: `semmap merge` re-places B's
+        views with poses re-optimised in A's frame, and views no such pose reaches (a prior map's frozen ones)
+        must be in A's frame too."""
+        T = np.asarray(T, dtype=np.float64)
+        moved: set[int] = set()  # (a restored candidate shares its views with its landmark)
+        for views in [lm.views for lm in self.map.all()] + [c.views for c in self._cands.values()]:
+            for v in views:
+                if id(v) not in moved:
+                    moved.add(id(v))
+                    v.pose = T @ v.pose
+                    v.alt_world = transform(v.pose, v.alt_centroids)
+        self._dirty.update(lm.id for lm in self.map.all())
 
     def fuse(self, keep_id: int, gone_id: int, step: MapperStep) -> None:
         """One object twice (a session landmark and the prior landmark the relocalisation matched it to): fuse
