@@ -178,17 +178,31 @@ def _pair_overlapping(a: Sequence[Landmark], b: Sequence[Landmark], pairs: list[
     from scipy.spatial import cKDTree
 
     used_a, used_b = {i for i, _ in pairs}, {j for _, j in pairs}
+    trees: dict[tuple[str, int], cKDTree] = {}  # (each cloud's tree built once, only where a pair may touch)
+
+    def tree(side: str, key: int, cloud: np.ndarray) -> cKDTree:
+        if (side, key) not in trees:
+            trees[side, key] = cKDTree(cloud)
+        return trees[side, key]
+
+    def reach(cloud: np.ndarray, centre: Sequence[float]) -> float:
+        return float(np.linalg.norm(cloud - np.asarray(centre), axis=1).max())
+
     cand = []
     for i, x in enumerate(a):
         cx = clouds_a.get(x.id)
         if i in used_a or cx is None or len(cx) < 4:
             continue
+        rx = reach(cx, x.centroid)
         for j, y in enumerate(b):
             cy = clouds_b.get(y.id)
             if j in used_b or y.class_name != x.class_name or cy is None or len(cy) < 4:
                 continue
-            share = max(float(np.mean(cKDTree(cy).query(cx, distance_upper_bound=p.touch_m)[0] <= p.touch_m)),
-                        float(np.mean(cKDTree(cx).query(cy, distance_upper_bound=p.touch_m)[0] <= p.touch_m)))
+            if math.dist(x.centroid, y.centroid) > rx + reach(cy, y.centroid) + p.touch_m:
+                continue  # too far apart for any point of one to touch the other
+            near_x = tree("b", j, cy).query(cx, distance_upper_bound=p.touch_m)[0] <= p.touch_m
+            near_y = tree("a", i, cx).query(cy, distance_upper_bound=p.touch_m)[0] <= p.touch_m
+            share = max(float(near_x.mean()), float(near_y.mean()))
             if share >= p.overlap_share:
                 cand.append((-share, x.id, y.id, i, j))
     out = []
