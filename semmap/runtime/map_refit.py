@@ -31,18 +31,6 @@ from semmap.runtime.pipeline import BackendStage
 from semmap.runtime.prior_keyframes import load_prior_keyframes
 
 
-def _own_alignment(journal: Path) -> MapAlignment | None:
-    """The alignment B's own backend received, if B was started from a prior map."""
-    for _, _, observations, _ in read_frames(journal):
-        try:
-            alignment = Observations.decode(observations).alignment
-        except MessageError:
-            continue
-        if alignment is not None:
-            return alignment
-    return None
-
-
 @dataclass
 class Refit:
     landmarks: list[Landmark]  # B's, in A's frame
@@ -70,13 +58,10 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
     except (KeyError, TypeError, ValueError) as exc:
         return f"{b_map_db}: unreadable map state: {exc}"
     a_at = {lm.id: lm.centroid for lm in a_landmarks}
-    try:
-        own = _own_alignment(journal)
-    except sqlite3.Error as exc:
-        return f"{journal}: unreadable: {exc}"
     # B's map is in B's map frame; its odometry in B's session frame, which differ where B was itself started
-    # from a prior map and relocalised: then the odometry goes through B's own alignment first
-    to_a = fit.transform if own is None else fit.transform @ own.transform
+    # from a prior map and relocalised: then the odometry goes through B's own transform (its saved session's) first
+    own = (state.get("prior") or {}).get("transform")
+    to_a = fit.transform if own is None else fit.transform @ np.asarray(own, dtype=np.float64).reshape(4, 4)
     anchors = [(b_id, a_at[a_id]) for b_id, a_id in fit.matches if a_id in a_at]
     residual = fit.cloud_rms_m if fit.refined and fit.cloud_rms_m is not None else fit.rms_m
     alignment = MapAlignment(np.array(to_a, dtype=np.float64), anchors, config.associator.prior_anchor_sigma_m,

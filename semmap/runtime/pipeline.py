@@ -322,17 +322,6 @@ class BackendStage:
         self.aligner = PriorAlignment(expected=expect_alignment)
         self.closer = LoopCloser(loop_closure)
         self.corrections = CorrectionPublisher(corrections or CorrectionsParams())
-        self.aligned_at: int | None = None  # the frame whose alignment moved the graph into the prior's frame
-
-    def final_alignment(self) -> tuple[int, np.ndarray] | None:
-        """(frame, session-to-map transform) as the current estimate has it at the frame the session relocalised
-        at: the relocalisation's fit corrected by everything the graph learnt since (the prior's keyframes, the
-        anchors); None before a relocalisation."""
-        if self.aligner.alignment is None or self.aligned_at is None:
-            return None
-        f, fit = self.aligned_at, self.aligner.alignment.transform
-        # the graph holds the odometry through the fit's transform A: corrected @ inv(A @ odom) @ A
-        return f, self.graph.corrected_pose(f) @ np.linalg.inv(self.graph.odometry_pose(f)) @ fit
 
     def wants_cloud(self, frame_id: int) -> bool:
         return self.closer.wants(frame_id)
@@ -342,8 +331,7 @@ class BackendStage:
         realigned = False
         # (a backend not started for a prior map kept no frames to rebuild from: the service counts and logs it)
         if obs.alignment is not None and self.aligner.alignment is None and self.aligner.expected:
-            self.graph = self.aligner.realign(self.graph, obs.alignment)
-            self.aligned_at = obs.frame_id
+            self.graph = self.aligner.realign(self.graph, obs.alignment, obs.frame_id)
             realigned = True
         self.aligner.add(self.graph, pose, obs)
         return realigned

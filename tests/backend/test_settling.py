@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from backend_sim import FPS, Scene, drifting, observe, optimized, run_graph, square_path
 
-from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph, robust_weight
+from semmap.algorithms.backend.factors import robust_weight
+from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
 from semmap.algorithms.evaluation import ate_rmse
 from semmap.core.messages import Observation
 

@@ -35,7 +35,6 @@ from semmap.core.geometry import carry_correction, correction, inv_rigid
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 from . import factors
-from .factors import robust_weight
 
 MAX_FRAMES_WAITING_FOR_ODOMETRY = 300  # frames whose observations arrived before their odometry
 # a node is read again when its iSAM2 delta changed by more than this (rad or m) since its last read
@@ -489,7 +488,7 @@ class PoseGraph:
         pose = self._frame_pose(frame_id)
         world = pose[:3, :3] @ point + pose[:3, 3]
         residual = float(np.linalg.norm(world - np.asarray(landmark, dtype=np.float64))) / sigma
-        information = robust_weight(self.params.robust_kernel, self.params.robust_k, residual) / sigma**2
+        information = factors.robust_weight(self.params.robust_kernel, self.params.robust_k, residual) / sigma**2
         total, weighted = self._settled_points.get(var, (0.0, np.zeros(3)))
         self._settled_points[var] = (total + information, weighted + information * world)
         self.counters["observations_settled"] += 1

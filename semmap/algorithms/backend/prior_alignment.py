@@ -14,14 +14,25 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from semmap.algorithms.backend.pose_graph import PoseGraph
+from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.core.messages import MapAlignment, Observations, OdometryPose
 
 FIRST_PRIOR_MIN_M = 0.05
 FIRST_PRIOR_ROTATION_DEG = 3.0
+
+
+@dataclass
+class FinalAlignment:
+    frame_id: int
+    transform: np.ndarray  # session frame -> map frame, as the final estimate has it at frame_id
+    object_fit: np.ndarray  # ... and as the relocalisation's fit had it
+    correction_deg: float  # the rotation between the two
+    correction_m: float  # how far they place that frame's camera apart
 
 
 class PriorAlignment:
@@ -31,6 +42,7 @@ class PriorAlignment:
     def __init__(self, expected: bool = True) -> None:
         self.expected = expected
         self.alignment: MapAlignment | None = None
+        self.aligned_at: int | None = None  # the frame whose alignment moved the graph into the prior's frame
         self.handled: list[tuple[OdometryPose, Observations]] = []
 
     def add(self, graph: PoseGraph, pose: OdometryPose, obs: Observations) -> None:
@@ -39,9 +51,10 @@ class PriorAlignment:
         graph.add_odometry_message(self._aligned(pose))
         graph.add_observations_message(obs)
 
-    def realign(self, graph: PoseGraph, alignment: MapAlignment) -> PoseGraph:
-        """A new graph in the prior map's frame holding every frame handled so far, and the anchors."""
-        self.alignment = alignment
+    def realign(self, graph: PoseGraph, alignment: MapAlignment, frame_id: int | None = None) -> PoseGraph:
+        """A new graph in the prior map's frame holding every frame handled so far, and the anchors; `frame_id`:
+        the frame that carried the alignment."""
+        self.alignment, self.aligned_at = alignment, frame_id
         fresh = PoseGraph(graph.params)
         fresh.first_prior = (max(FIRST_PRIOR_MIN_M, 2.0 * alignment.rms_m), math.radians(FIRST_PRIOR_ROTATION_DEG))
         for landmark_id, position in alignment.anchors:
@@ -53,6 +66,20 @@ class PriorAlignment:
         if fresh.num_frames:
             fresh.update()
         return fresh
+
+    def final(self, graph: PoseGraph) -> FinalAlignment | None:
+        """The session-to-map transform the graph's current estimate implies at the frame that relocalised, and
+        how far it moved the fit (None before a relocalisation)."""
+        if self.alignment is None or self.aligned_at is None:
+            return None
+        f, fit = self.aligned_at, np.asarray(self.alignment.transform, dtype=np.float64)
+        # the graph holds the odometry through the fit's transform A: corrected @ inv(A @ odom) @ A
+        transform = graph.corrected_pose(f) @ np.linalg.inv(graph.odometry_pose(f)) @ fit
+        # that frame's camera in the session's own frame, placed by the fit and by the final transform
+        camera = (np.linalg.inv(fit) @ graph.odometry_pose(f))[:3, 3]
+        moved = transform[:3, :3] @ camera + transform[:3, 3] - (fit[:3, :3] @ camera + fit[:3, 3])
+        return FinalAlignment(f, transform, fit, rotation_angle_deg((np.linalg.inv(fit) @ transform)[:3, :3]),
+                              float(np.linalg.norm(moved)))
 
     def _aligned(self, pose: OdometryPose) -> OdometryPose:
         if self.alignment is None:

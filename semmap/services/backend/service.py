@@ -18,8 +18,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
 from semmap.algorithms.backend.loop_closure import (
     KeyframeCloud,
     LoopCloser,
@@ -28,7 +26,7 @@ from semmap.algorithms.backend.loop_closure import (
     encode_keyframe,
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
-from semmap.algorithms.relocalize import rotation_angle_deg
+from semmap.algorithms.backend.prior_alignment import FinalAlignment
 from semmap.core.journal import FrameJournal
 from semmap.core.messages import Control, Frame, MessageError, Observations, OdometryPose
 from semmap.core.outputs import atomic_write_text
@@ -265,32 +263,26 @@ class BackendService(Service):
             return
         ids, stamps, poses = self.graph.corrected_poses()
         write_tum(self.out_dir / "trajectory_optimized.tum", zip(stamps.tolist(), poses, strict=True))
-        final = self.stage.final_alignment()
+        final = self.stage.aligner.final(self.graph)
         if final is not None:
-            self._write_final_alignment(*final)
+            self._write_final_alignment(final)
         if self.write_odometry and self.input_trajectory:
             write_tum(self.out_dir / "trajectory_odometry.tum", self.input_trajectory)
 
 
-    def _write_final_alignment(self, frame_id: int, transform: np.ndarray) -> None:
+    def _write_final_alignment(self, final: FinalAlignment) -> None:
         """DIR/relocalization_final.json: the session-to-map transform the run ends with, next to the object fit
         it started from (relocalization.json, the associator's): what the graph corrected."""
-        fit = self.stage.aligner.alignment
-        assert self.out_dir is not None and fit is not None
-        change = np.linalg.inv(fit.transform) @ transform
-        degrees = rotation_angle_deg(change[:3, :3])
-        # that frame's camera in the session's own frame, placed by the fit and by the final transform
-        camera = (np.linalg.inv(fit.transform) @ self.graph.odometry_pose(frame_id))[:3, 3]
-        moved = float(np.linalg.norm(transform[:3, :3] @ camera + transform[:3, 3]
-                                     - (fit.transform[:3, :3] @ camera + fit.transform[:3, 3])))
-        body = {"frame_id": frame_id, "transform": [round(float(v), 9) for v in transform.reshape(16)],
-                "object_fit_transform": [round(float(v), 9) for v in np.asarray(fit.transform).reshape(16)],
-                "correction_deg": round(degrees, 4), "correction_m_at_camera": round(moved, 4),
-                "prior_keyframe_closures": self.closer.counters["prior_accepted"]}
+        assert self.out_dir is not None
+        closures = self.closer.counters["prior_accepted"]
+        body = {"frame_id": final.frame_id, "transform": [round(float(v), 9) for v in final.transform.reshape(16)],
+                "object_fit_transform": [round(float(v), 9) for v in final.object_fit.reshape(16)],
+                "correction_deg": round(final.correction_deg, 4),
+                "correction_m_at_camera": round(final.correction_m, 4), "prior_keyframe_closures": closures}
         atomic_write_text(self.out_dir / "relocalization_final.json", json.dumps(body, indent=1) + "\n")
         self.log.info("relocalisation at frame %d: the final estimate moved the object fit by %.2f deg, %.1f cm at "
-                      "that frame's camera (%d keyframes registered to the prior run's)", frame_id, degrees,
-                      100 * moved, self.closer.counters["prior_accepted"])
+                      "that frame's camera (%d keyframes registered to the prior run's)", final.frame_id,
+                      final.correction_deg, 100 * final.correction_m, closures)
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
