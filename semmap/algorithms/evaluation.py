@@ -102,15 +102,17 @@ def write_json_atomic(path: Path, data: dict) -> None:
         raise
 
 
-def evaluate_run(out_dir: Path) -> dict:
+def evaluate_run(out_dir: Path, groundtruth: Path | None = None) -> dict:
     """Evaluate a run's output folder and write `eval.json`; returns its contents.
 
-    `poses` is the number of optimised poses matched to ground truth.
+    `groundtruth`: a TUM trajectory to score against instead of the run's own `groundtruth.tum` (a run whose data
+    had none beside it: an external SLAM's, a bag's). Stamps are associated as evo associates them (nearest within
+    10 ms), so the figures equal `evo_ape tum GT EST -a`. `poses` is the number of optimised poses matched.
     """
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise EvaluationError(f"run directory {out_dir} does not exist")
-    gt = _read(out_dir / GROUNDTRUTH)
+    gt = _read(Path(groundtruth) if groundtruth is not None else out_dir / GROUNDTRUTH)
     odometry = _read(out_dir / ODOMETRY)
     optimized = _read(out_dir / OPTIMIZED)
     ate_odometry, _ = ate_details(gt, odometry)
@@ -118,6 +120,7 @@ def evaluate_run(out_dir: Path) -> dict:
     # below a millimetre the odometry is exact (e.g. `--odometry gt`): a percentage of it means nothing
     improvement = 100.0 * (ate_odometry - ate_optimized) / ate_odometry if ate_odometry >= 1e-3 else None
     result = {"ate_odometry_m": ate_odometry, "ate_optimized_m": ate_optimized,
-              "improvement_pct": improvement, "poses": matched}
+              "improvement_pct": improvement, "poses": matched,
+              "groundtruth": str(groundtruth) if groundtruth is not None else GROUNDTRUTH}
     write_json_atomic(out_dir / RESULT, result)
     return result

@@ -14,9 +14,13 @@ def _pct(value: float | None) -> str:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "eval", help="ATE of a run's odometry and optimised trajectories against ground truth",
-        description="Read DIR/groundtruth.tum, DIR/trajectory_odometry.tum and DIR/trajectory_optimized.tum, "
+        description="Read DIR/groundtruth.tum (or --groundtruth FILE), DIR/trajectory_odometry.tum and "
+                    "DIR/trajectory_optimized.tum, "
                     "compute the ATE RMSE (SE(3)-aligned, no scale) of both and write DIR/eval.json.")
     p.add_argument("dir", metavar="DIR", help="output directory of a run (semmap run --out DIR)")
+    p.add_argument("--groundtruth", type=Path, default=None, metavar="FILE",
+                   help="a TUM ground-truth trajectory to score against (a run whose data had none beside it); "
+                   "stamps are associated as evo does (nearest within 10 ms)")
     p.set_defaults(func=run_eval)
 
 
@@ -24,7 +28,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from semmap.algorithms.evaluation import EvaluationError, evaluate_run
 
     try:
-        result = evaluate_run(Path(args.dir))
+        result = evaluate_run(Path(args.dir), args.groundtruth)
     except EvaluationError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -56,7 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "or 'external' (no player or odometry: a SLAM publishes frames and poses, "
                    "see semmap.runtime.client)")
     p.add_argument("--out", default="out", help="output directory (default: out)")
-    p.add_argument("--odometry", default=None, help="gt | gt+drift | rgbd | file:PATH (default from config)")
+    p.add_argument("--odometry", default=None, help="auto (default: orbslam3 where installed, else rgbd) | orbslam3 | "
+                   "rgbd | file:PATH | gt | gt+drift (the last two SIMULATE odometry from ground truth)")
     p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
     p.add_argument("--time-offset", type=float, default=None, metavar="SECONDS",
                    help="with --odometry file:PATH: added to the trajectory's stamps before matching them to frames")
@@ -134,6 +135,12 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
+    if args.data != "external":
+        chosen, notice = choose_odometry(config, synthetic=special)
+        overrides += chosen
+        if chosen:
+            config = load_config(args.config, overrides)
+        print(f"semmap: {notice}", file=sys.stderr)
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
@@ -199,6 +206,38 @@ def _run(args: argparse.Namespace) -> int:
         return Orchestrator(plan).run()
     finally:
         lock.release()
+
+
+def choose_odometry(config: Config, synthetic: bool) -> tuple[list[str], str]:
+    """The front end this run uses, decided once, here, and named: `auto` becomes orbslam3 (where the pyorbslam3
+    wheel is installed and a vocabulary is set or lies in the model dir as orbvoc.txt) or rgbd; on the synthetic
+    world its simulated odometry. Returns the overrides that pin it for every service, and the line that says it."""
+    from semmap.algorithms.odometry import AUTO, check_mode, resolve_mode
+    from semmap.algorithms.odometry.orbslam3 import installed
+    from semmap.runtime.model_store import default_vocabulary
+
+    section = config.odometry
+    overrides: list[str] = []
+    vocabulary = section.orbslam3_vocabulary
+    if not vocabulary and installed():
+        found = default_vocabulary()
+        if found is not None:
+            vocabulary = str(found)
+            overrides.append(f"odometry.orbslam3_vocabulary={vocabulary}")
+    mode = resolve_mode(section.mode, section.model_copy(update={"orbslam3_vocabulary": vocabulary}), synthetic)
+    if section.mode == AUTO:
+        overrides.append(f"odometry.mode={mode}")
+    kind, _ = check_mode(mode)
+    if kind.simulated:
+        return overrides, (f"odometry: {mode} -- SIMULATED odometry made from the data's ground truth, not measured: "
+                           "its drift and the correction of it are semmap's own invention (a real front end: "
+                           "--odometry orbslam3, rgbd or file:TRAJ.tum)")
+    how = {"orbslam3": f"ORB-SLAM3 RGB-D, vocabulary {vocabulary}", "rgbd": "Open3D RGB-D odometry"}.get(
+        kind.name, kind.description)
+    repair = ", each SLAM step checked by semmap's own registration (odometry.repair)" if (
+        kind.name in ("orbslam3", "file") and section.repair) else ""
+    why = " (auto: no pyorbslam3 wheel or vocabulary here)" if section.mode == AUTO and mode == "rgbd" else ""
+    return overrides, f"odometry: {mode} ({how}{repair}){why}"
 
 
 def check_plugins(config: Config) -> None:

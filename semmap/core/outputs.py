@@ -21,6 +21,7 @@ from pathlib import Path
 
 LOCK_NAME = ".semmap.lock"
 # what marks a directory as a semmap run's (only such a directory is wiped by --overwrite)
+REPAIR_REPORT = "odometry_repair.json"  # where semmap overruled the SLAM (the odometry service writes it)
 RUN_MARKERS = ("stats.json", "logs", "map.json")
 # errors of the disk itself: no retry or restart helps, the operator must act (named as they are)
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})

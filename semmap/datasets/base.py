@@ -87,6 +87,12 @@ class Dataset(ABC):
         """Ground-truth objects (synthetic scenes only)."""
         return []
 
+    def reference_trajectory(self) -> list[tuple[float, np.ndarray]]:
+        """The ground truth to score a run against, as the dataset's own file holds it (a TUM folder's 100 Hz
+        mocap samples over the frames' time span), so `semmap eval` associates stamps as evo does against that
+        file; where the frames carry the ground truth themselves (7-Scenes, synthetic), `groundtruth()`."""
+        return self.groundtruth()
+
     def __iter__(self) -> Iterator[FrameData]:
         for i in range(len(self)):
             yield self[i]

@@ -200,8 +200,11 @@ class TumDataset(Dataset):
 
         self._poses: list[np.ndarray | None] = [None] * len(pairs)
         gt_path = self.root / "groundtruth.txt"
+        self._reference: list[tuple[float, np.ndarray]] = []
         if gt_path.is_file():
             gt = read_tum(gt_path)
+            lo, hi = self._stamps[0] - 0.1, self._stamps[-1] + 0.1
+            self._reference = [(t, pose) for t, pose in gt if lo <= t <= hi]
             for i, j in associate(self._stamps, [s for s, _ in gt], self.max_difference):
                 self._poses[i] = gt[j][1]
             self.interpolated = interpolate_missing(self._stamps, self._poses, gt, self.gt_max_gap_s)
@@ -253,6 +256,9 @@ class TumDataset(Dataset):
 
     def groundtruth(self) -> list[tuple[float, np.ndarray]]:
         return [(s, p.copy()) for s, p in zip(self._stamps, self._poses, strict=True) if p is not None]
+
+    def reference_trajectory(self) -> list[tuple[float, np.ndarray]]:
+        return [(t, p.copy()) for t, p in self._reference] if self._reference else self.groundtruth()
 
     def files(self, index: int) -> tuple[str, str]:
         """(rgb, depth) file names of a frame, relative to the folder (for checking the association)."""

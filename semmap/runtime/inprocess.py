@@ -283,6 +283,8 @@ class LoopResult:
     backend_ms_p50: float = 0.0  # odometry + observations + iSAM2 update per frame
     mapper: LandmarkMapper | None = None
     optimized: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
 
     @property
     def improvement_pct(self) -> float:
@@ -304,6 +306,7 @@ class LoopResult:
             "backend_ms_p50": self.backend_ms_p50,
             "classes": self.classes,
             "loop_closures": self.loop_closures,
+            "frontend": self.frontend_counters,
         }
 
     def write_outputs(self, out: Path) -> None:
@@ -312,6 +315,7 @@ class LoopResult:
         assert self.mapper is not None
         write_map_json(out / "map.json", self.mapper.landmarks())
         write_tum(out / "trajectory_optimized.tum", self.optimized)
+        write_tum(out / "trajectory_odometry.tum", self.odometry)
 
 
 def run_loop(
@@ -414,6 +418,8 @@ def run_loop(
         classes=dict(Counter(lm.class_name for lm in landmarks)),
         mapper=mapper,
         optimized=optimized,
+        odometry=odo_traj,
+        frontend_counters=dict(getattr(front, "counters", {})),
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,

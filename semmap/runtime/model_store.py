@@ -53,6 +53,16 @@ def get_model_dir() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "semmap" / "models"
 
 
+VOCABULARY_NAME = "orbvoc.txt"  # the ORB vocabulary `--odometry orbslam3` takes by default (./dev.sh puts one)
+
+
+def default_vocabulary(model_dir: Path | None = None) -> Path | None:
+    """The ORB vocabulary in the model dir (`semmap models vocabulary ... --out` it there, or copy ORBvoc.txt
+    there as orbvoc.txt), None where there is none."""
+    path = (model_dir or get_model_dir()) / VOCABULARY_NAME
+    return path if path.is_file() else None
+
+
 def default_model_path(model_dir: Path | None = None) -> Path:
     """Where the converted model lives (or will live once fetched)."""
     return (Path(model_dir) if model_dir is not None else get_model_dir()) / MODEL_FILENAME

@@ -58,6 +58,9 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         odo, opt = ate
         gain = f" ({100 * (odo - opt) / odo:+.1f} %)" if odo >= 1e-3 else ""
         lines.append(f"  ATE         odometry {odo:.3f} m -> optimised {opt:.3f} m{gain} (RMSE vs ground truth)")
+    repair = repair_line(out_dir)
+    if repair:
+        lines.append(repair)
     lines.append("  outputs")
     for name, what in (
         ("map.json", "landmarks: class, centroid, extent (world frame, m)"),
@@ -81,3 +84,25 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         width = max(len(c) for c, _ in commands)
         lines.extend(f"    {c:<{width}}  # {why}" for c, why in commands)
     return "\n".join(lines)
+
+
+def repair_line(out_dir: Path) -> str | None:
+    """How often and where semmap overruled the SLAM's steps (odometry_repair.json), one line."""
+    import json
+
+    from semmap.core.outputs import REPAIR_REPORT
+
+    try:
+        report = json.loads((Path(out_dir) / REPAIR_REPORT).read_text())
+        c = report["counters"]
+        steps = int(c.get("repair_steps", 0))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if not steps:
+        return None
+    replaced = int(c.get("repair_overruled", 0)) + int(c.get("repair_implausible", 0))
+    spans = report.get("overruled_spans", [])
+    where = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans[:6]) + (" ..." if len(spans) > 6 else "")
+    return (f"  repair      {report.get('mode', '?')}: semmap overruled {replaced} of {steps} SLAM steps "
+            f"({100 * replaced / steps:.0f} %), the SLAM had no pose for {int(c.get('repair_slam_missing', 0))}"
+            + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})")

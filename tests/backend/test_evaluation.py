@@ -117,3 +117,34 @@ def test_evo_writes_nothing_into_home(tmp_path: Path) -> None:
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "run")], check=True, env=env, cwd=root, timeout=120)
     assert (tmp_path / "run" / "eval.json").is_file()
     assert list(home.iterdir()) == []
+
+
+def test_eval_against_a_groundtruth_file_equals_evo_ape(tmp_path: Path, data_root: Path) -> None:
+    """`semmap eval DIR --groundtruth FILE` for a run whose data had no ground truth beside it: the figure is what
+    `evo_ape tum FILE EST -a` prints (same association of stamps: nearest within 10 ms against the raw file)."""
+    import re
+    import shutil
+
+    gt_file = data_root / "bonn_crowd" / "groundtruth.txt"
+    est = data_root / "orbslam3" / "bonn_crowd_orbslam3_run1.tum"
+    if not gt_file.is_file() or not est.is_file():
+        pytest.skip("bonn_crowd ground truth or the shared ORB-SLAM3 trajectory absent")
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copy(est, run / "trajectory_odometry.tum")
+    shutil.copy(est, run / "trajectory_optimized.tum")
+    cli = subprocess.run([sys.executable, "-m", "semmap.cli", "eval", str(run), "--groundtruth", str(gt_file)],
+                         capture_output=True, text=True, timeout=120)
+    assert cli.returncode == 0, cli.stderr
+    ours = json.loads((run / "eval.json").read_text())
+    home = tmp_path / "home"
+    (home / ".evo").mkdir(parents=True)
+    evo = subprocess.run([str(Path(sys.executable).parent / "evo_ape"), "tum", str(gt_file), str(est), "-a"],
+                         capture_output=True, text=True, timeout=120, env={"HOME": str(home), "CI": "true"})
+    assert evo.returncode == 0, evo.stderr
+    rmse = float(re.search(r"rmse\s+([0-9.]+)", evo.stdout).group(1))
+    assert ours["ate_optimized_m"] == pytest.approx(rmse, abs=1e-6)
+    assert ours["groundtruth"] == str(gt_file)
+    missing = subprocess.run([sys.executable, "-m", "semmap.cli", "eval", str(run), "--groundtruth",
+                              str(tmp_path / "none.txt")], capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and "missing trajectory file" in missing.stderr

@@ -87,13 +87,19 @@ def test_trajectory_file_is_matched_by_timestamp(tmp_path: Path) -> None:
         pose[0, 3] = i
         poses.append((i * 0.1, pose))
     write_tum(tmp_path / "t.tum", poses)
-    frontend = make_frontend(f"file:{tmp_path / 't.tum'}", load_config().odometry)
+    frontend = make_frontend(f"file:{tmp_path / 't.tum'}", load_config(None, ["odometry.repair=false"]).odometry)
+    assert not frontend.needs_images
     assert frontend.estimate(OdometryInput(0, 0.31, None))[0, 3] == 3.0
+    # checked by default: then it needs the frames' images and their dynamic objects
+    checked = make_frontend(f"file:{tmp_path / 't.tum'}", load_config().odometry)
+    assert checked.needs_images and checked.uses_dynamic
+    with pytest.raises(OdometryError, match="needs RGB, depth and intrinsics"):
+        checked.estimate(OdometryInput(0, 0.31, None))
 
 
 def test_unusable_modes_are_clear_errors() -> None:
     for mode in ("lidar", "file:", "gt:x", "rgbd:"):
-        with pytest.raises(ConfigError, match="odometry.mode: expected gt, gt[+]drift, rgbd, file:PATH"):
+        with pytest.raises(ConfigError, match="expected auto, gt, gt[+]drift, rgbd, file:PATH, orbslam3"):
             make_frontend(mode, load_config().odometry)
     frontend = make_frontend("gt", load_config().odometry)
     with pytest.raises(OdometryError, match="no ground-truth pose"):

@@ -1,6 +1,7 @@
 """Odometry front ends, picked by name (`odometry.mode`) the way datasets are (semmap/datasets/__init__.py).
 
-A mode is a registered name (`gt`, `gt+drift`, `rgbd`) or `name:ARGUMENT` for a front end that takes one
+A mode is `auto` (the default, `resolve_mode`: a real front end), a registered name (`orbslam3`, `rgbd`, and the
+simulations `gt`, `gt+drift`) or `name:ARGUMENT` for a front end that takes one
 (`file:PATH`). `create_frontend(mode, section)` builds it from the `odometry` section; `check_mode` is the one
 place a mode is parsed and refused (a ConfigError naming `odometry.mode`, before a run starts). New front ends
 join via `register`; their module is imported only when one is built.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from semmap.core.config import ConfigError, OdometryConfig
@@ -17,7 +19,9 @@ from semmap.core.config import ConfigError, OdometryConfig
 if TYPE_CHECKING:
     from semmap.algorithms.odometry.frontends import FrontEnd
 
-__all__ = ["FrontEndKind", "available", "check_mode", "create_frontend", "register"]
+__all__ = ["AUTO", "FrontEndKind", "available", "check_mode", "create_frontend", "register", "resolve_mode"]
+
+AUTO = "auto"  # the default: a real front end (see resolve_mode)
 
 
 @dataclass(frozen=True)
@@ -27,6 +31,7 @@ class FrontEndKind:
     create: Callable[[OdometryConfig, str], FrontEnd]  # (section, argument) -> front end
     takes_argument: bool  # `name:ARGUMENT`
     needs_groundtruth: bool  # every frame must carry a ground-truth pose
+    simulated: bool = False  # made from ground truth, not measured: the banner and summary say so
 
 
 _REGISTRY: dict[str, FrontEndKind] = {}
@@ -38,17 +43,21 @@ def register(
     description: str,
     takes_argument: bool = False,
     needs_groundtruth: bool = False,
+    simulated: bool = False,
 ) -> None:
-    _REGISTRY[name] = FrontEndKind(name, description, create, takes_argument, needs_groundtruth)
+    _REGISTRY[name] = FrontEndKind(name, description, create, takes_argument, needs_groundtruth, simulated)
 
 
 def available() -> dict[str, str]:
     """{mode as written: description} of every registered front end."""
-    return {f"{k.name}:PATH" if k.takes_argument else k.name: k.description for k in _REGISTRY.values()}
+    modes = {f"{k.name}:PATH" if k.takes_argument else k.name: k.description for k in _REGISTRY.values()}
+    return {AUTO: "orbslam3 where the pyorbslam3 wheel and a vocabulary are at hand, else rgbd", **modes}
 
 
 def check_mode(mode: str) -> tuple[FrontEndKind, str]:
     """The front end `mode` names and its argument; a ConfigError naming `odometry.mode` otherwise."""
+    if mode == AUTO:
+        mode = resolve_mode(mode, None)
     name, sep, argument = mode.partition(":")
     kind = _REGISTRY.get(name)
     if kind is None or kind.takes_argument != bool(sep) or (sep and not argument):
@@ -56,8 +65,25 @@ def check_mode(mode: str) -> tuple[FrontEndKind, str]:
     return kind, argument
 
 
+def resolve_mode(mode: str, section: OdometryConfig | None, synthetic: bool = False) -> str:
+    """The front end `auto` stands for: on the synthetic world its simulated odometry (`gt+drift`: the whole world
+    is simulated there); elsewhere ORB-SLAM3 where the pyorbslam3 wheel is installed and a vocabulary file is set
+    (`odometry.orbslam3_vocabulary`), else the built-in `rgbd`. Never a simulation of real data. Other modes
+    are returned as they are."""
+    if mode != AUTO:
+        return mode
+    if synthetic:
+        return "gt+drift"
+    from .orbslam3 import installed
+
+    vocabulary = section.orbslam3_vocabulary if section is not None else ""
+    if installed() and vocabulary and Path(vocabulary).is_file():
+        return "orbslam3"
+    return "rgbd"
+
+
 def create_frontend(mode: str, section: OdometryConfig) -> FrontEnd:
-    kind, argument = check_mode(mode)
+    kind, argument = check_mode(resolve_mode(mode, section))
     return kind.create(section, argument)
 
 
@@ -88,12 +114,29 @@ def _rgbd(c: OdometryConfig, _: str) -> FrontEnd:
 def _file(c: OdometryConfig, path: str) -> FrontEnd:
     from .frontends import FileOdometry
 
-    return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s)
+    return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s,
+                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c))
 
 
-register("gt", _gt, "the dataset's ground truth (tight declared covariance)", needs_groundtruth=True)
+def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams
+    from .repair import RepairParams
+
+    return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness)
+
+
+def _orbslam3(c: OdometryConfig, _: str) -> FrontEnd:
+    from .orbslam3 import OrbSlam3Odometry
+
+    return OrbSlam3Odometry(c)
+
+
+register("gt", _gt, "SIMULATED: the dataset's ground truth (tight declared covariance)", needs_groundtruth=True,
+         simulated=True)
 register(
-    "gt+drift", _drift, "ground truth with seeded drift that grows like a visual odometry's", needs_groundtruth=True
+    "gt+drift", _drift, "SIMULATED: ground truth with seeded drift that grows like a visual odometry's",
+    needs_groundtruth=True, simulated=True,
 )
 register("rgbd", _rgbd, "Open3D RGB-D odometry between consecutive frames (dynamic objects left out)")
-register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time", takes_argument=True)
+register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time, each step checked "
+         "against semmap's own registration (odometry.repair)", takes_argument=True)
+register("orbslam3", _orbslam3, "ORB-SLAM3 RGB-D (pyorbslam3 wheel) with semmap's dynamic masks and step check")

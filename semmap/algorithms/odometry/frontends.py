@@ -24,6 +24,8 @@ from semmap.core.config import OdometryConfig
 from semmap.core.messages import DynamicBox
 from semmap.datasets.trajectory_io import read_tum
 
+from .repair import RepairParams, SlamRepair
+
 DYNAMIC_MASKS = ("box", "range", "none")
 
 
@@ -158,6 +160,65 @@ def _unflat(values: list[float] | None, shape: tuple[int, ...]) -> np.ndarray | 
     return None if values is None else np.asarray(values, float).reshape(shape)
 
 
+class PairRegistration:
+    """semmap's own measurement of a frame-to-frame motion: Open3D multi-scale RGB-D odometry (hybrid) between the
+    previous frame and this one, the depth of both frames' dynamic objects left out (a person moving between the
+    two frames leaves out where it was and where it is, in each). `register` returns (T_prev^-1 T_cur, fitness)
+    or (None, 0) for the first frame or a pair Open3D cannot register. The `rgbd` front end chains these steps;
+    the repair of an external SLAM (repair.py) checks the SLAM's steps against them."""
+
+    def __init__(self, dynamic_mask: str = "box") -> None:
+        import open3d as o3d  # heavy: only when a front end that registers is chosen
+
+        if dynamic_mask not in DYNAMIC_MASKS:
+            raise OdometryError(f"odometry.dynamic_mask must be one of {DYNAMIC_MASKS}, got {dynamic_mask!r}")
+        self.o3d = o3d
+        self.dynamic_mask = dynamic_mask
+        self._prev: tuple[object, np.ndarray, list[DynamicBox]] | None = None  # colour, raw depth, dynamic boxes
+        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
+        self.failed = 0
+
+    def reset(self) -> None:
+        """Forget the previous frame (after a restart: the next frame starts a new chain)."""
+        self._prev = None
+
+    @property
+    def has_previous(self) -> bool:
+        """Whether the next `register` has a previous frame to register to."""
+        return self._prev is not None
+
+    def _image(self, color: object, depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float) -> object:
+        o3d = self.o3d
+        raw = mask_dynamic(depth, boxes, depth_scale, self.dynamic_mask)
+        return o3d.t.geometry.RGBDImage(color, o3d.t.geometry.Image(np.ascontiguousarray(raw)))
+
+    def register(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
+        if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
+            raise OdometryError("RGB-D registration needs RGB, depth and intrinsics")
+        o3d = self.o3d
+        color = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb.astype(np.float32) / 255.0))
+        boxes = list(frame.dynamic or [])
+        result: tuple[np.ndarray | None, float] = (None, 0.0)
+        if self._prev is not None:
+            prev_color, prev_depth, prev_boxes = self._prev
+            pair = prev_boxes + boxes
+            current = self._image(color, frame.depth, pair, frame.depth_scale)
+            previous = self._image(prev_color, prev_depth, pair, frame.depth_scale)
+            K = o3d.core.Tensor(np.asarray(frame.intrinsics, dtype=np.float64), o3d.core.Dtype.Float64)
+            try:
+                out = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
+                    current, previous, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
+                    self._criteria, o3d.t.pipelines.odometry.Method.Hybrid)
+                relative = out.transformation.numpy()
+                if not np.all(np.isfinite(relative)):
+                    raise RuntimeError("non-finite odometry")
+                result = (relative, float(out.fitness))
+            except RuntimeError:
+                self.failed += 1
+        self._prev = (color, frame.depth, boxes)
+        return result
+
+
 class RgbdOdometry(FrontEnd):
     """Frame-to-frame Open3D RGB-D odometry (tensor, multi-scale); starts at the first GT pose if known.
 
@@ -172,59 +233,30 @@ class RgbdOdometry(FrontEnd):
     def __init__(
         self, sigma_translation_m: float, sigma_rotation_deg: float, dynamic_mask: str = "box", min_fitness: float = 0.0
     ) -> None:
-        import open3d as o3d  # heavy: only when this front end is chosen
-
-        if dynamic_mask not in DYNAMIC_MASKS:
-            raise OdometryError(f"odometry.dynamic_mask must be one of {DYNAMIC_MASKS}, got {dynamic_mask!r}")
-        self.o3d = o3d
+        self.registration = PairRegistration(dynamic_mask)
         self.dynamic_mask = dynamic_mask
         self.uses_dynamic = dynamic_mask != "none"
         self.min_fitness = min_fitness
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
-        self._prev: tuple[object, np.ndarray, list[DynamicBox]] | None = None  # colour, raw depth, dynamic boxes
         self._pose: np.ndarray | None = None
         self._step = np.eye(4)  # the last trusted frame-to-frame motion
-        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
         self.counters = {"pairs_failed": 0, "pairs_low_fitness": 0}
 
-    def _image(self, color: object, depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float) -> object:
-        o3d = self.o3d
-        raw = mask_dynamic(depth, boxes, depth_scale, self.dynamic_mask)
-        return o3d.t.geometry.RGBDImage(color, o3d.t.geometry.Image(np.ascontiguousarray(raw)))
-
     def estimate(self, frame: OdometryInput) -> np.ndarray:
-        if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
-            raise OdometryError("rgbd odometry needs RGB, depth and intrinsics")
-        o3d = self.o3d
-        color = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb.astype(np.float32) / 255.0))
-        boxes = list(frame.dynamic or [])
-        if self._prev is None or self._pose is None:
+        chained = self.registration.has_previous
+        relative, fitness = self.registration.register(frame)
+        if self._pose is None:
             self._pose = frame.gt_pose.copy() if frame.gt_pose is not None else np.eye(4)
-        else:
-            # both frames of the pair lose the dynamic objects of both (a person moving between the two frames
-            # leaves out where it was and where it is, in each)
-            prev_color, prev_depth, prev_boxes = self._prev
-            pair = prev_boxes + boxes
-            current = self._image(color, frame.depth, pair, frame.depth_scale)
-            previous = self._image(prev_color, prev_depth, pair, frame.depth_scale)
-            K = o3d.core.Tensor(frame.intrinsics, o3d.core.Dtype.Float64)
-            try:
-                result = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                    current, previous, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
-                    self._criteria, o3d.t.pipelines.odometry.Method.Hybrid)
-                relative = result.transformation.numpy()
-                if not np.all(np.isfinite(relative)):
-                    raise RuntimeError("non-finite odometry")
-                if result.fitness < self.min_fitness:
-                    self.counters["pairs_low_fitness"] += 1
-                    relative = self._step
-                else:
-                    self._step = relative
-            except RuntimeError:
+        elif chained:
+            if relative is None:
                 self.counters["pairs_failed"] += 1
                 relative = self._step  # the backend's landmarks can still pull it back
+            elif fitness < self.min_fitness:
+                self.counters["pairs_low_fitness"] += 1
+                relative = self._step
+            else:
+                self._step = relative
             self._pose = self._pose @ relative
-        self._prev = (color, frame.depth, boxes)
         return self._pose.copy()
 
     def state(self) -> dict:
@@ -235,6 +267,7 @@ class RgbdOdometry(FrontEnd):
         self._pose = _unflat(state["pose"], (4, 4))
         step = _unflat(state.get("step"), (4, 4))
         self._step = step if step is not None else np.eye(4)
+        self.registration.reset()
 
 
 FILE_MATCH_S = 0.05  # a frame and a trajectory pose further apart than this do not match
@@ -274,10 +307,16 @@ def check_trajectory_overlap(path: str | Path, frame_stamps: list[float], offset
 
 
 class FileOdometry(FrontEnd):
-    """Poses from a TUM trajectory file, matched to each frame by the nearest timestamp (+ a time offset)."""
+    """Poses from a TUM trajectory file, matched to each frame by the nearest timestamp (+ a time offset).
+
+    With `repair` (the default) each of the file's steps is checked against semmap's own people-masked RGB-D
+    registration of the same two frames and the wrong ones are overruled (repair.py): the front end then needs the
+    frames' images and their dynamic objects. A frame with no pose within `FILE_MATCH_S` counts as one the SLAM
+    had none for. Without `repair` the file's poses are copied as they are."""
 
     def __init__(self, path: str | Path, sigma_translation_m: float, sigma_rotation_deg: float,
-                 time_offset_s: float = 0.0) -> None:
+                 time_offset_s: float = 0.0, repair: bool = False, dynamic_mask: str = "box",
+                 repair_gates: RepairParams | None = None) -> None:
         poses = sorted(read_tum(path), key=lambda p: p[0])
         if not poses:
             raise OdometryError(f"trajectory file {path} holds no poses")
@@ -286,12 +325,34 @@ class FileOdometry(FrontEnd):
         self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self.time_offset_s = float(time_offset_s)
         self.far_matches = 0
+        self.check = PairRegistration(dynamic_mask) if repair else None
+        self.repair = SlamRepair(repair_gates) if repair else None
+        self.needs_images = self.uses_dynamic = repair
+        self.counters: dict[str, int] = {}
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
         nearest, matched = match_trajectory(self.stamps, np.array([frame.stamp]), self.time_offset_s)
         if not matched[0]:
             self.far_matches += 1
-        return self.poses[int(nearest[0])].copy()
+        pose = self.poses[int(nearest[0])].copy()
+        if self.repair is None or self.check is None:
+            return pose
+        step, fitness = self.check.register(frame)
+        repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness)
+        self.counters = self.repair.report.counters()
+        return repaired
+
+    def overruled(self) -> list[tuple[int, int]]:
+        return [] if self.repair is None else self.repair.report.spans()
+
+    def state(self) -> dict:
+        return {} if self.repair is None else {"repair": self.repair.state()}
+
+    def restore(self, state: dict) -> None:
+        if self.repair is not None and "repair" in state:
+            self.repair.restore(state["repair"])
+        if self.check is not None:
+            self.check.reset()
 
 
 def make_frontend(mode: str, config: OdometryConfig) -> FrontEnd:

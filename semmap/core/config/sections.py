@@ -166,10 +166,12 @@ class OdometryConfig(Section):
     """The odometry service (semmap/algorithms/odometry/frontends.py)."""
 
     mode: str = Field(
-        "gt+drift",
+        "auto",
         min_length=1,
-        description="gt | gt+drift | rgbd | file:PATH: a front end registered "
-        "in semmap/algorithms/odometry (checked before a run starts)",
+        description="auto | orbslam3 | rgbd | file:PATH | gt | gt+drift: a front end registered in "
+        "semmap/algorithms/odometry (checked before a run starts). auto: orbslam3 where the pyorbslam3 wheel and a "
+        "vocabulary are at hand, else rgbd (a real front end); the synthetic world's own simulated odometry "
+        "(gt+drift) on synthetic data. gt and gt+drift simulate odometry from ground truth: only when asked",
     )
     seed: int = 0
     keyframe_every: AtLeastOne = Field(
@@ -214,6 +216,37 @@ class OdometryConfig(Section):
     file_time_offset_s: Float = Field(
         0.0, description="added to a `file:PATH` trajectory's stamps before matching (--time-offset)"
     )
+    repair: bool = Field(
+        True,
+        description="orbslam3 and file:PATH: check each of the SLAM's steps against semmap's own people-masked "
+        "RGB-D registration and overrule the wrong ones (semmap/algorithms/odometry/repair.py; needs the frames' "
+        "images); false: copy the SLAM's poses as they are",
+    )
+    repair_translation_m: Positive = Field(
+        0.005, description="repair: a SLAM step further than this from semmap's own measurement of it is overruled"
+    )
+    repair_rotation_deg: Positive = Field(0.5, description="repair: ...or turned further than this (deg)")
+    repair_min_fitness: Fraction = Field(
+        0.15,
+        description="repair: semmap's registration witnesses a step only where it registered this fraction of the "
+        "pixels; elsewhere the SLAM's step must agree with the recent motion (the same gate)",
+    )
+    orbslam3_vocabulary: str = Field(
+        "",
+        description="orbslam3: the ORB vocabulary (ORBvoc.txt, or `semmap models vocabulary IMAGES --out FILE`); "
+        '"" = orbvoc.txt in the model dir ($SEMMAP_MODEL_DIR or ~/.cache/semmap/models) if there. Never downloaded',
+    )
+    orbslam3_settings: str = Field(
+        "", description='orbslam3: your own ORB-SLAM3 settings file; "" = written from the frames\' camera'
+    )
+    orbslam3_features: AtLeastOne = Field(1000, description="orbslam3: ORB features per image")
+    orbslam3_mask: Literal["range", "box", "none"] = Field(
+        "range",
+        description="orbslam3: blank the frame's dynamic objects before it tracks: range (the pixels of a box in "
+        "the object's depth band), box (the whole box), none",
+    )
+    orbslam3_sigma_translation_m: Positive = Field(0.005, description="what orbslam3 declares per frame")
+    orbslam3_sigma_rotation_deg: Positive = 0.3
 
 
 RobustKernel = Literal["huber", "cauchy", "none"]  # semmap/algorithms/backend/factors.py

@@ -17,9 +17,11 @@ import time
 import msgpack
 import numpy as np
 
+from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
 from semmap.core.journal import FrameJournal
 from semmap.core.messages import DynamicObjects, Frame, OdometryPose
+from semmap.core.outputs import REPAIR_REPORT
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.service import REPLAY_FRAMES, Service, service_main
 
@@ -133,8 +135,18 @@ class OdometryService(Service):
             self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))
 
     def write_outputs(self) -> None:
+        close = getattr(self.frontend, "close", None)
+        if close is not None:  # (ORB-SLAM3 stops its threads)
+            close()
         if self.out_dir is not None and self.trajectory:
             write_tum(self.out_dir / "trajectory_odometry.tum", self.trajectory)
+        spans = getattr(self.frontend, "overruled", None)
+        if self.out_dir is not None and spans is not None:
+            # where semmap overruled the SLAM (the summary reads it): counters and frame spans
+            counters = dict(getattr(self.frontend, "counters", {}))
+            write_json_atomic(self.out_dir / REPAIR_REPORT, {
+                "schema": "semmap.repair/1", "mode": self.mode, "counters": counters,
+                "overruled_spans": [list(span) for span in spans()]})
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:

@@ -210,6 +210,11 @@ class PlayerService(Service):
 
     def write_outputs(self) -> None:
         if self.dataset.has_groundtruth and self.out_dir is not None:
+            if self.loops == 1 and self.total >= len(self.dataset):
+                # the dataset's own reference (a TUM folder's mocap samples), so that `semmap eval` scores the run
+                # as evo scores it against that file
+                write_tum(self.out_dir / "groundtruth.tum", self.dataset.reference_trajectory())
+                return
             gt = self.dataset.groundtruth()
             looped = [(t + k * self.period_s, pose) for k in range(self.loops) for t, pose in gt]
             write_tum(self.out_dir / "groundtruth.tum", looped[: self.total])

@@ -1,0 +1,177 @@
+"""Repair, not copy: an external SLAM's motion checked step by step against what semmap measures itself.
+
+A visual SLAM that walking people corrupt does not fail loudly: it tracks features on the people, and its pose
+moves with them (ORB-SLAM3 on the Bonn "crowd" window: an estimated path of 10.8 m for a camera that moved 1 m).
+semmap sees the same frames, knows where the people are (the tracker's dynamic boxes) and can register two
+consecutive frames with their depth left out (`rgbd` odometry, 40-100 ms a pair). `SlamRepair` compares each of
+the SLAM's frame-to-frame steps with that registration and, where they disagree by more than a gate, **overrules**
+the SLAM: the output takes semmap's step instead and re-anchors the SLAM's later poses onto the repaired path, so
+the SLAM's own later motion still counts (its steps keep their local accuracy: feature tracking, local bundle
+adjustment). Where the SLAM has no pose (lost, not initialised) semmap's step carries the trajectory alone.
+
+Why step by step and not poses: a wrong step is local (a person crossing the view for a second), but it shifts
+every later pose; comparing steps finds it where it happened, and replacing one step moves the rest with it.
+Why a gate, not a weighted mean: when two measurements of a step disagree by centimetres, one of them is wrong,
+and averaging keeps half the error. The registration is trusted only when it registered enough of the image
+(`fitness`) and agreed with itself (finite, not a jump beyond `max_step_*`); otherwise the SLAM's step stands.
+
+Everything here is pure: steps in, poses and counters out (the front ends in frontends.py feed it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RepairParams:
+    """Gates of the step check (the `odometry.repair_*` settings)."""
+
+    translation_m: float = 0.005  # steps further apart than this (m) disagree
+    rotation_deg: float = 0.5  # ...or turned further apart than this (deg)
+    min_fitness: float = 0.15  # semmap's registration must cover this fraction of the pixels to overrule
+    max_step_m: float = 0.3  # a registration step longer than this (m per frame) is itself not trusted
+    max_step_deg: float = 15.0
+
+
+@dataclass
+class RepairReport:
+    """How often and where semmap overruled the SLAM (stats.json, the summary)."""
+
+    steps: int = 0
+    overruled: int = 0  # the SLAM's step replaced by semmap's
+    slam_missing: int = 0  # the SLAM gave no pose: semmap's step carried the trajectory
+    unchecked: int = 0  # no trustworthy registration: the SLAM's step stands (it agreed with the recent motion)
+    implausible: int = 0  # no trustworthy registration and the SLAM's step broke the recent motion: replaced
+    overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
+    max_listed: int = 200
+
+    def counters(self) -> dict[str, int]:
+        return {"repair_steps": self.steps, "repair_overruled": self.overruled,
+                "repair_slam_missing": self.slam_missing, "repair_unchecked": self.unchecked,
+                "repair_implausible": self.implausible}
+
+    def spans(self) -> list[tuple[int, int]]:
+        """The overruled frames as [first, last] runs of consecutive ids: where the SLAM went wrong."""
+        out: list[tuple[int, int]] = []
+        for f in self.overruled_frames:
+            if out and f == out[-1][1] + 1:
+                out[-1] = (out[-1][0], f)
+            else:
+                out.append((f, f))
+        return out
+
+
+def step_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation m, rotation deg) between two relative motions."""
+    d = np.linalg.inv(a) @ b
+    cos = (np.trace(d[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+def _rotation_deg(t: np.ndarray) -> float:
+    cos = (np.trace(t[:3, :3]) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+class SlamRepair:
+    """Per frame: `update(frame_id, slam_pose, check_step, fitness)` -> the repaired camera-to-world pose.
+
+    `slam_pose` is the SLAM's camera-to-world pose (None where it has none); `check_step` semmap's registration
+    of the previous frame to this one as the relative motion T_prev^-1 T_cur (None where it has none). The output
+    starts at the first SLAM pose (or at `start`), in the SLAM's world frame.
+    """
+
+    def __init__(self, params: RepairParams | None = None, start: np.ndarray | None = None) -> None:
+        self.params = params or RepairParams()
+        self.report = RepairReport()
+        self._start = None if start is None else np.asarray(start, float)
+        self._pose: np.ndarray | None = None  # the last repaired pose
+        self._slam_prev: np.ndarray | None = None  # the SLAM's previous pose (None: it had none)
+        self._last_step = np.eye(4)  # the last step taken (constant velocity when nothing is known)
+
+    def _note(self, frame_id: int) -> None:
+        if len(self.report.overruled_frames) < self.report.max_listed:
+            self.report.overruled_frames.append(int(frame_id))
+
+    def _trusted(self, step: np.ndarray | None, fitness: float) -> bool:
+        p = self.params
+        return (step is not None and bool(np.all(np.isfinite(step))) and fitness >= p.min_fitness
+                and float(np.linalg.norm(step[:3, 3])) <= p.max_step_m and _rotation_deg(step) <= p.max_step_deg)
+
+    def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
+               fitness: float = 1.0) -> np.ndarray:
+        p, r = self.params, self.report
+        if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
+            slam_pose = None
+        if self._pose is None:  # the first frame: the anchor
+            if slam_pose is not None:
+                self._pose = slam_pose.copy() if self._start is None else self._start.copy()
+            elif self._start is not None:
+                self._pose = self._start.copy()
+            else:
+                self._pose = np.eye(4)
+            self._slam_prev = None if slam_pose is None else slam_pose.copy()
+            return self._pose.copy()
+        r.steps += 1
+        trusted = self._trusted(check_step, fitness)
+        if slam_pose is None or self._slam_prev is None:
+            # no SLAM step (lost, or the first pose after it was lost: a new map's origin says nothing)
+            r.slam_missing += 1
+            step = check_step if trusted else self._last_step
+        else:
+            slam_step = np.linalg.inv(self._slam_prev) @ slam_pose
+            if not trusted:
+                # no witness of semmap's own: the SLAM's step still has to agree with the camera's recent motion
+                # (constant velocity) within the gate, else the motion model carries this frame
+                dt, dr = step_difference(slam_step, self._last_step)
+                if dt > p.translation_m or dr > p.rotation_deg:
+                    r.implausible += 1
+                    self._note(frame_id)
+                    step = self._last_step
+                else:
+                    r.unchecked += 1
+                    step = slam_step
+            else:
+                dt, dr = step_difference(slam_step, check_step)
+                if dt > p.translation_m or dr > p.rotation_deg:
+                    r.overruled += 1
+                    self._note(frame_id)
+                    step = check_step
+                else:
+                    step = slam_step
+        self._slam_prev = None if slam_pose is None else slam_pose.copy()
+        self._last_step = np.asarray(step, float).copy()
+        self._pose = self._pose @ self._last_step
+        return self._pose.copy()
+
+    def break_chain(self) -> None:
+        """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
+        self._slam_prev = None
+
+    def state(self) -> dict:
+        r = self.report
+        return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
+                "counters": [r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible],
+                "frames": list(r.overruled_frames)}
+
+    def restore(self, state: dict) -> None:
+        self._pose = _unflat(state.get("pose"), (4, 4))
+        self._slam_prev = _unflat(state.get("slam_prev"), (4, 4))
+        last = _unflat(state.get("last_step"), (4, 4))
+        self._last_step = np.eye(4) if last is None else last
+        c = state.get("counters") or [0, 0, 0, 0, 0]
+        r = self.report
+        r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible = (int(v) for v in c)
+        r.overruled_frames = [int(f) for f in state.get("frames", [])]
+
+
+def _flat(a: np.ndarray | None) -> list[float] | None:
+    return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
+
+
+def _unflat(values: list[float] | None, shape: tuple[int, ...]) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, float).reshape(shape)

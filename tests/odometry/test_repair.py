@@ -1,0 +1,137 @@
+"""The repair of an external SLAM's steps (semmap/algorithms/odometry/repair.py): pure, on made-up motion."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from semmap.algorithms.odometry.repair import RepairParams, SlamRepair, step_difference
+
+
+def _pose(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
+    T[:3, 3] = (x, y, 0.0)
+    return T
+
+
+def _truth(n: int = 120) -> list[np.ndarray]:
+    """A camera moving 2 mm a frame and turning 0.1 deg a frame."""
+    return [_pose(0.002 * i, 0.0005 * i, 0.1 * i) for i in range(n)]
+
+
+def _steps(poses: list[np.ndarray]) -> list[np.ndarray]:
+    return [np.linalg.inv(a) @ b for a, b in zip(poses, poses[1:], strict=False)]
+
+
+def _noisy(step: np.ndarray, rng: np.random.Generator, sigma_m: float = 0.0005) -> np.ndarray:
+    out = step.copy()
+    out[:3, 3] += rng.normal(0.0, sigma_m, 3)
+    return out
+
+
+def _run(repair: SlamRepair, slam: list[np.ndarray | None], checks: list[np.ndarray | None],
+         fitness: list[float] | None = None) -> list[np.ndarray]:
+    out = [repair.update(0, slam[0], None)]
+    for i in range(1, len(slam)):
+        out.append(repair.update(i, slam[i], checks[i - 1], 1.0 if fitness is None else fitness[i - 1]))
+    return out
+
+
+def _error(a: list[np.ndarray], b: list[np.ndarray]) -> float:
+    return max(float(np.linalg.norm(p[:3, 3] - q[:3, 3])) for p, q in zip(a, b, strict=True))
+
+
+def test_agreeing_steps_are_the_slams_own():
+    """Where semmap's registration agrees within the gate, the output is the SLAM's trajectory, untouched."""
+    truth = _truth()
+    rng = np.random.default_rng(0)
+    checks = [_noisy(s, rng) for s in _steps(truth)]
+    repair = SlamRepair(RepairParams(translation_m=0.005, rotation_deg=0.5))
+    out = _run(repair, truth, checks)
+    assert _error(out, truth) < 1e-9
+    assert repair.report.overruled == 0 and repair.report.steps == len(truth) - 1
+
+
+def test_wrong_steps_are_overruled_where_they_happened():
+    """A SLAM dragged by a person for a few frames (3 cm a frame sideways): those steps are replaced, the
+    trajectory ends within millimetres of the truth, and the report names the frames."""
+    truth = _truth()
+    dragged = set(range(40, 46))
+    slam, offset = [], np.eye(4)
+    for i, pose in enumerate(truth):
+        if i in dragged:
+            offset = offset @ _pose(0.03)
+        slam.append(offset @ pose)
+    rng = np.random.default_rng(1)
+    checks = [_noisy(s, rng) for s in _steps(truth)]
+    repair = SlamRepair(RepairParams(translation_m=0.005, rotation_deg=0.5))
+    out = _run(repair, slam, checks)
+    assert _error(slam, truth) > 0.15  # the SLAM alone: 18 cm off
+    assert _error(out, truth) < 0.01
+    assert set(repair.report.overruled_frames) == dragged
+    assert repair.report.spans() == [(40, 45)]
+
+
+def test_lost_slam_is_carried_by_the_registration_then_by_constant_velocity():
+    truth = _truth(60)
+    slam: list[np.ndarray | None] = list(truth)
+    for i in range(20, 30):
+        slam[i] = None  # lost: ten frames without a pose
+    # when it comes back, its map has a new origin: its first pose after the loss says nothing about the step
+    shift = _pose(5.0, 2.0, 30.0)
+    slam = [p if p is None or i < 30 else shift @ p for i, p in enumerate(slam)]
+    checks: list[np.ndarray | None] = _steps(truth)
+    repair = SlamRepair()
+    out = _run(repair, slam, checks)
+    assert _error(out, truth) < 1e-6
+    assert repair.report.slam_missing == 11  # ten lost frames and the first one back
+    # without any registration either, the last step is repeated (the camera's own motion model)
+    repair = SlamRepair()
+    out = _run(repair, slam, [None] * (len(truth) - 1))
+    assert _error(out, truth) < 0.002
+
+
+def test_without_a_trustworthy_witness_a_jump_breaks_the_recent_motion():
+    """Low-fitness registrations witness nothing; a SLAM step that jumps away from the camera's recent motion is
+    still refused (counted as implausible), one that continues it stands (counted as unchecked)."""
+    truth = _truth(40)
+    slam = list(truth)
+    slam[20:] = [_pose(0.2) @ p for p in truth[20:]]  # a 20 cm jump at frame 20
+    checks = _steps(truth)
+    fitness = [0.01] * len(checks)  # nothing registered well
+    repair = SlamRepair(RepairParams(min_fitness=0.15))
+    out = _run(repair, slam, checks, fitness)
+    assert repair.report.implausible == 1 and repair.report.unchecked == len(truth) - 2
+    assert _error(out, truth) < 0.01
+
+
+def test_untrusted_registrations_never_overrule():
+    """A registration step that is itself implausible (a 1 m jump between two frames) does not overrule."""
+    truth = _truth(30)
+    checks = _steps(truth)
+    checks[10] = _pose(1.0) @ checks[10]
+    repair = SlamRepair()
+    out = _run(repair, truth, checks)
+    assert _error(out, truth) < 1e-9 and repair.report.overruled == 0
+
+
+def test_state_restores_the_same_continuation():
+    truth = _truth(80)
+    slam = [(_pose(0.01 * (i >= 30)) @ p) for i, p in enumerate(truth)]
+    checks = _steps(truth)
+    whole = SlamRepair()
+    expected = _run(whole, slam, checks)
+    first = SlamRepair()
+    _run(first, slam[:50], checks[:49])
+    second = SlamRepair()
+    second.restore(first.state())
+    rest = [second.update(i, slam[i], checks[i - 1]) for i in range(50, 80)]
+    assert _error(rest, expected[50:]) < 1e-12
+    assert second.report.counters() == whole.report.counters()
+
+
+def test_step_difference():
+    a, b = _pose(0.01), _pose(0.01, yaw_deg=2.0)
+    dt, dr = step_difference(a, b)
+    assert abs(dt) < 1e-12 and abs(dr - 2.0) < 1e-9
