@@ -22,6 +22,7 @@ from semmap.datasets.trajectory_io import read_tum
 GROUNDTRUTH = "groundtruth.tum"
 ODOMETRY = "trajectory_odometry.tum"
 OPTIMIZED = "trajectory_optimized.tum"
+SLAM = "trajectory_slam.tum"  # an external SLAM's own poses, before semmap's repair (where there was one)
 RESULT = "eval.json"
 MAX_STAMP_DIFF_S = 0.01
 
@@ -122,5 +123,7 @@ def evaluate_run(out_dir: Path, groundtruth: Path | None = None) -> dict:
     result = {"ate_odometry_m": ate_odometry, "ate_optimized_m": ate_optimized,
               "improvement_pct": improvement, "poses": matched,
               "groundtruth": str(groundtruth) if groundtruth is not None else GROUNDTRUTH}
+    if (out_dir / SLAM).is_file():  # the SLAM alone, to hold semmap's repair against
+        result["ate_slam_m"] = ate_details(gt, _read(out_dir / SLAM))[0]
     write_json_atomic(out_dir / RESULT, result)
     return result

@@ -285,6 +285,7 @@ class LoopResult:
     optimized: list[tuple[float, np.ndarray]] = field(default_factory=list)
     odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
     frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
+    ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
 
     @property
     def improvement_pct(self) -> float:
@@ -294,6 +295,7 @@ class LoopResult:
         return {
             "ate_odometry_m": self.ate_odometry,
             "ate_optimized_m": self.ate_optimized,
+            "ate_slam_m": self.ate_slam,
             "improvement_pct": self.improvement_pct,
             "landmarks": self.landmarks,
             "observations": self.observations,
@@ -405,6 +407,10 @@ def run_loop(
     optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
     gt = [(s, g) for s, g in zip(rec.stamps, rec.gt, strict=True) if g is not None]
     landmarks = mapper.landmarks()
+    slam = getattr(front, "slam_trajectory", None)
+    close = getattr(front, "close", None)
+    if close is not None:
+        close()
     return LoopResult(
         ate_odometry=ate_rmse(gt, odo_traj),
         ate_optimized=ate_rmse(gt, optimized),
@@ -420,6 +426,7 @@ def run_loop(
         optimized=optimized,
         odometry=odo_traj,
         frontend_counters=dict(getattr(front, "counters", {})),
+        ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None,
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,
@@ -592,8 +599,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"  recall {row['recall']:.2f} dup {row['duplicates']} false {row['false_landmarks']} "
                 f"on_moving {row['on_moving']}"
             )
+        slam = "" if res.ate_slam is None else f"SLAM alone {res.ate_slam:.4f} m, "
         print(
-            f"{args.odometry:9s} seed {seed}: ATE odometry {res.ate_odometry:.4f} m, optimised "
+            f"{args.odometry:9s} seed {seed}: {slam}ATE odometry {res.ate_odometry:.4f} m, optimised "
             f"{res.ate_optimized:.4f} m ({res.improvement_pct:+.1f} %), landmarks {res.landmarks}, observations "
             f"{res.observations} ({res.observation_factors} factors, {res.graph_landmarks} in graph), merges "
             f"{res.merges}, loop closures {res.loop_closures.get('accepted', 0)}/"

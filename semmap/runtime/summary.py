@@ -103,6 +103,16 @@ def repair_line(out_dir: Path) -> str | None:
     replaced = int(c.get("repair_overruled", 0)) + int(c.get("repair_implausible", 0))
     spans = report.get("overruled_spans", [])
     where = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans[:6]) + (" ..." if len(spans) > 6 else "")
+    slam = ""
+    try:
+        from semmap.algorithms.evaluation import evaluate_run
+
+        result = evaluate_run(Path(out_dir)) if (Path(out_dir) / "groundtruth.tum").is_file() else {}
+        if result.get("ate_slam_m") is not None:
+            slam = (f"\n  SLAM alone  ATE {result['ate_slam_m']:.3f} m (its own poses, trajectory_slam.tum) -> "
+                    f"repaired {result['ate_odometry_m']:.3f} m -> optimised {result['ate_optimized_m']:.3f} m")
+    except (ValueError, OSError):
+        pass
     return (f"  repair      {report.get('mode', '?')}: semmap overruled {replaced} of {steps} SLAM steps "
             f"({100 * replaced / steps:.0f} %), the SLAM had no pose for {int(c.get('repair_slam_missing', 0))}"
-            + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})")
+            + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})" + slam)

@@ -329,6 +329,7 @@ class FileOdometry(FrontEnd):
         self.repair = SlamRepair(repair_gates) if repair else None
         self.needs_images = self.uses_dynamic = repair
         self.counters: dict[str, int] = {}
+        self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the file's poses matched to frames
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
         nearest, matched = match_trajectory(self.stamps, np.array([frame.stamp]), self.time_offset_s)
@@ -337,6 +338,8 @@ class FileOdometry(FrontEnd):
         pose = self.poses[int(nearest[0])].copy()
         if self.repair is None or self.check is None:
             return pose
+        if matched[0]:
+            self.slam_trajectory.append((float(frame.stamp), pose.copy()))
         step, fitness = self.check.register(frame)
         repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness)
         self.counters = self.repair.report.counters()

@@ -122,6 +122,7 @@ class OrbSlam3Odometry(FrontEnd):
         self._anchor: np.ndarray | None = None  # world <- ORB-SLAM3's map of the first frame
         self._restored = False
         self.counters = {"orb_lost": 0, "orb_not_initialized": 0, "orb_blanked_permille": 0}
+        self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # ORB-SLAM3's own poses, before the repair
         self._blanked: list[float] = []
 
     def _start(self, frame: OdometryInput) -> None:
@@ -160,6 +161,7 @@ class OrbSlam3Odometry(FrontEnd):
                 start = frame.gt_pose if (frame.gt_pose is not None and not self._restored) else None
                 self._anchor = (start @ np.linalg.inv(slam_pose)) if start is not None else np.eye(4)
             slam_pose = self._anchor @ slam_pose
+            self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
         elif state == "NOT_INITIALIZED":
             self.counters["orb_not_initialized"] += 1
         else:

@@ -21,7 +21,7 @@ from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
 from semmap.core.journal import FrameJournal
 from semmap.core.messages import DynamicObjects, Frame, OdometryPose
-from semmap.core.outputs import REPAIR_REPORT
+from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.service import REPLAY_FRAMES, Service, service_main
 
@@ -140,6 +140,9 @@ class OdometryService(Service):
             close()
         if self.out_dir is not None and self.trajectory:
             write_tum(self.out_dir / "trajectory_odometry.tum", self.trajectory)
+        slam = getattr(self.frontend, "slam_trajectory", None)
+        if self.out_dir is not None and slam:
+            write_tum(self.out_dir / SLAM_TRAJECTORY, [(t, self.to_session @ pose) for t, pose in slam])
         spans = getattr(self.frontend, "overruled", None)
         if self.out_dir is not None and spans is not None:
             # where semmap overruled the SLAM (the summary reads it): counters and frame spans
