@@ -14,11 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
-from semmap.algorithms.odometry.vocabulary import VocabularyError, build_vocabulary, orb_descriptors
+from semmap.algorithms.odometry.vocabulary import (
+    VocabularyError,
+    build_vocabulary,
+    check_parameters,
+    orb_descriptors,
+)
 from semmap.core.outputs import atomic_write_text
 from semmap.datasets.images import read_rgb
 
-__all__ = ["VocabularyBuild", "colour_images", "spread", "write_vocabulary"]
+__all__ = ["VocabularyBuild", "VocabularyError", "colour_images", "spread", "write_vocabulary"]
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 _COLOUR_HINTS = ("color", "colour", "rgb")
@@ -96,6 +101,7 @@ def write_vocabulary(
     or OSError (the output cannot be written); each message is one line.
     """
     out = Path(out)
+    check_parameters(k, levels)
     if max_images is not None and max_images < 2:
         raise VocabularyError(f"--max-images must be at least 2, got {max_images}")
     if not out.parent.is_dir():

@@ -170,6 +170,8 @@ def test_cli_writes_a_vocabulary_and_says_what_went_wrong(tmp_path: Path, capsys
         cv2.imwrite(str(blank / f"{i}.png"), np.zeros((48, 64, 3), np.uint8))
     assert cli_main(["models", "vocabulary", str(blank), "--out", str(tmp_path / "x.txt")]) == 2
     assert "at least 2 images" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert cli_main(["models", "vocabulary", str(images), "--k", "30", "--out", str(tmp_path / "x.txt")]) == 2
+    assert "k must be 2..20" in capsys.readouterr().err.strip().splitlines()[-1]
     assert not (tmp_path / "x.txt").exists()
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "ORBVocabulary",
     "VocabularyError",
     "build_vocabulary",
+    "check_parameters",
     "orb_descriptors",
     "parse_text",
 ]
@@ -89,6 +90,12 @@ class ORBVocabulary:
         return "\n".join(lines)
 
 
+def check_parameters(k: int, levels: int) -> None:
+    """VocabularyError unless DBoW2's text loader accepts this k and L (2..20, 1..10)."""
+    if not 2 <= k <= 20 or not 1 <= levels <= 10:
+        raise VocabularyError(f"k must be 2..20 and levels 1..10 (DBoW2's loader refuses others), got {k}, {levels}")
+
+
 def orb_descriptors(image: np.ndarray, n_features: int = 1000) -> np.ndarray:
     """(m, 32) uint8 ORB descriptors of a grey or RGB image, with ORB-SLAM's extractor settings.
 
@@ -117,8 +124,7 @@ def build_vocabulary(
     `descriptors_per_image`: one (m_i, 32) uint8 array per training image. `iterations`: at most this many
     median/assignment rounds per level (it stops earlier when no assignment changes).
     """
-    if not 2 <= k <= 20 or not 1 <= levels <= 10:
-        raise VocabularyError(f"k must be 2..20 and levels 1..10 (DBoW2's loader refuses others), got {k}, {levels}")
+    check_parameters(k, levels)
     if iterations < 1:
         raise VocabularyError(f"iterations must be >= 1, got {iterations}")
     per_image = [np.asarray(d, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES) for d in descriptors_per_image]
