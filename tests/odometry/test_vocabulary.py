@@ -213,7 +213,7 @@ Viewer.ViewpointF: 500.0
 """
 
 
-@pytest.mark.slow  # ~15 s to build, ~5 s to load, ~10 s to track on a shared 2-core machine
+@pytest.mark.slow  # 19 s on a shared 2-core machine (build ~60 frames, load, track 30)
 @pytest.mark.needs_data
 def test_orbslam3_loads_and_tracks_with_a_vocabulary_built_here(kitchen_dir: Path, tmp_path: Path):
     pyorbslam3 = pytest.importorskip("pyorbslam3", reason="pyorbslam3 (ORB-SLAM3 wheel) not installed")
