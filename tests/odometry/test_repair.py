@@ -135,3 +135,35 @@ def test_step_difference():
     a, b = _pose(0.01), _pose(0.01, yaw_deg=2.0)
     dt, dr = step_difference(a, b)
     assert abs(dt) < 1e-12 and abs(dr - 2.0) < 1e-9
+
+
+def test_static_scenes_keep_the_slams_steps():
+    """With scope `dynamic` (the default) a step is checked only while dynamic objects are in view and for
+    `hold_s` after: on a static scene a SLAM is better than frame-to-frame registration, so a noisy or even wrong
+    registration changes nothing there; once a person appears, the check is back."""
+    truth = _truth(200)
+    wrong_checks = [_pose(0.05) @ s for s in _steps(truth)]  # registration 5 cm off on every step
+    stamps = [i / 30 for i in range(len(truth))]
+    repair = SlamRepair()
+    out = [repair.update(0, truth[0], None, stamp=0.0, dynamic_in_view=False)]
+    for i in range(1, 200):
+        person = 50 <= i < 55
+        out.append(repair.update(i, truth[i], wrong_checks[i - 1], 1.0, dynamic_in_view=person, stamp=stamps[i]))
+    r = repair.report
+    # frames 50-54 hold a person, then 2 s (60 frames) of hold: 65 checked steps, all overruled by the wrong check
+    assert r.overruled == 65 and r.static == 199 - 65
+    assert _error(out[:50], truth[:50]) < 1e-9
+    always = SlamRepair(RepairParams(scope="always"))
+    _run(always, truth, wrong_checks)
+    assert always.report.overruled == 199
+
+
+def test_copy_is_the_slam_itself():
+    """`odometry.repair: false`: the SLAM's steps untouched, only frames without a SLAM pose carried."""
+    truth = _truth(40)
+    slam: list[np.ndarray | None] = list(truth)
+    slam[10] = None
+    repair = SlamRepair()
+    out = [repair.copy(i, p) for i, p in enumerate(slam)]
+    assert _error(out[:10], truth[:10]) < 1e-12
+    assert _error(out, truth) < 0.003 and repair.report.slam_missing == 2 and repair.report.overruled == 0

@@ -121,7 +121,8 @@ def _file(c: OdometryConfig, path: str) -> FrontEnd:
 def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams
     from .repair import RepairParams
 
-    return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness)
+    return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness,
+                        scope=c.repair_scope, hold_s=c.repair_hold_s)
 
 
 def _orbslam3(c: OdometryConfig, _: str) -> FrontEnd:

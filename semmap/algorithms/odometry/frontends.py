@@ -341,7 +341,8 @@ class FileOdometry(FrontEnd):
         if matched[0]:
             self.slam_trajectory.append((float(frame.stamp), pose.copy()))
         step, fitness = self.check.register(frame)
-        repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness)
+        repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness,
+                                      bool(frame.dynamic), float(frame.stamp))
         self.counters = self.repair.report.counters()
         return repaired
 

@@ -166,12 +166,11 @@ class OrbSlam3Odometry(FrontEnd):
             self.counters["orb_not_initialized"] += 1
         else:
             self.counters["orb_lost"] += 1
-        step, fitness = (None, 0.0)
         if self.check is not None:
             step, fitness = self.check.register(frame)
-            pose = self.repair.update(frame.frame_id, slam_pose, step, fitness)
+            pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, bool(boxes), float(frame.stamp))
         else:  # no check: ORB-SLAM3's steps as they are (lost frames carried at constant velocity)
-            pose = self.repair.update(frame.frame_id, slam_pose, None, 0.0)
+            pose = self.repair.copy(frame.frame_id, slam_pose)
         self.counters.update(self.repair.report.counters())
         self.counters["orb_blanked_permille"] = int(1000 * float(np.mean(self._blanked)))
         return pose
@@ -201,4 +200,5 @@ class OrbSlam3Odometry(FrontEnd):
 
 
 def repair_params(config: OdometryConfig) -> RepairParams:
-    return RepairParams(config.repair_translation_m, config.repair_rotation_deg, config.repair_min_fitness)
+    return RepairParams(config.repair_translation_m, config.repair_rotation_deg, config.repair_min_fitness,
+                        scope=config.repair_scope, hold_s=config.repair_hold_s)

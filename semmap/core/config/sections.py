@@ -231,6 +231,15 @@ class OdometryConfig(Section):
         description="repair: semmap's registration witnesses a step only where it registered this fraction of the "
         "pixels; elsewhere the SLAM's step must agree with the recent motion (the same gate)",
     )
+    repair_scope: Literal["dynamic", "always"] = Field(
+        "dynamic",
+        description="repair: check the SLAM's steps only while dynamic objects are in view and repair_hold_s "
+        "after (dynamic: on a static scene a SLAM beats frame-to-frame registration: 7-Scenes ORB-SLAM3 3.5 cm, "
+        "checked everywhere 7.3 cm), or always",
+    )
+    repair_hold_s: NonNegative = Field(
+        2.0, description="repair: seconds after the last dynamic object left the view that steps are still checked"
+    )
     orbslam3_vocabulary: str = Field(
         "",
         description="orbslam3: the ORB vocabulary (ORBvoc.txt, or `semmap models vocabulary IMAGES --out FILE`); "
