@@ -39,7 +39,7 @@ def rows(data: Path) -> list[dict]:
         {"name": "bonn-orbslam3-norepair", "data": bonn, "odometry": "orbslam3", "repeat": True,
          "set": [*orb, "odometry.repair=false"], "what": "Bonn crowd, ORB-SLAM3 live, masks only (no repair)"},
         {"name": "7scenes-orbslam3", "data": kitchen, "odometry": "orbslam3", "set": orb, "repeat": True,
-         "what": "7-Scenes redkitchen (static), ORB-SLAM3 live"},
+         "frames": 500, "what": "7-Scenes redkitchen frames 0-499 (static), ORB-SLAM3 live"},
         {"name": "bonn-rgbd", "data": bonn, "odometry": "rgbd", "set": [], "repeat": False,
          "what": "Bonn crowd, built-in rgbd (people masked)"},
     ]
@@ -52,7 +52,8 @@ def rows(data: Path) -> list[dict]:
 
 def command(row: dict, landmarks: bool) -> str:
     sets = " ".join(f"--set {s}" for s in [*row["set"], f"backend.landmark_constraints={str(landmarks).lower()}"])
-    return f"python -m semmap.runtime.inprocess {row['data']} --odometry {row['odometry']} {sets}"
+    frames = f" --frames {row['frames']}" if row.get("frames") else ""
+    return f"python -m semmap.runtime.inprocess {row['data']}{frames} --odometry {row['odometry']} {sets}"
 
 
 def run_row(row: dict, runs: int, frames: int) -> dict:
@@ -61,7 +62,7 @@ def run_row(row: dict, runs: int, frames: int) -> dict:
         one = {}
         for landmarks in (False, True):
             t0 = time.perf_counter()
-            res, _ = closed_loop(row["data"], row["odometry"], frames=frames,
+            res, _ = closed_loop(row["data"], row["odometry"], frames=row.get("frames", frames),
                                  overrides=[*row["set"], f"backend.landmark_constraints={str(landmarks).lower()}"])
             key = "on" if landmarks else "off"
             one[f"ate_{key}"] = res.ate_optimized

@@ -19,14 +19,16 @@ PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
 
 
 def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: list[str] | None = None,
-                   serve: bool = False, prior_map: Path | None = None) -> list:
+                   serve: bool = False, prior_map: Path | None = None, check_slam: bool = False) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
-    unless disabled."""
+    unless disabled. An external run has no odometry service, unless it checks the SLAM's poses (`check_slam`:
+    the odometry service repairs what the SLAM publishes on the `slam` key)."""
     from semmap.algorithms.detector import AUTO, resolve_kind
     from semmap.runtime.orchestrator import ServiceSpec
 
     synthetic = data == "synthetic" or data.startswith("synthetic:")
-    chosen = [n for n in PIPELINE if (only is None or n in only) and not (data == "external" and n == "odometry")]
+    chosen = [n for n in PIPELINE if (only is None or n in only)
+              and not (data == "external" and n == "odometry" and not check_slam)]
     specs = []
     for name in chosen:
         if name == "viz" and not (viz and config.viz.enabled):
@@ -58,6 +60,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out", help="output directory (default: out)")
     p.add_argument("--odometry", default=None, help="auto (default: orbslam3 where installed, else rgbd) | orbslam3 | "
                    "rgbd | file:PATH | gt | gt+drift (the last two SIMULATE odometry from ground truth)")
+    p.add_argument("--check-slam", action="store_true",
+                   help="external: the SLAM publishes its own poses on the `slam` key (SemmapClient(check_slam=True), "
+                   "semmap ros2 check_slam:=true) and semmap checks each step against its own people-masked "
+                   "registration before they become odometry (docs/ORBSLAM3.md)")
     p.add_argument("--seed", type=int, default=None, help="seed of the drifting odometry")
     p.add_argument("--time-offset", type=float, default=None, metavar="SECONDS",
                    help="with --odometry file:PATH: added to the trajectory's stamps before matching them to frames")
@@ -128,6 +134,12 @@ def _run(args: argparse.Namespace) -> int:
             return 2
     if args.time_offset is not None:
         overrides.append(f"odometry.file_time_offset_s={args.time_offset}")
+    if args.check_slam:
+        if args.data != "external":
+            print("error: --check-slam is for `semmap run external` (a dataset's SLAM: --odometry file:TRAJ.tum, "
+                  "checked by default)", file=sys.stderr)
+            return 2
+        overrides.append("odometry.mode=external")
     try:
         config = load_config(args.config, overrides)  # the whole tree, before anything starts
         check_plugins(config)
@@ -173,7 +185,8 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     from semmap.runtime.orchestrator import Orchestrator, RunPlan
 
-    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map)
+    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map,
+                           args.check_slam)
     run = config.run
     deadline = args.deadline if args.deadline is not None else run.deadline_s
     plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run.robot,

@@ -19,6 +19,7 @@ EXTERNAL_SENDER = "external"  # an unsigned publisher on a key a run leaves open
 PUBLISHERS: dict[str, tuple[str, ...]] = {
     "frames": ("player", EXTERNAL_SENDER),
     "odometry": ("odometry", EXTERNAL_SENDER),
+    "slam": (EXTERNAL_SENDER,),
     "detections": ("detector",),
     "tracks": ("tracker",),
     "dynamic": ("tracker",),
@@ -55,6 +56,12 @@ class Keys:
     @property
     def odometry(self) -> str:
         return f"{self.root}/odometry"
+
+    @property
+    def slam(self) -> str:
+        """An external SLAM's own poses, for semmap to check before they become odometry (`run external
+        --check-slam`; docs/ORBSLAM3.md)."""
+        return f"{self.root}/slam"
 
     # pipeline stages
     @property

@@ -54,14 +54,18 @@ class SemmapClient:
     """One robot's connection to a running semmap (see module docstring)."""
 
     def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None,
-                 keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> None:
+                 keyframe_every: int = DEFAULT_KEYFRAME_EVERY, check_slam: bool = False) -> None:
+        """`check_slam`: publish the SLAM's poses on the `slam` key for semmap to check against its own
+        registration before they become odometry (the run started with `semmap run external --check-slam`);
+        otherwise they are the odometry as they are."""
         if keyframe_every < 1:  # refused before a session opens, so nothing is left behind
             raise ValueError(f"keyframe_every must be at least 1, got {keyframe_every}")
         self.keyframe_every = int(keyframe_every)
         self.bus = Bus(BusConfig.from_env(connect, mode), robot)
         self.robot = robot
         self._frames = self.bus.publisher(self.bus.keys.frames)
-        self._poses = self.bus.publisher(self.bus.keys.odometry)
+        self.check_slam = bool(check_slam)
+        self._poses = self.bus.publisher(self.bus.keys.slam if check_slam else self.bus.keys.odometry)
         self._control = self.bus.publisher(self.bus.keys.control)
         self._cv = threading.Condition()
         self._progress: dict[str, int] = {}
@@ -138,7 +142,7 @@ class SemmapClient:
     # -- outbound ---------------------------------------------------------------------------------------------
     def wait_ready(self, services: Iterable[str] = PIPELINE_SERVICES, timeout: float = 60.0) -> None:
         """Block until each service reports running and our frames have a subscriber."""
-        wanted = list(services)
+        wanted = list(services) + (["odometry"] if self.check_slam and "odometry" not in services else [])
         deadline = time.monotonic() + timeout
         with self._cv:
             while not all(self._running.get(s) for s in wanted):
@@ -149,6 +153,8 @@ class SemmapClient:
                 self._cv.wait(min(left, 0.1))
         if not self._frames.wait_matching(max(0.1, deadline - time.monotonic())):
             raise SemmapTimeout("nothing subscribes to frames")
+        if self.check_slam and not self._poses.wait_matching(max(0.1, deadline - time.monotonic())):
+            raise SemmapTimeout("nothing subscribes to the slam key: was the run started with --check-slam?")
 
     def publish_frame(self, frame_id: int, stamp: float, rgb: np.ndarray, depth: np.ndarray, depth_scale: float,
                       intrinsics: Intrinsics | tuple[float, float, float, float],
@@ -174,7 +180,7 @@ class SemmapClient:
     def wait_frame_done(self, frame_id: int, services: Iterable[str] = PIPELINE_SERVICES,
                         timeout: float = 60.0) -> None:
         """Lockstep: block until every service has finished frame `frame_id`."""
-        wanted = list(services)
+        wanted = list(services) + (["odometry"] if self.check_slam and "odometry" not in services else [])
         deadline = time.monotonic() + timeout
         with self._cv:
             while min((self._progress.get(s, -1) for s in wanted), default=frame_id) < frame_id:

@@ -144,7 +144,7 @@ class Orchestrator:
         # the run's identity and secret: every message of the run is signed with it (semmap.runtime.bus.RunTrust);
         # children get it through their environment only (not on a command line others can read)
         self.run_id = uuid.uuid4().hex[:16]
-        self.open_keys = ("frames", "odometry", "control") if plan.data == EXTERNAL else ()
+        self.open_keys = ("frames", "odometry", "slam", "control") if plan.data == EXTERNAL else ()
         self.trust = RunTrust(self.run_id, bytes.fromhex(RunTrust.new_secret()), "orchestrator",
                               frozenset(self.open_keys))
         self.failure = ""  # why the run failed, for stats.json

@@ -31,7 +31,7 @@ IDENTITIES = (*SERVICES, *CLIENTS)
 # what each identity listens to (topics under semmap/v1/<robot>/), besides `control` for every service
 SUBSCRIBES: dict[str, tuple[str, ...]] = {
     "player": ("progress/*", "status/**"),
-    "odometry": ("frames", "dynamic"),
+    "odometry": ("frames", "dynamic", "slam"),
     "detector": ("frames",),
     "tracker": ("detections", "map/updates"),
     "associator": ("tracks", "odometry", "poses/corrected"),

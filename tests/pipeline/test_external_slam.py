@@ -38,7 +38,9 @@ def test_example_client_gives_the_same_map_as_the_builtin_front_end(tmp_path: Pa
     trajectory = tmp_path / "slam.tum"
     _drifted_trajectory(trajectory)
     builtin = tmp_path / "builtin"
-    result = semmap_run([SYNTH, "--out", str(builtin), "--odometry", f"file:{trajectory}", "--no-viz"])
+    # (the client's poses are the odometry as they are: the built-in run copies the file too, unchecked)
+    result = semmap_run([SYNTH, "--out", str(builtin), "--odometry", f"file:{trajectory}", "--no-viz",
+                         "--set", "odometry.repair=false"])
     assert result.returncode == 0, result.stderr[-3000:]
 
     external = tmp_path / "external"
@@ -104,3 +106,52 @@ def test_live_queries_match_map_json_on_7scenes(tmp_path: Path, router, semmap_r
                           "--json"], cwd=PROJECT, capture_output=True, text=True, timeout=60)
     assert cli.returncode == 0, cli.stderr
     assert {lm["id"] for lm in json.loads(cli.stdout)["landmarks"]} == {lm.id for lm in by_class}
+
+
+@pytest.mark.slow
+@pytest.mark.needs_data
+@pytest.mark.needs_model
+def test_a_live_slam_is_checked_and_repaired(tmp_path: Path, router, semmap_run, data_root: Path) -> None:
+    """`semmap run external --check-slam` with a client that publishes its SLAM's poses on the `slam` key: the
+    SLAM (ORB-SLAM3's own trajectory of the Bonn crowd window, dragged by the walking people) is checked step by
+    step against semmap's people-masked registration; the odometry the backend gets is repaired, the SLAM's own
+    poses are kept beside it, and `semmap eval --groundtruth` scores both."""
+    from semmap.algorithms.evaluation import ate_rmse, evaluate_run
+    from semmap.algorithms.odometry.frontends import match_trajectory
+    from semmap.datasets.trajectory_io import read_tum
+
+    bonn = data_root / "bonn_crowd"
+    slam_file = data_root / "orbslam3" / "bonn_crowd_orbslam3_run1.tum"
+    if not slam_file.is_file():
+        pytest.skip("no shared ORB-SLAM3 trajectory of the Bonn window")
+    out = tmp_path / "run"
+    outcome: dict = {}
+    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
+        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client",
+         "--check-slam"], timeout=900)))
+    runner.start()
+    dataset = open_dataset(str(bonn))
+    slam = read_tum(slam_file)
+    stamps = np.array([t for t, _ in slam])
+    frames = 150
+    with SemmapClient("robot1", router.endpoint, check_slam=True) as client:
+        client.wait_ready(timeout=120)
+        for i in range(frames):
+            f = dataset[i]
+            k = f.intrinsics
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale,
+                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+            nearest, ok = match_trajectory(stamps, np.array([f.stamp]))
+            if ok[0]:
+                client.publish_pose(i, f.stamp, slam[int(nearest[0])][1])
+            client.wait_frame_done(i, timeout=180)
+        client.end_of_stream(frames - 1)
+    runner.join(timeout=600)
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    report = json.loads((out / "odometry_repair.json").read_text())
+    assert report["mode"] == "external" and report["counters"]["repair_steps"] == frames - 1
+    assert report["counters"]["repair_overruled"] > 20 and report["overruled_spans"]
+    result = evaluate_run(out, bonn / "groundtruth.txt")
+    assert result["ate_slam_m"] > 2 * result["ate_odometry_m"], result
+    gt = read_tum(bonn / "groundtruth.txt")
+    assert ate_rmse(gt, read_tum(out / "trajectory_slam.tum")) == pytest.approx(result["ate_slam_m"])

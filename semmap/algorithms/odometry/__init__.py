@@ -125,6 +125,13 @@ def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams
                         scope=c.repair_scope, hold_s=c.repair_hold_s)
 
 
+def _external(c: OdometryConfig, _: str) -> FrontEnd:
+    from .frontends import ExternalSlamOdometry
+
+    return ExternalSlamOdometry(c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.repair, c.dynamic_mask,
+                                _gates(c))
+
+
 def _orbslam3(c: OdometryConfig, _: str) -> FrontEnd:
     from .orbslam3 import OrbSlam3Odometry
 
@@ -140,4 +147,6 @@ register(
 register("rgbd", _rgbd, "Open3D RGB-D odometry between consecutive frames (dynamic objects left out)")
 register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time, each step checked "
          "against semmap's own registration (odometry.repair)", takes_argument=True)
+register("external", _external, "a live SLAM's poses from the `slam` key (client, ROS 2), each step checked "
+         "against semmap's own registration (semmap run external --check-slam)")
 register("orbslam3", _orbslam3, "ORB-SLAM3 RGB-D (pyorbslam3 wheel) with semmap's dynamic masks and step check")

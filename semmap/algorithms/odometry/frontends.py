@@ -43,6 +43,7 @@ class OdometryInput:
     depth_scale: float = 0.001
     intrinsics: np.ndarray | None = None  # 3x3
     dynamic: list[DynamicBox] | None = None  # the frame's dynamic objects, for front ends that leave them out
+    slam_pose: np.ndarray | None = None  # an external SLAM's own pose of this frame (the `external` front end)
 
 
 def mask_dynamic(depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float, how: str) -> np.ndarray:
@@ -71,6 +72,7 @@ class FrontEnd(ABC):
 
     needs_images = False
     uses_dynamic = False  # leaves out the depth of dynamic objects (the service then gets them for each frame)
+    needs_slam = False  # checks an external SLAM's poses (the service then gets them on the `slam` key)
     sigmas: tuple[float, float] = (0.01, 0.005)
 
     @abstractmethod
@@ -354,6 +356,50 @@ class FileOdometry(FrontEnd):
 
     def restore(self, state: dict) -> None:
         if self.repair is not None and "repair" in state:
+            self.repair.restore(state["repair"])
+        if self.check is not None:
+            self.check.reset()
+
+
+class ExternalSlamOdometry(FrontEnd):
+    """A live external SLAM's poses (the client's or the ROS 2 bridge's, on the `slam` key), each step checked
+    against semmap's own people-masked registration like `file:` (repair.py); `odometry.repair=false` copies them.
+    The run's odometry is then the repaired trajectory; the SLAM's own poses are kept as `trajectory_slam.tum`."""
+
+    needs_images = True
+    uses_dynamic = True
+    needs_slam = True
+
+    def __init__(self, sigma_translation_m: float, sigma_rotation_deg: float, repair: bool = True,
+                 dynamic_mask: str = "box", repair_gates: RepairParams | None = None) -> None:
+        self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
+        self.check = PairRegistration(dynamic_mask) if repair else None
+        self.repair = SlamRepair(repair_gates)
+        self.counters: dict[str, int] = {}
+        self.slam_trajectory: list[tuple[float, np.ndarray]] = []
+
+    def estimate(self, frame: OdometryInput) -> np.ndarray:
+        slam = frame.slam_pose
+        if slam is not None and (slam.shape != (4, 4) or not np.all(np.isfinite(slam))):
+            slam = None
+        if slam is not None:
+            self.slam_trajectory.append((float(frame.stamp), slam.copy()))
+        if self.check is None:
+            pose = self.repair.copy(frame.frame_id, slam)
+        else:
+            step, fitness = self.check.register(frame)
+            pose = self.repair.update(frame.frame_id, slam, step, fitness, bool(frame.dynamic), float(frame.stamp))
+        self.counters = self.repair.report.counters()
+        return pose
+
+    def overruled(self) -> list[tuple[int, int]]:
+        return self.repair.report.spans()
+
+    def state(self) -> dict:
+        return {"repair": self.repair.state()}
+
+    def restore(self, state: dict) -> None:
+        if "repair" in state:
             self.repair.restore(state["repair"])
         if self.check is not None:
             self.check.reset()

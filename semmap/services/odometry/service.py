@@ -53,6 +53,11 @@ class OdometryService(Service):
         self.waiting: tuple[Frame, float] | None = None  # lockstep: a frame waiting for its dynamic objects
         if self.frontend.uses_dynamic:
             self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
+        # an external SLAM's own poses to check (`external`): lockstep waits for each frame's, as for its boxes
+        self.slam: dict[int, OdometryPose] = {}
+        self.await_slam = self.frontend.needs_slam and self.lockstep
+        if self.frontend.needs_slam:
+            self.listen(self.bus.keys.slam, OdometryPose, self.on_slam)
         # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
         self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=4)
 
@@ -62,7 +67,25 @@ class OdometryService(Service):
         self.dynamic[message.frame_id] = message
         for old in sorted(self.dynamic)[:-DYNAMIC_KEPT]:
             del self.dynamic[old]
-        if self.waiting is not None and self.waiting[0].frame_id == message.frame_id:
+        self._try_waiting(message.frame_id)
+
+    def on_slam(self, message: OdometryPose) -> None:
+        if message.frame_id <= self.last_frame_id:
+            self.metrics.count("slam_poses_late")
+            return
+        self.slam[message.frame_id] = message
+        for old in sorted(self.slam)[:-DYNAMIC_KEPT]:
+            del self.slam[old]
+            self.metrics.count("slam_poses_unmatched")
+        self._try_waiting(message.frame_id)
+
+    def _ready(self, frame_id: int) -> bool:
+        """Lockstep: what this frame waits for has come (its dynamic objects, an external SLAM's pose of it)."""
+        return not ((self.await_dynamic and frame_id not in self.dynamic)
+                    or (self.await_slam and frame_id not in self.slam))
+
+    def _try_waiting(self, frame_id: int) -> None:
+        if self.waiting is not None and self.waiting[0].frame_id == frame_id and self._ready(frame_id):
             self._estimate(self.waiting[0])
 
     def on_frame(self, frame: Frame) -> None:
@@ -70,7 +93,7 @@ class OdometryService(Service):
             self.metrics.count("frames_repeated")
             self.replay(frame.frame_id)
             return
-        if self.await_dynamic and frame.frame_id not in self.dynamic:
+        if not self._ready(frame.frame_id):
             if self.waiting is None or self.waiting[0].frame_id != frame.frame_id:  # (not a resent frame)
                 self.waiting = (frame, time.monotonic())
             return
@@ -79,7 +102,7 @@ class OdometryService(Service):
     def tick(self) -> None:
         if self.waiting is not None and time.monotonic() - self.waiting[1] > self.dynamic_wait_s:
             self.metrics.count("dynamic_wait_timeouts")
-            self.log.warning("frame %d: no dynamic objects after %.0f s, estimating without them",
+            self.log.warning("frame %d: no dynamic objects or SLAM pose after %.0f s, estimating without them",
                              self.waiting[0].frame_id, self.dynamic_wait_s)
             self._estimate(self.waiting[0])
 
@@ -103,13 +126,17 @@ class OdometryService(Service):
                 self.metrics.count("frames_with_dynamic_boxes", bool(data.dynamic))
                 if dynamic is not None and dynamic.frame_id != frame.frame_id:
                     self.metrics.count("dynamic_from_earlier_frame")
+            slam = self.slam.pop(frame.frame_id, None)
+            if self.frontend.needs_slam:
+                data.slam_pose = None if slam is None else slam.pose
+                self.metrics.count("slam_poses_missing", slam is None)
             pose = self.to_session @ self.frontend.estimate(data)
         if hasattr(self.frontend, "far_matches"):  # file:PATH frames with no pose within 0.05 s
             self.metrics.counters["frames_unmatched"] = self.frontend.far_matches
         self.metrics.counters.update(getattr(self.frontend, "counters", {}))  # e.g. rgbd's untrusted pairs
         sigma_t, sigma_r = self.frontend.sigmas
-        self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose,
-                                              keyframe=frame.frame_id % self.keyframe_every == 0,
+        keyframe = slam.keyframe if slam is not None else frame.frame_id % self.keyframe_every == 0
+        self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose, keyframe=keyframe,
                                               sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode),
                   frame.frame_id)
         self.trajectory.append((frame.stamp, pose))
