@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import json
 import os
 import shutil
 import sqlite3
@@ -23,6 +24,7 @@ LOCK_NAME = ".semmap.lock"
 # what marks a directory as a semmap run's (only such a directory is wiped by --overwrite)
 RUN_MARKERS = ("stats.json", "logs", "map.json")
 # errors of the disk itself: no retry or restart helps, the operator must act (named as they are)
+SKIPPED_FILE = "skipped_frames.json"  # the frames the player could not send, and why (the summary names them)
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})
 
 
@@ -157,3 +159,15 @@ def describe_disk_error(exc: BaseException) -> str:
         where = f" ({exc.filename})" if exc.filename else ""
         return f"disk error: {exc.strerror or exc}{where}"
     return f"disk error: {exc} (SQLite)"
+
+
+def read_skipped(out_dir: str | Path | None) -> dict[int, str]:
+    """Frame -> why it was skipped, from the `skipped_frames.json` a run's player wrote ({} where there is none
+    or it is unreadable)."""
+    if out_dir is None:
+        return {}
+    try:
+        items = json.loads((Path(out_dir) / SKIPPED_FILE).read_text())
+        return {int(item["frame"]): str(item["reason"]) for item in items}
+    except (OSError, ValueError, TypeError, KeyError):
+        return {}

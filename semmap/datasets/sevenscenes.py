@@ -74,6 +74,8 @@ class SevenScenesDataset(Dataset):
             fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), width=width, height=height
         )
         self._gt_cache: list[tuple[float, np.ndarray]] | None = None
+        # frames whose pose file is unreadable (NaN, truncated): left out of the ground truth, named here
+        self.groundtruth_skipped: list[tuple[int, str]] = []
 
     def __len__(self) -> int:
         return len(self._numbers)
@@ -120,10 +122,14 @@ class SevenScenesDataset(Dataset):
 
     def groundtruth(self) -> list[tuple[float, np.ndarray]]:
         if self._gt_cache is None:
-            result = []
+            result, skipped = [], []
             for i in range(len(self)):
-                pose = self._pose(i)
+                try:  # one bad pose file costs its frame (the player skips it too), not the whole ground truth
+                    pose = self._pose(i)
+                except DatasetError as exc:
+                    skipped.append((i, str(exc)))
+                    continue
                 if pose is not None:
                     result.append((self.stamp(i), pose))
-            self._gt_cache = result
+            self._gt_cache, self.groundtruth_skipped = result, skipped
         return [(stamp, pose.copy()) for stamp, pose in self._gt_cache]

@@ -28,7 +28,7 @@ from pathlib import Path
 from statistics import fmean
 
 from semmap.core.messages import Control, Progress, ServiceStatus
-from semmap.core.outputs import atomic_write_text, describe_disk_error
+from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
 from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
 from semmap.runtime.service import exit_backstop
 
@@ -441,7 +441,10 @@ class Orchestrator:
                  "robot": self.plan.robot, "run_id": self.run_id, "wall_s": round(wall_s, 2),
                  "failure": self.failure, "rejected": dict(sorted(rejected.items())),
                  "frames": {"published": published, "processed": processed, "detected": detected,
-                            "dropped": dropped, "unreadable": unreadable},
+                            "dropped": dropped, "unreadable": unreadable,
+                            # which frames the player skipped (unreadable file, no ground-truth pose) and why
+                            "skipped": [{"frame": i, "reason": why}
+                                        for i, why in sorted(read_skipped(self.plan.out_dir).items())]},
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "detection_interval_ms": self._detection_cadence(),
                  "services": services}

@@ -45,6 +45,13 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         f"{frames.get('detected', 0)} detected, {frames.get('dropped', 0)} dropped, "
         f"{frames.get('unreadable', 0)} unreadable; {stats.get('fps', 0):.1f} fps"
     )
+    skipped = frames.get("skipped") or []
+    if skipped:
+        lines.append(f"  skipped     {len(skipped)} frame(s), named in {out_dir / 'skipped_frames.json'}:")
+        for item in skipped[:10]:
+            lines.append(f"    frame {item.get('frame')}: {item.get('reason')}")
+        if len(skipped) > 10:
+            lines.append(f"    ... and {len(skipped) - 10} more")
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")
