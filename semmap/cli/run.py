@@ -133,6 +133,12 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.resume:  # before the lock or anything else touches the folder: a finished run stays as it is
+        done = completed_run(Path(args.out))
+        if done:
+            print(f"error: --out {args.out} holds a completed run ({done}): nothing to resume; nothing was "
+                  "changed (--overwrite runs it again, or choose another --out)", file=sys.stderr)
+            return 2
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
@@ -195,10 +201,25 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
             dataset.close()
+    plan.lock_fd = lock.fd
     try:
         return Orchestrator(plan).run()
     finally:
         lock.release()
+
+
+def completed_run(out_dir: Path) -> str:
+    """What a run folder's stats.json says of a run that completed ('' if none did there, or it cannot tell)."""
+    import json
+
+    try:
+        stats = json.loads((out_dir / "stats.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    if not isinstance(stats, dict) or stats.get("outcome") != "completed":
+        return ""
+    frames = stats.get("frames") if isinstance(stats.get("frames"), dict) else {}
+    return f"{frames.get('processed', '?')} frames processed, stats.json says completed"
 
 
 def check_plugins(config: Config) -> None:

@@ -83,6 +83,12 @@ class OutputLock:
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
 
+    @property
+    def fd(self) -> int | None:
+        """The locked file's descriptor (None unless held). A child process that inherits it shares the lock:
+        the folder stays locked until the last holder exits, even if this process is killed."""
+        return self._fd
+
     def release(self, refused: bool = False) -> None:
         """Unlock; `refused` (the run never started): also remove the lock file if this run created it."""
         if self._fd is not None:
