@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from semmap.core.config import Config
     from semmap.datasets.base import Dataset
+    from semmap.runtime.orchestrator import RunPlan
 
 ORDER = 0  # first in `semmap --help`
 
@@ -144,12 +145,20 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
     dataset = None
+    dataset_camera = ""  # the camera line of the banner (calibration checked in preflight_dataset)
     if not special:  # opened once for every check before the run (a bag's missing topic fails here, listing them)
         from semmap.datasets import DatasetError, open_dataset, reader_options
+        from semmap.datasets.calibration import check_dataset_camera
 
         try:
             dataset = open_dataset(args.data, **reader_options(args.data, config))
+            if len(dataset) > 0:  # the camera, stated and checked against the frames before anything starts
+                dataset_camera, warnings = check_dataset_camera(dataset)
+                for warning in warnings:
+                    print(f"semmap: warning: {warning}", file=sys.stderr)
         except DatasetError as exc:
+            if dataset is not None and hasattr(dataset, "close"):
+                dataset.close()
             print(f"error: {exc}", file=sys.stderr)
             return 2
     if args.detectors < 1:
@@ -183,6 +192,10 @@ def _run(args: argparse.Namespace) -> int:
                    stall_s=0.0 if args.data == "external" else
                    run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
                    resume=args.resume)
+    if args.data != "external":
+        plan.odometry = mode
+        plan.simulated_odometry = simulated_odometry(mode)
+        plan.camera = dataset_camera
     lock = OutputLock(plan.out_dir)
     try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
         try:
@@ -202,6 +215,9 @@ def _run(args: argparse.Namespace) -> int:
         if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
             dataset.close()
     plan.lock_fd = lock.fd
+    if not args.quiet or plan.simulated_odometry:  # (simulated odometry is said even with --quiet)
+        for line in start_banner(plan, dataset_camera):
+            print(f"semmap: {line}", file=sys.stderr, flush=True)
     try:
         return Orchestrator(plan).run()
     finally:
@@ -220,6 +236,28 @@ def completed_run(out_dir: Path) -> str:
         return ""
     frames = stats.get("frames") if isinstance(stats.get("frames"), dict) else {}
     return f"{frames.get('processed', '?')} frames processed, stats.json says completed"
+
+
+def simulated_odometry(mode: str) -> bool:
+    """gt / gt+drift (front ends that need ground truth): poses made from the ground truth, not measured."""
+    from semmap.algorithms.odometry import check_mode
+
+    return check_mode(mode)[0].needs_groundtruth
+
+
+def start_banner(plan: RunPlan, camera: str) -> list[str]:
+    """What the run says before its first frame: the odometry (simulated said out loud) and the camera."""
+    if plan.data == "external":
+        lines = ["odometry: the external SLAM's poses"]
+    elif plan.simulated_odometry:
+        drift = " with seeded drift" if "drift" in plan.odometry else ""
+        lines = [f"odometry {plan.odometry}: simulated odometry (from ground truth){drift}, not a real front end; "
+                 "--odometry rgbd or file:TRAJ.tum for a real one"]
+    else:
+        lines = [f"odometry: {plan.odometry}"]
+    if camera:
+        lines.append(camera)
+    return lines
 
 
 def check_plugins(config: Config) -> None:

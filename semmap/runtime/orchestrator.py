@@ -70,6 +70,9 @@ class RunPlan:
     stall_s: float = 0.0  # nothing moved for this long: the run fails (0: never)
     resume: bool = False  # continue the run in out_dir (services from their journals, the player after it)
     lock_fd: int | None = None  # the open lock file of out_dir: children inherit it (the lock lives while they do)
+    odometry: str = ""  # odometry.mode, for stats.json and the summary
+    simulated_odometry: bool = False  # gt / gt+drift: poses made from the ground truth, not a real front end
+    camera: str = ""  # where the calibration came from and what it is (the start banner's camera line)
 
 
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
@@ -388,7 +391,9 @@ class Orchestrator:
         frac = processed / total if total else 0.0
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
         detected = self._counter_sum("frames_detected")
-        cadence = self._detection_cadence()
+        # real time: how much video passes between two detected frames (lockstep waits for every frame, so there
+        # the detected count says it all)
+        cadence = self._detection_cadence() if self.plan.mode == "realtime" else None
         every = f" (one every {cadence['p50']:.0f} ms of video)" if cadence else ""
         return (f"[{bar}] {processed}/{total or '?'} frames processed, {published} published, "
                 f"{fps:5.1f} fps, {detected} detected{every}, {dropped} dropped, {elapsed:5.1f} s")
@@ -445,6 +450,8 @@ class Orchestrator:
                 if name.startswith("rejected") or name == "wrong_robot":
                     rejected[name] = rejected.get(name, 0) + n
         stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
+                 "odometry": {"mode": self.plan.odometry, "simulated": self.plan.simulated_odometry},
+                 "camera": self.plan.camera,
                  "robot": self.plan.robot, "run_id": self.run_id, "wall_s": round(wall_s, 2),
                  "failure": self.failure, "rejected": dict(sorted(rejected.items())),
                  "frames": {"published": published, "processed": processed, "detected": detected,
