@@ -21,26 +21,20 @@ def _map_path(arg: str) -> Path:
 
 
 def _query_live(query: MapQuery, robot: str, connect: str | None, timeout: float) -> list[Landmark]:
-    from semmap.core.messages import Landmark
     from semmap.runtime.bus import Bus, BusConfig
-    from semmap.runtime.map_query import QueryError
-    from semmap.runtime.map_store import MAP_SCHEMA
+    from semmap.runtime.map_query import QueryError, ask_live_map
     from semmap.runtime.orchestrator import DEFAULT_PORT
 
     connect = connect or os.environ.get("SEMMAP_ZENOH_CONNECT") or f"tcp/127.0.0.1:{DEFAULT_PORT}"
     bus = Bus(BusConfig.from_env(connect), robot)
     try:
         selector = bus.keys.map_query + (f"?{query.to_parameters()}" if query.to_parameters() else "")
-        for reply in bus.session.get(selector, timeout=timeout):
-            if reply.ok is None:
-                raise QueryError(f"the map service answered: {reply.err.payload.to_bytes().decode(errors='replace')}")
-            body = json.loads(reply.ok.payload.to_bytes())
-            if body.get("schema") != MAP_SCHEMA:
-                raise QueryError(f"unexpected reply schema {body.get('schema')!r}")
-            return [Landmark.from_dict(item) for item in body["landmarks"]]
+        found = ask_live_map(bus.session, selector, timeout)
     finally:
         bus.close()
-    raise QueryError(f"no map service answered on {robot!r} within {timeout:g} s (is a run going? --connect?)")
+    if found is None:
+        raise QueryError(f"no map service answered on {robot!r} within {timeout:g} s (is a run going? --connect?)")
+    return found
 
 
 def _query(args: argparse.Namespace) -> int:
