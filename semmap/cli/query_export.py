@@ -58,7 +58,11 @@ def _query(args: argparse.Namespace) -> int:
             known = ", ".join(f"{name} ({n})" for name, n in class_counts(everything).items()) or "none"
             print(f"no landmark of class {query.class_name!r}; classes in this map: {known}", file=sys.stderr)
     except (QueryError, MessageError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        text = str(exc)
+        for name in ("near", "radius", "id"):  # a parameter's error names the flag that gave it
+            if text.startswith(f"{name}: "):
+                text = f"--{text}"
+        print(f"error: {text}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in found]}, indent=1))
@@ -141,7 +145,15 @@ def _export(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    legend = export_ply(landmarks, out, spheres=args.spheres)
+    if out.is_dir() or not out.parent.is_dir():
+        why = "is a folder: name the .ply file" if out.is_dir() else f"its folder {out.parent} does not exist"
+        print(f"error: --out {out}: {why}", file=sys.stderr)
+        return 2
+    try:
+        legend = export_ply(landmarks, out, spheres=args.spheres)
+    except OSError as exc:
+        print(f"error: cannot write --out {out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     print(f"wrote {len(landmarks)} landmark(s) to {out} (vertex property class_id; names in {legend})",
           file=sys.stderr)
     return 0

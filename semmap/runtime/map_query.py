@@ -35,18 +35,29 @@ class MapQuery:
         unknown = set(params) - {"class", "near", "radius", "id"}
         if unknown:
             raise QueryError(f"unknown query parameter(s) {', '.join(sorted(unknown))}: use class, near, radius, id")
+        near = radius = ids = None
+        try:  # each error names its parameter (`semmap query` shows it as the flag: --near, --radius, --id)
+            if params.get("near"):
+                near = tuple(float(v) for v in params["near"].split(","))
+        except ValueError:
+            raise QueryError(f"near: expected three numbers x,y,z (metres), got {params['near']!r}") from None
         try:
-            near = tuple(float(v) for v in params["near"].split(",")) if params.get("near") else None
-            radius = float(params["radius"]) if params.get("radius") else None
-            ids = frozenset(int(v) for v in params["id"].split(",")) if params.get("id") else None
-        except ValueError as exc:
-            raise QueryError(f"malformed query: {exc}") from None
+            if params.get("radius"):
+                radius = float(params["radius"])
+        except ValueError:
+            raise QueryError(f"radius: expected a number of metres, got {params['radius']!r}") from None
+        try:
+            if params.get("id"):
+                ids = frozenset(int(v) for v in params["id"].split(","))
+        except ValueError:
+            raise QueryError(f"id: expected landmark ids (whole numbers, comma-separated), got {params['id']!r}"
+                             ) from None
         if near is not None and (len(near) != 3 or not all(math.isfinite(v) for v in near)):
-            raise QueryError("near must be three finite numbers x,y,z")
+            raise QueryError(f"near: expected three finite numbers x,y,z, got {params['near']!r}")
         if radius is not None and near is None:
-            raise QueryError("radius needs near=x,y,z")
+            raise QueryError("radius: needs near=x,y,z")
         if radius is not None and not (math.isfinite(radius) and radius >= 0):
-            raise QueryError("radius must be a finite number >= 0")
+            raise QueryError(f"radius: expected a finite number >= 0, got {radius:g}")
         return cls(params.get("class") or None, near, radius, ids)  # type: ignore[arg-type]
 
     def to_parameters(self) -> str:
