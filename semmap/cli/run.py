@@ -141,6 +141,11 @@ def _run(args: argparse.Namespace) -> int:
                   "changed (--overwrite runs it again, or choose another --out)", file=sys.stderr)
             return 2
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
+    try:  # (after `special`: the detector `auto` picks depends on the data)
+        check_detector_classes(config, args.data, args.mode or config.run.mode)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
@@ -258,6 +263,28 @@ def start_banner(plan: RunPlan, camera: str) -> list[str]:
     if camera:
         lines.append(camera)
     return lines
+
+
+def check_detector_classes(config: Config, data: str, mode: str) -> None:
+    """`detector.classes` / `detector.exclude` name classes the detector this run starts can report (ConfigError
+    listing the known ones): 'unicorn' would otherwise give an empty map without a word."""
+    from semmap.algorithms.detector import check_classes, needs_model, resolve_kind
+    from semmap.core.config import ConfigError
+    from semmap.runtime.model_store import packaged_model, resolve_precision
+
+    cfg = config.detector
+    if not cfg.classes and not cfg.exclude:
+        return
+    kind = resolve_kind(cfg.kind, synthetic=data == "synthetic" or data.startswith("synthetic:"))
+    model = None
+    if needs_model(kind):
+        model = Path(cfg.model or packaged_model(resolve_precision(cfg.precision, realtime=mode == "realtime")))
+    try:
+        check_classes(kind, cfg, model)
+    except ConfigError:
+        raise
+    except (OSError, ValueError):
+        return  # (an unreadable model or names file: the detector says so when it starts, naming the file)
 
 
 def check_plugins(config: Config) -> None:

@@ -55,7 +55,6 @@ def web_viewer_url(web_port: int, grpc_port: int) -> str:
 
 
 def _view(args: argparse.Namespace) -> int:
-    import subprocess
 
     path = Path(args.dir)
     rrd = path / "run.rrd" if path.is_dir() else path
@@ -69,8 +68,40 @@ def _view(args: argparse.Namespace) -> int:
     # no usage analytics from the Rerun CLI (it turns them on in ~/.config/rerun otherwise)
     env = {**os.environ, "RERUN_ANALYTICS": "0", "CI": "true"}
     if not args.web:
-        return subprocess.call([viewer, str(rrd)], env=env)
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            print(f"error: no display (neither DISPLAY nor WAYLAND_DISPLAY is set): use --web (semmap view {args.dir} "
+                  "--web) and open the URL it prints", file=sys.stderr)
+            return 2
+        # the native viewer's own server (gRPC, 9876 by default) on loopback only, not on every interface
+        return _native(viewer, rrd, args.dir, env)
     return _serve_web(viewer, rrd, args, env)
+
+
+def _native(viewer: str, rrd: Path, where: str, env: dict) -> int:
+    """The native viewer, its messages passed on; a window that cannot open (a DISPLAY with no X server behind
+    it) ends as one line pointing to --web instead of winit's error."""
+    import subprocess
+
+    proc = subprocess.Popen([viewer, "--bind", "127.0.0.1", str(rrd)], env=env, stdin=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, errors="replace")
+    no_display = False
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "winit" in line or "EventLoopError" in line:
+                no_display = True
+                continue
+            sys.stderr.write(line)
+        code = proc.wait()
+    except KeyboardInterrupt:
+        proc.terminate()
+        proc.wait()
+        return 130
+    if no_display and code != 0:
+        print(f"error: no display (the viewer cannot open a window here): use --web (semmap view {where} --web) "
+              "and open the URL it prints", file=sys.stderr)
+        return 2
+    return code
 
 
 def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> int:

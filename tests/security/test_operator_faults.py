@@ -336,3 +336,24 @@ def test_sigkill_of_the_run_leaves_no_service_behind(tmp_path: Path) -> None:
     _assert_no_leftovers(str(out), within_s=10.0)
     lock.acquire()  # and once they are gone, it is free
     lock.release()
+
+
+def test_a_class_the_detector_does_not_know_is_refused_naming_the_known_ones(tmp_path: Path, semmap_run) -> None:  # noqa: ANN001
+    out = tmp_path / "run"
+    result = semmap_run(["synthetic:frames=3", "--out", str(out), "--no-viz", "--set", "detector.classes=unicorn,cup"],
+                        timeout=60)
+    assert result.returncode == 2, result.stderr
+    line = result.stderr.strip()
+    assert line.startswith("error: detector.classes: 'unicorn' not among the classes") and "\n" not in line
+    assert "cup" in line and "chair" in line  # the known ones, listed
+    assert not out.exists()
+
+
+@pytest.mark.needs_data
+@pytest.mark.needs_model
+def test_a_class_the_model_does_not_know_is_refused_before_any_service(tmp_path: Path, kitchen_dir: Path,  # noqa: ANN001
+                                                                       semmap_run) -> None:  # noqa: ANN001
+    result = semmap_run([str(kitchen_dir), "--out", str(tmp_path / "run"), "--no-viz", "--set",
+                         "detector.exclude=unicorn"], timeout=60)
+    assert result.returncode == 2 and "detector.exclude: 'unicorn' not among the classes the model" in result.stderr
+    assert "person, bicycle" in result.stderr and not (tmp_path / "run").exists()
