@@ -50,3 +50,35 @@ def test_view_with_a_dead_display_says_use_web_and_binds_loopback(rrd: Path) -> 
     assert "winit" not in result.stderr and "error: no display" in result.stderr and "--web" in result.stderr
     if "Listening for gRPC connections" in result.stderr:
         assert "on 127.0.0.1:" in result.stderr and "0.0.0.0" not in result.stderr, result.stderr
+
+
+def test_the_web_page_gets_the_map_without_the_images(tmp_path: Path) -> None:
+    """`semmap view --web` serves a copy without the camera images and their boxes (the bulk of a recording, which
+    the page would otherwise stream before the landmarks): the landmarks and trajectories stay, in a fraction of
+    the bytes; `--images` serves the whole file."""
+    import numpy as np
+    import rerun as rr
+
+    from semmap.cli.view import _rerun_executable, map_first_copy
+
+    full = tmp_path / "run.rrd"
+    rec = rr.RecordingStream("semmap-test")
+    rec.save(str(full))
+    noise = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    for i in range(20):
+        rec.set_time("frame", sequence=i)
+        rec.log("world/camera/image", rr.Image(noise))
+        rec.log("world/camera/image/detections", rr.Boxes2D(centers=[[10, 10]], half_sizes=[[5, 5]]))
+        rec.log("world/camera/depth", rr.DepthImage(noise[..., 0].astype(np.uint16), meter=1000.0))
+        rec.log("world/landmarks", rr.Boxes3D(centers=[[0, 0, i * 0.01]], half_sizes=[[0.1, 0.1, 0.1]]))
+        rec.log("world/trajectory/odometry", rr.LineStrips3D([[[0, 0, 0], [i, 0, 0]]]))
+    rec.flush()
+    viewer = _rerun_executable()
+    assert viewer is not None
+    env = {**os.environ, "CI": "true", "RERUN_ANALYTICS": "0"}
+    copy = map_first_copy(viewer, full, tmp_path, env)
+    assert copy is not None and copy.stat().st_size < full.stat().st_size / 5
+    printed = subprocess.run([viewer, "rrd", "print", str(copy)], capture_output=True, text=True, env=env).stdout
+    entities = {line.rsplit(" - ", 2)[1] for line in printed.splitlines() if line.startswith("Chunk(")}
+    assert {"/world/landmarks", "/world/trajectory/odometry"} <= entities, entities
+    assert not any(e.startswith("/world/camera/image") or e == "/world/camera/depth" for e in entities), entities
