@@ -227,11 +227,28 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
 
 
+MAP_ARGUMENTS = ("A map argument is a run directory (its map.json, with the landmark clouds of its map.sqlite when "
+                 "present), a map.json, or a map.sqlite.")
+DIFF_TEXT = f"""`semmap diff A B`: the objects added, missing and moved from map A to map B (e.g. two days of one room).
+
+{MAP_ARGUMENTS} Unless `--same-frame`, B is registered to A by its objects first; a registration that is not
+certain (too few agreeing objects, an ambiguous layout) is an error (exit 2), not a guess.
+"""
+MERGE_TEXT = f"""`semmap merge A B --out C`: register map B to map A by their objects and fuse them into one map
+in A's frame.
+
+{MAP_ARGUMENTS} Unless `--same-frame`, B is registered to A by its objects first; a registration that is not
+certain is an error (exit 2), not a guess. Where B is a run directory, its trajectory is then re-optimised in A's
+frame (its backend journal replayed with A's objects and A's run's keyframes: semmap/runtime/map_refit.py), so B's
+own drift does not go into the merged map; `--rigid` moves B by the fit alone.
+"""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser(
         "diff",
         help="objects added, missing and moved between two saved maps",
-        description=__doc__,
+        description=DIFF_TEXT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _common(d)
@@ -240,7 +257,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     m = sub.add_parser(
         "merge",
         help="register two maps by their objects and fuse them into one (A's frame)",
-        description=__doc__,
+        description=MERGE_TEXT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _common(m)

@@ -30,12 +30,31 @@ def command_modules() -> list:
     return sorted(modules, key=lambda m: (getattr(m, "ORDER", 100), m.__name__))
 
 
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml's where semmap runs from a checkout)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("semmap")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="semmap", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--version", action="version", version=f"semmap {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in command_modules():
         module.register(sub)
     return parser
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: an OSError as its reason and file, anything else as its first line."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python flushes stdout at exit: into /dev/null, not a traceback
         return 141
+    except Exception as exc:  # a user sees one line, never a traceback (-v: the traceback too)
+        logging.getLogger("semmap").debug("%s failed", args.command, exc_info=True)
+        print(f"error: semmap {args.command}: {one_line(exc)}", file=sys.stderr)
+        return 1
     finally:
         if argv is None:  # a process of its own: Zenoh's threads must not keep it alive past its end
             from semmap.runtime.service import exit_backstop

@@ -21,26 +21,20 @@ def _map_path(arg: str) -> Path:
 
 
 def _query_live(query: MapQuery, robot: str, connect: str | None, timeout: float) -> list[Landmark]:
-    from semmap.core.messages import Landmark
     from semmap.runtime.bus import Bus, BusConfig
-    from semmap.runtime.map_query import QueryError
-    from semmap.runtime.map_store import MAP_SCHEMA
+    from semmap.runtime.map_query import QueryError, ask_live_map
     from semmap.runtime.orchestrator import DEFAULT_PORT
 
     connect = connect or os.environ.get("SEMMAP_ZENOH_CONNECT") or f"tcp/127.0.0.1:{DEFAULT_PORT}"
     bus = Bus(BusConfig.from_env(connect), robot)
     try:
         selector = bus.keys.map_query + (f"?{query.to_parameters()}" if query.to_parameters() else "")
-        for reply in bus.session.get(selector, timeout=timeout):
-            if reply.ok is None:
-                raise QueryError(f"the map service answered: {reply.err.payload.to_bytes().decode(errors='replace')}")
-            body = json.loads(reply.ok.payload.to_bytes())
-            if body.get("schema") != MAP_SCHEMA:
-                raise QueryError(f"unexpected reply schema {body.get('schema')!r}")
-            return [Landmark.from_dict(item) for item in body["landmarks"]]
+        found = ask_live_map(bus.session, selector, timeout)
     finally:
         bus.close()
-    raise QueryError(f"no map service answered on {robot!r} within {timeout:g} s (is a run going? --connect?)")
+    if found is None:
+        raise QueryError(f"no map service answered on {robot!r} within {timeout:g} s (is a run going? --connect?)")
+    return found
 
 
 def _query(args: argparse.Namespace) -> int:
@@ -64,7 +58,11 @@ def _query(args: argparse.Namespace) -> int:
             known = ", ".join(f"{name} ({n})" for name, n in class_counts(everything).items()) or "none"
             print(f"no landmark of class {query.class_name!r}; classes in this map: {known}", file=sys.stderr)
     except (QueryError, MessageError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        text = str(exc)
+        for name in ("near", "radius", "id"):  # a parameter's error names the flag that gave it
+            if text.startswith(f"{name}: "):
+                text = f"--{text}"
+        print(f"error: {text}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({"schema": MAP_SCHEMA, "landmarks": [landmark_json(lm) for lm in found]}, indent=1))
@@ -147,7 +145,15 @@ def _export(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    legend = export_ply(landmarks, out, spheres=args.spheres)
+    if out.is_dir() or not out.parent.is_dir():
+        why = "is a folder: name the .ply file" if out.is_dir() else f"its folder {out.parent} does not exist"
+        print(f"error: --out {out}: {why}", file=sys.stderr)
+        return 2
+    try:
+        legend = export_ply(landmarks, out, spheres=args.spheres)
+    except OSError as exc:
+        print(f"error: cannot write --out {out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     print(f"wrote {len(landmarks)} landmark(s) to {out} (vertex property class_id; names in {legend})",
           file=sys.stderr)
     return 0

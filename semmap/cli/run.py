@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from semmap.core.config import Config
     from semmap.datasets.base import Dataset
+    from semmap.runtime.orchestrator import RunPlan
 
 ORDER = 0  # first in `semmap --help`
 
@@ -146,23 +147,42 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.resume:  # before the lock or anything else touches the folder: a finished run stays as it is
+        done = completed_run(Path(args.out))
+        if done:
+            print(f"error: --out {args.out} holds a completed run ({done}): nothing to resume; nothing was "
+                  "changed (--overwrite runs it again, or choose another --out)", file=sys.stderr)
+            return 2
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
+    odometry_line = ""
     if args.data != "external":
-        chosen, notice = choose_odometry(config, synthetic=special)
+        chosen, odometry_line = choose_odometry(config, synthetic=special)
         overrides += chosen
         if chosen:
             config = load_config(args.config, overrides)
-        print(f"semmap: {notice}", file=sys.stderr)
+    try:  # (after `special`: the detector `auto` picks depends on the data)
+        check_detector_classes(config, args.data, args.mode or config.run.mode)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
     dataset = None
+    dataset_camera = ""  # the camera line of the banner (calibration checked in preflight_dataset)
     if not special:  # opened once for every check before the run (a bag's missing topic fails here, listing them)
         from semmap.datasets import DatasetError, open_dataset, reader_options
+        from semmap.datasets.calibration import check_dataset_camera
 
         try:
             dataset = open_dataset(args.data, **reader_options(args.data, config))
+            if len(dataset) > 0:  # the camera, stated and checked against the frames before anything starts
+                dataset_camera, warnings = check_dataset_camera(dataset)
+                for warning in warnings:
+                    print(f"semmap: warning: {warning}", file=sys.stderr)
         except DatasetError as exc:
+            if dataset is not None and hasattr(dataset, "close"):
+                dataset.close()
             print(f"error: {exc}", file=sys.stderr)
             return 2
     if args.detectors < 1:
@@ -197,6 +217,10 @@ def _run(args: argparse.Namespace) -> int:
                    stall_s=0.0 if args.data == "external" else
                    run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
                    resume=args.resume)
+    plan.odometry = mode if args.data != "external" or args.check_slam else "unchecked"
+    if args.data != "external":
+        plan.simulated_odometry = simulated_odometry(mode)
+        plan.camera = dataset_camera
     lock = OutputLock(plan.out_dir)
     try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
         try:
@@ -215,6 +239,11 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
             dataset.close()
+    plan.lock_fd = lock.fd
+    # the odometry is said even with --quiet (a simulated one above all); the camera unless quiet
+    banner = start_banner(plan, dataset_camera, odometry_line)
+    for line in banner if not args.quiet else banner[:1]:
+        print(f"semmap: {line}", file=sys.stderr, flush=True)
     try:
         return Orchestrator(plan).run()
     finally:
@@ -251,6 +280,66 @@ def choose_odometry(config: Config, synthetic: bool) -> tuple[list[str], str]:
         kind.name in ("orbslam3", "file") and section.repair) else ""
     why = " (auto: no pyorbslam3 wheel or vocabulary here)" if section.mode == AUTO and mode == "rgbd" else ""
     return overrides, f"odometry: {mode} ({how}{repair}){why}"
+
+
+def completed_run(out_dir: Path) -> str:
+    """What a run folder's stats.json says of a run that completed ('' if none did there, or it cannot tell)."""
+    import json
+
+    try:
+        stats = json.loads((out_dir / "stats.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    if not isinstance(stats, dict) or stats.get("outcome") != "completed":
+        return ""
+    frames = stats.get("frames") if isinstance(stats.get("frames"), dict) else {}
+    return f"{frames.get('processed', '?')} frames processed, stats.json says completed"
+
+
+def simulated_odometry(mode: str) -> bool:
+    """gt / gt+drift (front ends that need ground truth): poses made from the ground truth, not measured."""
+    from semmap.algorithms.odometry import check_mode
+
+    return check_mode(mode)[0].needs_groundtruth
+
+
+def start_banner(plan: RunPlan, camera: str, odometry_line: str = "") -> list[str]:
+    """What the run says before its first frame: the odometry (simulated said out loud; a real front end named
+    with why it was chosen: `choose_odometry`) and the camera."""
+    if plan.data == "external":
+        checked = "checked step by step (--check-slam)" if plan.odometry == "external" else "as they are"
+        lines = [f"odometry: the external SLAM's poses, {checked}"]
+    elif plan.simulated_odometry:
+        drift = " with seeded drift" if "drift" in plan.odometry else ""
+        lines = [f"odometry {plan.odometry}: simulated odometry (from ground truth){drift}, not a real front end; "
+                 "--odometry rgbd or file:TRAJ.tum for a real one"]
+    else:
+        lines = [odometry_line or f"odometry: {plan.odometry}"]
+    if camera:
+        lines.append(camera)
+    return lines
+
+
+def check_detector_classes(config: Config, data: str, mode: str) -> None:
+    """`detector.classes` / `detector.exclude` name classes the detector this run starts can report (ConfigError
+    listing the known ones): 'unicorn' would otherwise give an empty map without a word."""
+    from semmap.algorithms.detector import check_classes, needs_model, resolve_kind
+    from semmap.core.config import ConfigError
+    from semmap.runtime.model_store import packaged_model, resolve_precision
+
+    cfg = config.detector
+    if not cfg.classes and not cfg.exclude:
+        return
+    kind = resolve_kind(cfg.kind, synthetic=data == "synthetic" or data.startswith("synthetic:"))
+    model = None
+    if needs_model(kind):
+        model = Path(cfg.model or packaged_model(resolve_precision(cfg.precision, realtime=mode == "realtime")))
+    try:
+        check_classes(kind, cfg, model)
+    except ConfigError:
+        raise
+    except (OSError, ValueError):
+        return  # (an unreadable model or names file: the detector says so when it starts, naming the file)
 
 
 def check_plugins(config: Config) -> None:

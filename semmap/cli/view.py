@@ -19,6 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "native one")
     p.add_argument("--port", type=int, default=9090, help="with --web: HTTP port of the web viewer (default 9090; "
                    "0 = any free port)")
+    p.add_argument("--images", action="store_true", help="with --web: stream the camera images too (by default the "
+                   "page gets the map, trajectories and boxes only, so the landmarks show within seconds)")
     p.add_argument("--grpc-port", type=int, default=0, help="with --web: port of the gRPC server the page reads the "
                    "recording from (default: any free port)")
     p.set_defaults(func=_view)
@@ -55,7 +57,6 @@ def web_viewer_url(web_port: int, grpc_port: int) -> str:
 
 
 def _view(args: argparse.Namespace) -> int:
-    import subprocess
 
     path = Path(args.dir)
     rrd = path / "run.rrd" if path.is_dir() else path
@@ -69,12 +70,72 @@ def _view(args: argparse.Namespace) -> int:
     # no usage analytics from the Rerun CLI (it turns them on in ~/.config/rerun otherwise)
     env = {**os.environ, "RERUN_ANALYTICS": "0", "CI": "true"}
     if not args.web:
-        return subprocess.call([viewer, str(rrd)], env=env)
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            print(f"error: no display (neither DISPLAY nor WAYLAND_DISPLAY is set): use --web (semmap view {args.dir} "
+                  "--web) and open the URL it prints", file=sys.stderr)
+            return 2
+        # the native viewer's own server (gRPC, 9876 by default) on loopback only, not on every interface
+        return _native(viewer, rrd, args.dir, env)
     return _serve_web(viewer, rrd, args, env)
+
+
+def _native(viewer: str, rrd: Path, where: str, env: dict) -> int:
+    """The native viewer, its messages passed on; a window that cannot open (a DISPLAY with no X server behind
+    it) ends as one line pointing to --web instead of winit's error."""
+    import subprocess
+
+    proc = subprocess.Popen([viewer, "--bind", "127.0.0.1", str(rrd)], env=env, stdin=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, errors="replace")
+    no_display = False
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "winit" in line or "EventLoopError" in line:
+                no_display = True
+                continue
+            sys.stderr.write(line)
+        code = proc.wait()
+    except KeyboardInterrupt:
+        proc.terminate()
+        proc.wait()
+        return 130
+    if no_display and code != 0:
+        print(f"error: no display (the viewer cannot open a window here): use --web (semmap view {where} --web) "
+              "and open the URL it prints", file=sys.stderr)
+        return 2
+    return code
+
+
+# what the web page does without unless --images: a recording's bulk (a JPEG per frame, a depth image every few),
+# streamed before the map that comes later in the file (75 s without a landmark on a loaded 2-core machine)
+IMAGE_ENTITIES = ("/world/camera/image", "/world/camera/image/detections", "/world/camera/image/tracks",
+                  "/world/camera/depth")
+
+
+def map_first_copy(viewer: str, rrd: Path, folder: Path, env: dict) -> Path | None:
+    """A copy of `rrd` without the camera images (`rerun rrd filter`) in `folder`; None if the filter fails."""
+    import subprocess
+
+    target = folder / "map.rrd"
+    drops = [arg for entity in IMAGE_ENTITIES for arg in ("--drop-entity", entity)]
+    result = subprocess.run([viewer, "rrd", "filter", *drops, str(rrd), "-o", str(target)], env=env,
+                            capture_output=True, text=True)
+    return target if result.returncode == 0 and target.is_file() else None
 
 
 def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> int:
     """`rerun --serve-web` bound to 127.0.0.1 (it opens no browser); prints the URL once both ports answer."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="semmap-view-") as tmp:
+        served = rrd if args.images else map_first_copy(viewer, rrd, Path(tmp), env)
+        if served is None:
+            print("semmap: could not leave the images out of the recording; serving all of it", file=sys.stderr)
+            served = rrd
+        return _serve_file(viewer, rrd, served, args, env)
+
+
+def _serve_file(viewer: str, rrd: Path, served: Path, args: argparse.Namespace, env: dict) -> int:
     import signal
     import subprocess
     import threading
@@ -94,7 +155,7 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
             return 2
         ports[name] = port
     cmd = [viewer, "--serve-web", "--bind", "127.0.0.1", "--port", str(ports["grpc"]),
-           "--web-viewer-port", str(ports["web"]), str(rrd)]
+           "--web-viewer-port", str(ports["web"]), str(served)]
 
     def _terminate(signum, frame):  # noqa: ANN001 - signal handler
         raise SystemExit(128 + signum)
@@ -112,7 +173,8 @@ def _serve_web(viewer: str, rrd: Path, args: argparse.Namespace, env: dict) -> i
                 print("error: the Rerun server did not start listening within 30 s", file=sys.stderr)
                 return 1
             time.sleep(0.1)
-        print(f"semmap: serving {rrd} in the Rerun web viewer on 127.0.0.1 only; open this URL "
+        what = "" if served == rrd else " (map, trajectories and boxes; --images for the camera images)"
+        print(f"semmap: serving {rrd}{what} in the Rerun web viewer on 127.0.0.1 only; open this URL "
               "(Ctrl-C stops):", file=sys.stderr)
         print(web_viewer_url(ports["web"], ports["grpc"]), flush=True)
         return proc.wait()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import json
 import os
 import shutil
 import sqlite3
@@ -25,6 +26,7 @@ SLAM_TRAJECTORY = "trajectory_slam.tum"  # an external SLAM's own poses before s
 REPAIR_REPORT = "odometry_repair.json"  # where semmap overruled the SLAM (the odometry service writes it)
 RUN_MARKERS = ("stats.json", "logs", "map.json")
 # errors of the disk itself: no retry or restart helps, the operator must act (named as they are)
+SKIPPED_FILE = "skipped_frames.json"  # the frames the player could not send, and why (the summary names them)
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})
 
 
@@ -82,6 +84,12 @@ class OutputLock:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
+
+    @property
+    def fd(self) -> int | None:
+        """The locked file's descriptor (None unless held). A child process that inherits it shares the lock:
+        the folder stays locked until the last holder exits, even if this process is killed."""
+        return self._fd
 
     def release(self, refused: bool = False) -> None:
         """Unlock; `refused` (the run never started): also remove the lock file if this run created it."""
@@ -159,3 +167,15 @@ def describe_disk_error(exc: BaseException) -> str:
         where = f" ({exc.filename})" if exc.filename else ""
         return f"disk error: {exc.strerror or exc}{where}"
     return f"disk error: {exc} (SQLite)"
+
+
+def read_skipped(out_dir: str | Path | None) -> dict[int, str]:
+    """Frame -> why it was skipped, from the `skipped_frames.json` a run's player wrote ({} where there is none
+    or it is unreadable)."""
+    if out_dir is None:
+        return {}
+    try:
+        items = json.loads((Path(out_dir) / SKIPPED_FILE).read_text())
+        return {int(item["frame"]): str(item["reason"]) for item in items}
+    except (OSError, ValueError, TypeError, KeyError):
+        return {}

@@ -127,7 +127,8 @@ class WindowDataset(Dataset):
     def groundtruth(self) -> list[tuple[float, np.ndarray]]:
         gt = self.inner.groundtruth()
         if len(gt) != len(self.inner):  # not one pose per frame: keep those within the window's stamps
-            lo, hi = self.inner[self.start].stamp, self.inner[self.start + self.count - 1].stamp
+            stamps = self.inner.stamps()  # (not the frames: one of them may be unreadable)
+            lo, hi = stamps[self.start], stamps[self.start + self.count - 1]
             return [(t, p) for t, p in gt if lo <= t <= hi]
         return gt[self.start : self.start + self.count]
 

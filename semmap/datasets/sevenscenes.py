@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .base import Dataset, DatasetError, FrameData, Intrinsics
+from .calibration import CameraSource
 from .images import image_size, read_depth_u16, read_rgb
 from .trajectory_io import orthonormalize_pose
 
@@ -37,8 +38,11 @@ def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
         values = np.array(path.read_text().split(), dtype=float)
     except (OSError, ValueError) as exc:
         raise DatasetError(f"cannot read {shape[0]}x{shape[1]} matrix from {path}: {exc}") from exc
-    if values.size != shape[0] * shape[1] or not np.all(np.isfinite(values)):
-        raise DatasetError(f"expected {shape[0] * shape[1]} finite numbers in {path}, got {values.size}")
+    if values.size != shape[0] * shape[1]:
+        raise DatasetError(f"expected {shape[0] * shape[1]} numbers in {path}, got {values.size}")
+    if not np.all(np.isfinite(values)):
+        bad = int(np.sum(~np.isfinite(values)))
+        raise DatasetError(f"{bad} of the {values.size} numbers in {path} are not finite (nan or inf)")
     return values.reshape(shape)
 
 
@@ -68,12 +72,21 @@ class SevenScenesDataset(Dataset):
         self.name = f"7scenes/{self.root.name}"
 
         k_path = self.root / "camera-intrinsics.txt"
+        self._k_file = k_path if k_path.exists() else None
         k = _read_matrix(k_path, (3, 3)) if k_path.exists() else DEFAULT_K
         width, height = image_size(self.root / self._color_names[0])
         self.intrinsics = Intrinsics(
             fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), width=width, height=height
         )
         self._gt_cache: list[tuple[float, np.ndarray]] | None = None
+        # frames whose pose file is unreadable (NaN, truncated): left out of the ground truth, named here
+        self.groundtruth_skipped: list[tuple[int, str]] = []
+
+    def camera_source(self) -> CameraSource:
+        """Where the intrinsics come from (camera-intrinsics.txt or the published default); depth is always mm."""
+        where = str(self._k_file) if self._k_file else "built-in default (the published 7-Scenes calibration)"
+        return CameraSource(intrinsics_from=where, depth_from="7-Scenes depth PNGs are millimetres",
+                            intrinsics_keys="K[0,2], K[1,2]" if self._k_file else "cx, cy", check_depth=True)
 
     def __len__(self) -> int:
         return len(self._numbers)
@@ -120,10 +133,14 @@ class SevenScenesDataset(Dataset):
 
     def groundtruth(self) -> list[tuple[float, np.ndarray]]:
         if self._gt_cache is None:
-            result = []
+            result, skipped = [], []
             for i in range(len(self)):
-                pose = self._pose(i)
+                try:  # one bad pose file costs its frame (the player skips it too), not the whole ground truth
+                    pose = self._pose(i)
+                except DatasetError as exc:
+                    skipped.append((i, str(exc)))
+                    continue
                 if pose is not None:
                     result.append((self.stamp(i), pose))
-            self._gt_cache = result
+            self._gt_cache, self.groundtruth_skipped = result, skipped
         return [(stamp, pose.copy()) for stamp, pose in self._gt_cache]

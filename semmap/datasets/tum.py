@@ -19,6 +19,7 @@ import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
 from .base import Dataset, DatasetError, FrameData, Intrinsics
+from .calibration import CameraSource
 from .images import image_size, read_depth_u16, read_rgb
 from .trajectory_io import read_tum
 
@@ -130,6 +131,28 @@ def _intrinsics_override(root: Path) -> tuple[tuple[float, float, float, float],
     return None
 
 
+def _declared_size(yaml_path: Path) -> tuple[int, int] | None:
+    """(width, height) where camera.yaml states them (`width`/`height`, `Camera.width`/`Camera.height`,
+    `image_width`/`image_height`), else None."""
+    try:
+        text = "\n".join(ln for ln in yaml_path.read_text().splitlines() if not ln.startswith("%YAML"))
+        data = yaml.safe_load(text) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    for key in ("camera", "intrinsics", "Camera"):
+        if isinstance(data.get(key), dict):
+            data = {**data, **data[key]}
+    flat = {str(k).removeprefix("Camera.").removeprefix("Camera1."): v for k, v in data.items()}
+    for w_key, h_key in (("width", "height"), ("image_width", "image_height")):
+        try:
+            return int(flat[w_key]), int(flat[h_key])
+        except (KeyError, TypeError, ValueError):
+            continue
+    return None
+
+
 def tum_camera_name(root: Path) -> str:
     """'fr1' / 'fr2' / 'fr3' from the folder name (rgbd_dataset_freiburg2_desk -> fr2), else 'default'."""
     match = _FREIBURG_RE.search(root.resolve().name)
@@ -219,9 +242,29 @@ class TumDataset(Dataset):
             self.camera_name = tum_camera_name(self.root)
             fx, fy, cx, cy = TUM_INTRINSICS[self.camera_name]
             factor = None
+        self._depth_factor_given = factor is not None
         self.depth_scale = 1.0 / (factor or DEPTH_FACTOR)
         width, height = image_size(self.root / self._rgb_files[0])
         self.intrinsics = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+
+    def camera_source(self) -> CameraSource:
+        """Which file gave the intrinsics and the depth factor (camera.yaml, intrinsics.txt, or the built-in
+        Freiburg calibration and TUM's 5000 units per metre)."""
+        yaml_path, txt_path = self.root / "camera.yaml", self.root / "intrinsics.txt"
+        if yaml_path.is_file():
+            where, keys, size = str(yaml_path), "cx, cy", _declared_size(yaml_path)
+        elif txt_path.is_file():
+            where, keys, size = str(txt_path), "its cx, cy", None
+        else:
+            where = f"built-in default (TUM {self.camera_name} calibration, from the folder name)"
+            keys, size = "cx, cy", None
+        if self._depth_factor_given:
+            depth_from, depth_key = f"{yaml_path}, key depth_factor", "depth_factor"
+        else:
+            depth_from = f"built-in TUM depth factor {DEPTH_FACTOR:g} (no depth_factor in {yaml_path.name})"
+            depth_key = f"depth_factor (in {yaml_path})"
+        return CameraSource(intrinsics_from=where, depth_from=depth_from, intrinsics_keys=keys, depth_key=depth_key,
+                            declared_size=size, check_depth=True)
 
     def __len__(self) -> int:
         return len(self._stamps)

@@ -38,7 +38,7 @@ from semmap.core.messages import (
     TagDetections,
 )
 from semmap.runtime.bus import Bus, BusConfig
-from semmap.runtime.map_query import MapQuery
+from semmap.runtime.map_query import MapQuery, ask_live_map
 
 PIPELINE_SERVICES = ("detector", "tracker", "associator", "backend")
 # what semmap's own front ends mark as keyframes: `odometry.keyframe_every`'s default, written out because the
@@ -196,19 +196,13 @@ class SemmapClient:
                                   last_frame_id + 1 if frames is None else frames))
 
     def query_map(self, query: MapQuery | None = None, timeout: float = 3.0) -> list[Landmark]:
-        import json
-
-        from semmap.runtime.map_store import MAP_SCHEMA
-
         query = query or MapQuery()
         params = query.to_parameters()
         selector = self.bus.keys.map_query + (f"?{params}" if params else "")
-        for reply in self.bus.session.get(selector, timeout=timeout):
-            if reply.ok is not None:
-                body = json.loads(reply.ok.payload.to_bytes())
-                if body.get("schema") == MAP_SCHEMA:
-                    return [Landmark.from_dict(item) for item in body["landmarks"]]
-        raise SemmapTimeout("no map service answered")
+        found = ask_live_map(self.bus.session, selector, timeout)  # (asks again until one answers)
+        if found is None:
+            raise SemmapTimeout(f"no map service answered within {timeout:g} s")
+        return found
 
     def close(self) -> None:
         self.bus.close()

@@ -28,9 +28,9 @@ from pathlib import Path
 from statistics import fmean
 
 from semmap.core.messages import Control, Progress, ServiceStatus
-from semmap.core.outputs import atomic_write_text, describe_disk_error
+from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
 from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
-from semmap.runtime.service import exit_backstop
+from semmap.runtime.service import ENV_PARENT_PID, exit_backstop
 
 log = logging.getLogger("semmap.run")
 
@@ -69,6 +69,10 @@ class RunPlan:
     deadline_s: float = 0.0  # the whole run (0: none)
     stall_s: float = 0.0  # nothing moved for this long: the run fails (0: never)
     resume: bool = False  # continue the run in out_dir (services from their journals, the player after it)
+    lock_fd: int | None = None  # the open lock file of out_dir: children inherit it (the lock lives while they do)
+    odometry: str = ""  # odometry.mode, for stats.json and the summary
+    simulated_odometry: bool = False  # gt / gt+drift: poses made from the ground truth, not a real front end
+    camera: str = ""  # where the calibration came from and what it is (the start banner's camera line)
 
 
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
@@ -100,16 +104,20 @@ def zenoh_config_for(spec: str | None, identity: str) -> str | None:
 class _Child:
     """One service process; restarted in place (same instance name, same log) when it crashes."""
 
-    def __init__(self, name: str, instance: str, argv: list[str], log_path: Path, env: dict[str, str]) -> None:
+    def __init__(self, name: str, instance: str, argv: list[str], log_path: Path, env: dict[str, str],
+                 keep_fds: tuple[int, ...] = ()) -> None:
         self.name, self.instance, self.argv, self.log_path, self.env = name, instance, argv, log_path, env
+        self.keep_fds = keep_fds
         self.log_file = open(log_path, "ab")  # noqa: SIM115 - lives as long as the process
         self.restarts = 0
         self.restart_at: float | None = None  # when a crashed process is due to come back
         self.proc = self._spawn(argv)
 
     def _spawn(self, argv: list[str]) -> subprocess.Popen:
+        # keep_fds: the run's lock file, so its flock stays held while any child lives (an orphan outliving a
+        # killed run keeps the folder locked until it has stopped)
         return subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True, env=self.env)
+                                start_new_session=True, env=self.env, pass_fds=self.keep_fds)
 
     def restart(self, extra_args: list[str]) -> None:
         self.restarts += 1
@@ -186,7 +194,8 @@ class Orchestrator:
 
     def _child_env(self) -> dict[str, str]:
         env = {**os.environ, ENV_RUN_ID: self.run_id, ENV_RUN_KEY: self.trust.key.hex(),
-               ENV_RUN_OPEN_KEYS: ",".join(self.open_keys)}
+               ENV_RUN_OPEN_KEYS: ",".join(self.open_keys),
+               ENV_PARENT_PID: str(os.getpid())}  # children stop when this process goes (die_with_parent)
         env.pop("SEMMAP_ZENOH_CONFIG", None)  # each child gets its own file by flag
         return env
 
@@ -229,7 +238,8 @@ class Orchestrator:
                 instance = spec.name if spec.replicas == 1 else f"{spec.name}-{r + 1}"
                 argv = [sys.executable, "-m", f"semmap.services.{spec.name}", *common, "--instance", instance, *extra,
                         *spec.extra_args]
-                self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log", env))
+                keep = (plan.lock_fd,) if plan.lock_fd is not None else ()
+                self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log", env, keep))
                 log.info("started %s (pid %d)", instance, self.children[-1].proc.pid)
 
     def _resume_frame(self) -> int:
@@ -381,7 +391,9 @@ class Orchestrator:
         frac = processed / total if total else 0.0
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
         detected = self._counter_sum("frames_detected")
-        cadence = self._detection_cadence()
+        # real time: how much video passes between two detected frames (lockstep waits for every frame, so there
+        # the detected count says it all)
+        cadence = self._detection_cadence() if self.plan.mode == "realtime" else None
         every = f" (one every {cadence['p50']:.0f} ms of video)" if cadence else ""
         return (f"[{bar}] {processed}/{total or '?'} frames processed, {published} published, "
                 f"{fps:5.1f} fps, {detected} detected{every}, {dropped} dropped, {elapsed:5.1f} s")
@@ -438,10 +450,15 @@ class Orchestrator:
                 if name.startswith("rejected") or name == "wrong_robot":
                     rejected[name] = rejected.get(name, 0) + n
         stats = {"schema": "semmap.stats/1", "outcome": outcome, "data": self.plan.data, "mode": self.plan.mode,
+                 "odometry": {"mode": self.plan.odometry, "simulated": self.plan.simulated_odometry},
+                 "camera": self.plan.camera,
                  "robot": self.plan.robot, "run_id": self.run_id, "wall_s": round(wall_s, 2),
                  "failure": self.failure, "rejected": dict(sorted(rejected.items())),
                  "frames": {"published": published, "processed": processed, "detected": detected,
-                            "dropped": dropped, "unreadable": unreadable},
+                            "dropped": dropped, "unreadable": unreadable,
+                            # which frames the player skipped (unreadable file, no ground-truth pose) and why
+                            "skipped": [{"frame": i, "reason": why}
+                                        for i, why in sorted(read_skipped(self.plan.out_dir).items())]},
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "detection_interval_ms": self._detection_cadence(),
                  "services": services}

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import logging
 import os
 import resource
 import signal
 import sqlite3
+import sys
 import threading
 import time
 import traceback
@@ -42,6 +44,45 @@ EXIT_BACKSTOP_S = 10  # after SIGTERM / SIGINT, or once run() returned: the kern
 # (Zenoh's native threads can keep a finishing interpreter alive; SIGALRM's default action terminates)
 CONTROL_SENDERS = {"stop": ("orchestrator",), "end_of_stream": ("player", EXTERNAL_SENDER),
                    "frame_unreadable": ("player", EXTERNAL_SENDER)}
+
+
+# set by `semmap run` for its children: the pid of the run; a child whose parent is gone stops (see die_with_parent)
+ENV_PARENT_PID = "SEMMAP_PARENT_PID"
+ORPHAN_BACKSTOP_S = 5  # an orphaned service writes what it has, then ends within this many seconds
+PR_SET_PDEATHSIG = 1
+
+
+def parent_gone() -> bool:
+    """Started by a `semmap run` that is no longer this process's parent (killed, even with SIGKILL)."""
+    want = os.environ.get(ENV_PARENT_PID, "")
+    return want.isdigit() and os.getppid() != int(want)
+
+
+def die_with_parent(poll_s: float = 0.5) -> None:
+    """A service started by `semmap run` ends when the run does, however the run ended (SIGKILL included): the
+    kernel sends SIGTERM when the parent goes (Linux `PR_SET_PDEATHSIG`; it fires when the parent *thread* that
+    forked ends, so it is not trusted alone), and a daemon thread polls `os.getppid()` every `poll_s` seconds
+    (re-parented to init or a subreaper: the run is gone) and sends SIGTERM itself. SIGTERM is the service's
+    ordinary stop: it writes its outputs and exits; ORPHAN_BACKSTOP_S after the SIGTERM the watch thread
+    SIGKILLs its process if it is still there. Nothing happens for a service
+    started by hand or by compose (no SEMMAP_PARENT_PID)."""
+    if not os.environ.get(ENV_PARENT_PID, "").isdigit():
+        return
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+
+    def watch() -> None:
+        while not parent_gone():
+            time.sleep(poll_s)
+        logging.getLogger("semmap").warning("the semmap run that started this service is gone: stopping")
+        os.kill(os.getpid(), signal.SIGTERM)
+        # the main thread may be blocked where no Python signal handler runs (a send to a bus that is gone):
+        # then this thread ends the process itself
+        time.sleep(ORPHAN_BACKSTOP_S)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def exit_backstop(seconds: int = EXIT_BACKSTOP_S) -> None:
@@ -427,7 +468,8 @@ class Service:
 
     def _on_signal(self, *_: object) -> None:
         self.stop_event.set()
-        exit_backstop()  # outputs are written within seconds; a wedged process must not outlive its stop
+        # outputs are written within seconds; a wedged process must not outlive its stop (nor an orphan its run)
+        exit_backstop(ORPHAN_BACKSTOP_S if parent_gone() else EXIT_BACKSTOP_S)
 
     def run(self) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -485,6 +527,8 @@ def service_main(service_cls: type[Service], argv: list[str] | None = None,
         extra_arguments(parser)
     args = parser.parse_args(argv)
     configure_logging(args.verbose, service_cls.name)
+    if argv is None:  # a process of its own (not a test calling main in-process)
+        die_with_parent()
     try:
         service = service_cls(args)
         return service.run()
@@ -497,4 +541,4 @@ def service_main(service_cls: type[Service], argv: list[str] | None = None,
         if argv is None:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, signal.SIG_DFL)
-            exit_backstop()
+            exit_backstop(ORPHAN_BACKSTOP_S if parent_gone() else EXIT_BACKSTOP_S)

@@ -45,6 +45,19 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         f"{frames.get('detected', 0)} detected, {frames.get('dropped', 0)} dropped, "
         f"{frames.get('unreadable', 0)} unreadable; {stats.get('fps', 0):.1f} fps"
     )
+    odometry = stats.get("odometry") if isinstance(stats.get("odometry"), dict) else {}
+    if odometry.get("simulated"):
+        lines.append(f"  odometry    {odometry.get('mode')}: simulated odometry (from ground truth), not a real front "
+                     "end: the ATE below measures a drift semmap made itself")
+    elif odometry.get("mode"):
+        lines.append(f"  odometry    {odometry.get('mode')}")
+    skipped = frames.get("skipped") or []
+    if skipped:
+        lines.append(f"  skipped     {len(skipped)} frame(s), named in {out_dir / 'skipped_frames.json'}:")
+        for item in skipped[:10]:
+            lines.append(f"    frame {item.get('frame')}: {item.get('reason')}")
+        if len(skipped) > 10:
+            lines.append(f"    ... and {len(skipped) - 10} more")
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")
@@ -56,7 +69,15 @@ def run_summary(out_dir: Path, stats: dict) -> str:
     ate = _ate(out_dir)
     if ate is not None:
         odo, opt = ate
-        gain = f" ({100 * (odo - opt) / odo:+.1f} %)" if odo >= 1e-3 else ""
+        notes = [f"{100 * (odo - opt) / odo:+.1f} %"] if odo >= 1e-3 else []
+        backend = stats.get("services", {}).get("backend", {}).get("counters")
+        if isinstance(backend, dict):  # what the backend had to work with: a 0 % gain says why
+            observations, loops = int(backend.get("observations", 0)), int(backend.get("loop_registered", 0))
+            notes.append("the backend received no landmark observations" if observations == 0
+                         else f"from {observations} landmark observations")
+            if loops:
+                notes.append(f"{loops} loop closure{'s' * (loops != 1)}")
+        gain = f" ({', '.join(notes)})" if notes else ""
         lines.append(f"  ATE         odometry {odo:.3f} m -> optimised {opt:.3f} m{gain} (RMSE vs ground truth)")
     repair = repair_line(out_dir)
     if repair:

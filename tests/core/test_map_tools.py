@@ -58,7 +58,28 @@ def test_query_cli_on_a_saved_map(saved: Path) -> None:
     assert [lm["id"] for lm in json.loads(out.stdout)["landmarks"]] == [2]
     bad = subprocess.run([sys.executable, "-m", "semmap.cli", "query", str(saved), "--radius", "1"],
                          cwd=PROJECT, capture_output=True, text=True, timeout=60)
-    assert bad.returncode == 2 and "radius needs near" in bad.stderr
+    assert bad.returncode == 2 and "--radius: needs near" in bad.stderr
+
+
+def test_cli_errors_are_one_line_naming_the_flag(saved: Path, tmp_path: Path) -> None:
+    """Issue 30: no traceback, no bare Python message: the flag and what it expects."""
+    near = _query(str(saved), "--near", "a,b,c")
+    assert near.returncode == 2 and near.stderr.strip() == (
+        "error: --near: expected three numbers x,y,z (metres), got 'a,b,c'"), near.stderr
+    ids = _query(str(saved), "--id", "x")
+    assert ids.returncode == 2 and ids.stderr.strip().startswith("error: --id: expected landmark ids"), ids.stderr
+    export = subprocess.run([sys.executable, "-m", "semmap.cli", "export", str(saved), "--out",
+                             str(tmp_path / "missing" / "map.ply")], cwd=PROJECT, capture_output=True, text=True,
+                            timeout=60)
+    assert export.returncode == 2 and len(export.stderr.strip().splitlines()) == 1, export.stderr
+    assert "does not exist" in export.stderr and "Traceback" not in export.stderr
+    version = subprocess.run([sys.executable, "-m", "semmap.cli", "--version"], cwd=PROJECT, capture_output=True,
+                             text=True, timeout=60)
+    assert version.returncode == 0 and version.stdout.startswith("semmap "), version
+    for command, words in (("diff", "objects added, missing and moved"), ("merge", "fuse them into one map")):
+        helped = subprocess.run([sys.executable, "-m", "semmap.cli", command, "--help"], cwd=PROJECT,
+                                capture_output=True, text=True, timeout=60)
+        assert words in helped.stdout and f"`semmap {command} A B" in helped.stdout, helped.stdout
 
 
 def _query(*args: str) -> subprocess.CompletedProcess:

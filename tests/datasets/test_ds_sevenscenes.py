@@ -87,6 +87,19 @@ def test_corrupt_and_missing_files_raise_dataset_error(kitchen_dir: Path, tmp_pa
         ds[5]
 
 
+@pytest.mark.needs_data
+def test_unreadable_pose_costs_its_frame_not_the_ground_truth(kitchen_dir: Path, tmp_path: Path) -> None:
+    root = tmp_path / "seq"
+    _copy_frames(kitchen_dir, root, 5)
+    (root / "frame-000002.pose.txt").write_text("nan " * 16)
+    ds = SevenScenesDataset(root)
+    with pytest.raises(DatasetError, match="frame-000002.pose.txt"):
+        ds[2]
+    assert [round(t * 30) for t, _ in ds.groundtruth()] == [0, 1, 3, 4]
+    assert [i for i, _ in ds.groundtruth_skipped] == [2]
+    assert "frame-000002.pose.txt" in ds.groundtruth_skipped[0][1]
+
+
 def test_invalid_depth_marker_and_defaults(tmp_path: Path) -> None:
     """65535 is 7-Scenes' 'no reading': it must come out as 0. No intrinsics file: the published K."""
     rgb = np.full((48, 64, 3), 128, np.uint8)
@@ -108,5 +121,5 @@ def test_not_a_sevenscenes_folder(tmp_path: Path) -> None:
         SevenScenesDataset(tmp_path)
     (tmp_path / "camera-intrinsics.txt").write_text("1 2 3\n")
     assert cv2.imwrite(str(tmp_path / "frame-000000.color.jpg"), np.zeros((8, 8, 3), np.uint8))
-    with pytest.raises(DatasetError, match="expected 9 finite numbers"):
+    with pytest.raises(DatasetError, match="expected 9 numbers"):
         SevenScenesDataset(tmp_path)

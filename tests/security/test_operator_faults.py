@@ -285,3 +285,75 @@ def test_fewer_frames_processed_than_sent_or_none_fail_the_run(tmp_path: Path) -
     orch.progress = {}
     with pytest.raises(RunFailed, match="all 12 frames of data were unreadable"):
         orch._check_frames()
+
+
+# -- issue 30: a finished run is left alone, a killed run leaves no process ----------------------------------
+
+
+def _tree_digest(folder: Path) -> dict[str, tuple[str, int]]:
+    """Every file under `folder` (hidden ones included) by relative path: its SHA-256 and its mode."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mode)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_resume_of_a_completed_run_says_so_and_changes_nothing(tmp_path: Path, semmap_run) -> None:  # noqa: ANN001
+    out = tmp_path / "run"
+    first = semmap_run(["synthetic:frames=6", "--out", str(out), "--no-viz"], timeout=180)
+    assert first.returncode == 0, first.stderr[-3000:]
+    before = _tree_digest(out)
+    assert "stats.json" in before and ".semmap.lock" in before
+    started = time.monotonic()
+    again = semmap_run(["synthetic:frames=6", "--out", str(out), "--no-viz", "--resume"], timeout=60)
+    took = time.monotonic() - started
+    assert again.returncode == 2 and "holds a completed run" in again.stderr, again.stderr
+    assert len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert took < 10, took
+    assert _tree_digest(out) == before
+
+
+def test_sigkill_of_the_run_leaves_no_service_behind(tmp_path: Path) -> None:
+    """The run's children stop when it is killed with SIGKILL (no handler of its own runs): PR_SET_PDEATHSIG and
+    a parent watch in each service; the folder's lock is held by the children until the last one is gone."""
+    from semmap.core.outputs import OutputError, OutputLock
+
+    out = tmp_path / "run"
+    run = _popen_run(["synthetic:frames=2000", "--out", str(out), "--no-viz"])
+    _wait_for_log(out / "logs" / "player.log", "pipeline ready")
+    time.sleep(1)
+    assert len(_leftovers(str(out))) >= 7  # the run and its services (player, odometry, detector, ...)
+    run.send_signal(signal.SIGKILL)
+    run.communicate(timeout=30)
+    children = [p for p in _leftovers(str(out)) if "semmap.services" in p]
+    lock = OutputLock(out)
+    if children:  # (they may all have gone already on a quiet machine) while they live, the folder is theirs
+        with contextlib.suppress(OutputError):
+            lock.acquire()
+            still = [p for p in _leftovers(str(out)) if "semmap.services" in p]
+            lock.release()
+            assert not still, f"lock acquired while services live: {still}"
+    _assert_no_leftovers(str(out), within_s=10.0)
+    lock.acquire()  # and once they are gone, it is free
+    lock.release()
+
+
+def test_a_class_the_detector_does_not_know_is_refused_naming_the_known_ones(tmp_path: Path, semmap_run) -> None:  # noqa: ANN001
+    out = tmp_path / "run"
+    result = semmap_run(["synthetic:frames=3", "--out", str(out), "--no-viz", "--set", "detector.classes=unicorn,cup"],
+                        timeout=60)
+    assert result.returncode == 2, result.stderr
+    line = result.stderr.strip()
+    assert line.startswith("error: detector.classes: 'unicorn' not among the classes") and "\n" not in line
+    assert "cup" in line and "chair" in line  # the known ones, listed
+    assert not out.exists()
+
+
+@pytest.mark.needs_data
+@pytest.mark.needs_model
+def test_a_class_the_model_does_not_know_is_refused_before_any_service(tmp_path: Path, kitchen_dir: Path,  # noqa: ANN001
+                                                                       semmap_run) -> None:  # noqa: ANN001
+    result = semmap_run([str(kitchen_dir), "--out", str(tmp_path / "run"), "--no-viz", "--set",
+                         "detector.exclude=unicorn"], timeout=60)
+    assert result.returncode == 2 and "detector.exclude: 'unicorn' not among the classes the model" in result.stderr
+    assert "person, bicycle" in result.stderr and not (tmp_path / "run").exists()

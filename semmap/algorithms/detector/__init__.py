@@ -75,6 +75,45 @@ def create_detector(kind: str, section: DetectorConfig, model: Path | None = Non
     return backend.create(section, model if backend.needs_model else None)
 
 
+def known_classes(kind: str, section: DetectorConfig, model: Path | None) -> list[str] | None:
+    """The class names the back end `kind` can report (None where they cannot be told without running it): the
+    oracle's vocabulary, a names file, or the ONNX model's `names` metadata."""
+    if kind == "oracle":
+        from .oracle import COCO_NAMES
+
+        return list(COCO_NAMES)
+    if kind != "onnx":
+        return None
+    from .onnx_detector import load_names_file, parse_names
+
+    if section.names:
+        return load_names_file(section.names)
+    if model is None or not Path(model).is_file():
+        return None
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
+    meta = session.get_modelmeta().custom_metadata_map
+    return parse_names(meta["names"]) if "names" in meta else None
+
+
+def check_classes(kind: str, section: DetectorConfig, model: Path | None) -> None:
+    """`detector.classes` and `detector.exclude` name classes the detector knows (a ConfigError naming the key and
+    listing the known ones otherwise): a class it cannot report would give an empty map, silently."""
+    if not section.classes and not section.exclude:
+        return
+    known = known_classes(kind, section, model)
+    if known is None:
+        return
+    for key, names in (("detector.classes", section.classes), ("detector.exclude", section.exclude)):
+        unknown = [n for n in names if n not in set(known)]
+        if unknown:
+            source = f"the model {model}" if kind == "onnx" and not section.names else (
+                f"the names file {section.names}" if kind == "onnx" else f"the {kind} detector")
+            raise ConfigError(f"{key}: {', '.join(repr(n) for n in unknown)} not among the classes {source} "
+                              f"knows: {', '.join(known)}")
+
+
 class _OracleFrames:
     """The oracle on a frame's ground-truth instances, with the section's allow and deny lists."""
 

@@ -8,10 +8,12 @@ so a run is deterministic and as fast as the machine allows. Real time: frames g
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 from semmap.algorithms.odometry import check_mode
 from semmap.core.messages import Control, Frame, Progress, ServiceStatus
+from semmap.core.outputs import SKIPPED_FILE, atomic_write_text, read_skipped
 from semmap.datasets import DatasetError, open_dataset, reader_options
 from semmap.datasets.base import Dataset, FrameData, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
@@ -67,6 +69,8 @@ class PlayerService(Service):
         self.next_index = max(0, int(self.args.start_at))
         self.last_sent = 0.0
         self.last_message: Frame | None = None
+        # frame -> why it was skipped; a restarted or resumed player keeps the list its predecessor wrote
+        self.skipped: dict[int, str] = read_skipped(self.out_dir) if self.next_index else {}
         if self.next_index:  # the run knows every service finished the frames before this one
             self.progress = dict.fromkeys(self.wait_for, self.next_index - 1)
             self.last_frame_id = self.next_index - 1
@@ -184,6 +188,7 @@ class PlayerService(Service):
                 message = frame_message(self.robot, data, self.depth_png)
         except DatasetError as exc:
             self.metrics.count("frames_unreadable")
+            self.skipped[index] = str(exc)
             self.log.warning("frame %d skipped: %s", index, exc)
             self.control_pub.put(Control(self.robot, "frame_unreadable", index, self.total))
             return
@@ -209,12 +214,20 @@ class PlayerService(Service):
         return data
 
     def write_outputs(self) -> None:
-        if self.dataset.has_groundtruth and self.out_dir is not None:
+        if self.out_dir is None:
+            return
+        if self.skipped or (self.out_dir / SKIPPED_FILE).exists():
+            atomic_write_text(self.out_dir / SKIPPED_FILE, json.dumps(
+                [{"frame": i, "reason": why} for i, why in sorted(self.skipped.items())], indent=1))
+        if self.dataset.has_groundtruth:
+            for index, why in getattr(self.dataset, "groundtruth_skipped", []):
+                self.log.warning("groundtruth.tum: frame %d left out: %s", index, why)
             if self.loops == 1 and self.total >= len(self.dataset):
                 # the dataset's own reference (a TUM folder's mocap samples), so that `semmap eval` scores the run
                 # as evo scores it against that file
                 write_tum(self.out_dir / "groundtruth.tum", self.dataset.reference_trajectory())
                 return
+            # a frame whose pose file is unreadable is left out (the reader names it), not the whole file
             gt = self.dataset.groundtruth()
             looped = [(t + k * self.period_s, pose) for k in range(self.loops) for t, pose in gt]
             write_tum(self.out_dir / "groundtruth.tum", looped[: self.total])
