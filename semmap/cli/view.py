@@ -154,7 +154,7 @@ def _serve_file(viewer: str, rrd: Path, served: Path, args: argparse.Namespace, 
                   file=sys.stderr)
             return 2
         ports[name] = port
-    cmd = [viewer, "--serve-web", "--bind", "127.0.0.1", "--port", str(ports["grpc"]),
+    cmd = [viewer, "--serve-web", "--newest-first", "--bind", "127.0.0.1", "--port", str(ports["grpc"]),
            "--web-viewer-port", str(ports["web"]), str(served)]
 
     def _terminate(signum, frame):  # noqa: ANN001 - signal handler

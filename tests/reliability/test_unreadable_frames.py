@@ -38,6 +38,7 @@ def test_unreadable_frames_are_counted_and_skipped(tmp_path: Path, kitchen_dir: 
     stats = read_stats(out)
     assert stats["outcome"] == "completed" and stats["frames"]["unreadable"] == len(bad)
     assert stats["frames"]["published"] == FRAMES - len(bad)
+    assert stats["frames"]["dropped"] == 0  # an unreadable frame is skipped, not dropped by the detector
     assert stats["services"]["player"]["counters"]["frames_unreadable"] == len(bad)
     for name in ("tracker", "associator", "backend"):
         assert stats["services"][name]["counters"].get("unreadable_skipped") == len(bad), name

@@ -59,6 +59,10 @@ class DetectorService(Service):
             self.bus.keys.detector_replicas_all, self._on_liveliness, history=True
         )
         self.last_mine = -1
+        # frames the player could not read never come: not "dropped" here (the control message that says so may
+        # arrive after the next frame, so a gap already counted as dropped is taken back)
+        self._unreadable: set[int] = set()
+        self._dropped_ids: set[int] = set()
         self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
@@ -99,7 +103,8 @@ class DetectorService(Service):
         started = time.time()
         # frames of our share that never reached us were dropped upstream of this handler (bounded queue)
         for missed in range(self.last_mine + 1, frame.frame_id):
-            if missed % n == rank and self.last_mine >= 0:
+            if missed % n == rank and self.last_mine >= 0 and missed not in self._unreadable:
+                self._dropped_ids.add(missed)
                 self._publish_skip(frame, missed, "dropped")
         self.last_mine = frame.frame_id
         self._last_frame = frame
@@ -142,6 +147,14 @@ class DetectorService(Service):
         )
         self.report_progress(frame.frame_id)
 
+    def on_frame_unreadable(self, frame_id: int) -> None:
+        self._unreadable.add(frame_id)
+        if frame_id in self._dropped_ids:
+            self._dropped_ids.discard(frame_id)
+            self.metrics.counters["frames_dropped"] -= 1
+        self._unreadable = {f for f in self._unreadable if f > frame_id - 1000}  # (bounded)
+        self._dropped_ids = {f for f in self._dropped_ids if f > frame_id - 1000}
+
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")
         stamp = frame.stamp if frame_id == frame.frame_id else -1.0
@@ -164,7 +177,7 @@ class DetectorService(Service):
     def _owed(self, last_frame_id: int) -> list[int]:
         """Frames of our share up to `last_frame_id` that we have not answered yet."""
         rank, n = self._rank()
-        return [f for f in range(self.last_mine + 1, last_frame_id + 1) if f % n == rank]
+        return [f for f in range(self.last_mine + 1, last_frame_id + 1) if f % n == rank and f not in self._unreadable]
 
     def on_end_of_stream(self, control: Control) -> None:
         """Finish once our share is answered; frames still missing after a grace period were dropped."""

@@ -122,7 +122,9 @@ class VizService(Service):
                 self.parts.append(part)
         sinks: list = [rr.FileSink(str(rrd))] if self.out_dir is not None else []
         if self.args.serve:  # the live run in the web viewer as well as the file
-            server = rr.GrpcServerSink(port=self.args.grpc_port)
+            # loopback only (its default is every interface); a browser that connects late gets the newest data
+            # first (the current map), not every camera image since the start before the first landmark
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=self.args.grpc_port, newest_first=True)
             sinks.append(server)
             uri = f"rerun+http://127.0.0.1:{self.args.grpc_port}/proxy"  # as the browser on this host sees it
             rr.serve_web_viewer(web_port=self.args.web_port, open_browser=False, connect_to=uri)
