@@ -311,8 +311,8 @@ def start_banner(plan: RunPlan, camera: str, odometry_line: str = "") -> list[st
         lines = [f"odometry: the external SLAM's poses, {checked}"]
     elif plan.simulated_odometry:
         drift = " with seeded drift" if "drift" in plan.odometry else ""
-        lines = [f"odometry {plan.odometry}: simulated odometry (from ground truth){drift}, not a real front end; "
-                 "--odometry rgbd or file:TRAJ.tum for a real one"]
+        lines = [f"odometry {plan.odometry}: simulated odometry (from ground truth){drift}, not a real front end "
+                 "(a real one: --odometry orbslam3, rgbd or file:TRAJ.tum)"]
     else:
         lines = [odometry_line or f"odometry: {plan.odometry}"]
     if camera:

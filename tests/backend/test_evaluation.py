@@ -51,7 +51,8 @@ def write_run(out: Path, optimized_offset: float = 0.0) -> tuple[list, list]:
 def test_evaluate_run_writes_eval_json(tmp_path: Path) -> None:
     stamped_gt, odometry = write_run(tmp_path, optimized_offset=0.01)
     result = evaluate_run(tmp_path)
-    assert set(result) == {"ate_odometry_m", "ate_optimized_m", "improvement_pct", "poses"}
+    assert set(result) == {"ate_odometry_m", "ate_optimized_m", "improvement_pct", "poses", "groundtruth"}
+    assert result["groundtruth"] == "groundtruth.tum"
     assert result["poses"] == 100
     assert result["ate_odometry_m"] == pytest.approx(ate_rmse(stamped_gt, odometry), rel=1e-6)
     assert result["ate_odometry_m"] > 0.05

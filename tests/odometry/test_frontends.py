@@ -99,7 +99,7 @@ def test_trajectory_file_is_matched_by_timestamp(tmp_path: Path) -> None:
 
 def test_unusable_modes_are_clear_errors() -> None:
     for mode in ("lidar", "file:", "gt:x", "rgbd:"):
-        with pytest.raises(ConfigError, match="expected auto, gt, gt[+]drift, rgbd, file:PATH, orbslam3"):
+        with pytest.raises(ConfigError, match="expected auto, gt, gt[+]drift, rgbd, file:PATH, external, orbslam3"):
             make_frontend(mode, load_config().odometry)
     frontend = make_frontend("gt", load_config().odometry)
     with pytest.raises(OdometryError, match="no ground-truth pose"):
