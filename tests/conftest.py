@@ -36,6 +36,15 @@ def kitchen_dir(data_root: Path) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def bonn_dir(data_root: Path) -> Path:
+    """The real Bonn RGB-D Dynamic "crowd" window (people walking; TUM layout)."""
+    path = data_root / "bonn_crowd"
+    if not (path / "rgb.txt").is_file():
+        pytest.skip(f"no bonn_crowd/ in {data_root}")
+    return path
+
+
 class Router:
     """A router-mode Zenoh session in this process (what `eclipse/zenoh` is in compose)."""
 

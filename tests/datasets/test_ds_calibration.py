@@ -15,13 +15,6 @@ from semmap.datasets.calibration import CalibrationError, check_dataset_camera
 BONN_INTRINSICS = "fx: 542.8\nfy: 542.6\ncx: 315.6\ncy: 237.8\n"
 
 
-@pytest.fixture(scope="module")
-def bonn_dir(data_root: Path) -> Path:
-    path = data_root / "bonn_crowd"
-    if not path.is_dir():
-        pytest.skip(f"no bonn_crowd/ in {data_root}")
-    return path
-
 
 def _tum_copy(bonn: Path, dest: Path, camera_yaml: str | None, frames: int = 60) -> Path:
     """A TUM folder of Bonn's first frames (images linked, lists cut) with its own camera.yaml."""

@@ -26,13 +26,6 @@ def vocabulary(data_root: Path) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def bonn(data_root: Path) -> Path:
-    path = data_root / "bonn_crowd"
-    if not path.is_dir():
-        pytest.skip(f"no bonn_crowd/ in {data_root}")
-    return path
-
 
 def test_settings_come_from_the_frames_camera():
     text = settings_text(542.8, 542.6, 315.6, 237.8, 640, 480, 1 / 5000, fps=30, features=1200)
@@ -100,13 +93,13 @@ def test_orbslam3_tracks_real_frames_with_the_real_wheel(kitchen_dir: Path, voca
 
 @pytest.mark.slow
 @needs_wheel
-def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn: Path, vocabulary: Path, tmp_path: Path):
+def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn_dir: Path, vocabulary: Path, tmp_path: Path):
     """`semmap run BONN --odometry orbslam3` (every service its own process, lockstep): ORB-SLAM3 alone maps the
     walking people as structure (1.2-1.35 m ATE on this window, ../shared/data/orbslam3); with semmap's masks and
     step check the optimised trajectory is within 15 cm, no landmark is a person, and the run says where it
     overruled the SLAM."""
     out = tmp_path / "out"
-    result = semmap_run([str(bonn), "--out", str(out), "--no-viz", "--lockstep", "--odometry", "orbslam3",
+    result = semmap_run([str(bonn_dir), "--out", str(out), "--no-viz", "--lockstep", "--odometry", "orbslam3",
                          "--set", f"odometry.orbslam3_vocabulary={vocabulary}"], timeout=1200)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "odometry: orbslam3 (ORB-SLAM3 RGB-D" in result.stderr
@@ -125,13 +118,13 @@ def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn: Path, vocabular
 
 
 @pytest.mark.slow
-def test_the_shared_orbslam3_trajectories_are_repaired(bonn: Path, data_root: Path):
+def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path):
     """The three ORB-SLAM3 runs of the Bonn window (1.21-1.35 m ATE: it mapped the people) fed as `file:`, each of
     their steps checked by semmap's people-masked registration: every one comes out under 15 cm."""
     from semmap.runtime.inprocess import closed_loop
 
     for run in (1, 2, 3):
         path = data_root / "orbslam3" / f"bonn_crowd_orbslam3_run{run}.tum"
-        res, _ = closed_loop(str(bonn), f"file:{path}")
+        res, _ = closed_loop(str(bonn_dir), f"file:{path}")
         assert res.ate_odometry < 0.15, (run, res.summary())
         assert res.frontend_counters["repair_overruled"] > 100

@@ -81,13 +81,6 @@ def _tum_subset(src: Path, dst: Path, frames: int, drop_gt: dict[int, int] | Non
     return dst
 
 
-@pytest.fixture(scope="module")
-def bonn_dir(data_root: Path) -> Path:
-    path = data_root / "bonn_crowd"
-    if not (path / "rgb.txt").is_file():
-        pytest.skip("bonn_crowd absent from the shared data")
-    return path
-
 
 def test_ground_truth_with_gaps_never_stalls_a_lockstep_run(
     bonn_dir: Path, tmp_path: Path, semmap_run, read_stats

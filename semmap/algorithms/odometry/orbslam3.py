@@ -28,7 +28,7 @@ import numpy as np
 from semmap.core.config import OdometryConfig
 from semmap.core.messages import DynamicBox
 
-from .frontends import FrontEnd, OdometryError, OdometryInput, PairRegistration, _flat
+from .frontends import FrontEnd, OdometryError, OdometryInput, PairRegistration, _flat, dynamic_pixels
 from .repair import RepairParams, SlamRepair
 
 MASKS = ("range", "box", "none")
@@ -64,22 +64,13 @@ def settings_text(fx: float, fy: float, cx: float, cy: float, width: int, height
 
 def blank_dynamic(rgb: np.ndarray, depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float,
                   how: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """Copies of colour and depth with the dynamic objects blanked (grey, depth 0); the blanked fraction."""
+    """Copies of colour and depth with the dynamic objects blanked (grey, depth 0); the blanked fraction. With
+    `range`, a box's pixels without depth go too (a person's edges and hair read no depth on most sensors)."""
     if how == "none" or not boxes:
         return rgb, depth, 0.0
-    mask = np.zeros(depth.shape, dtype=bool)
-    h, w = depth.shape
-    for b in boxes:
-        x0, y0 = max(0, int(np.floor(b.box[0]))), max(0, int(np.floor(b.box[1])))
-        x1, y1 = min(w, int(np.ceil(b.box[2]))), min(h, int(np.ceil(b.box[3])))
-        if x1 <= x0 or y1 <= y0:
-            continue
-        if how == "box" or b.depth_max_m <= 0:
-            mask[y0:y1, x0:x1] = True
-        else:
-            z = depth[y0:y1, x0:x1].astype(np.float64) * depth_scale
-            # the object's band, and the pixels without depth inside its box (a person's edges, hair)
-            mask[y0:y1, x0:x1] |= ((z >= b.depth_min_m) & (z <= b.depth_max_m)) | (z <= 0)
+    mask = dynamic_pixels(depth, boxes, depth_scale, how)
+    if how == "range":
+        mask |= dynamic_pixels(depth, boxes, depth_scale, "box") & (depth == 0)
     if not mask.any():
         return rgb, depth, 0.0
     rgb_out, depth_out = rgb.copy(), depth.copy()
