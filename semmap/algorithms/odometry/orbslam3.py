@@ -114,7 +114,7 @@ class OrbSlam3Odometry(FrontEnd):
         self._restored = False
         self.counters = {"orb_lost": 0, "orb_not_initialized": 0, "orb_blanked_permille": 0}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # ORB-SLAM3's own poses, before the repair
-        self._blanked: list[float] = []
+        self._blanked_sum, self._frames = 0.0, 0  # the blanked share of the image, summed (a running mean)
 
     def _start(self, frame: OdometryInput) -> None:
         import pyorbslam3  # heavy (ORB-SLAM3 and its own OpenCV): only when this front end runs
@@ -141,7 +141,8 @@ class OrbSlam3Odometry(FrontEnd):
             self._start(frame)
         boxes = list(frame.dynamic or [])
         rgb, depth, blanked = blank_dynamic(frame.rgb, frame.depth, boxes, frame.depth_scale, self.mask)
-        self._blanked.append(blanked)
+        self._blanked_sum += blanked
+        self._frames += 1
         result = self._slam.track_rgbd(np.ascontiguousarray(rgb), np.ascontiguousarray(depth), float(frame.stamp))
         state = str(result.state).rsplit(".", 1)[-1]
         slam_pose = None
@@ -163,7 +164,7 @@ class OrbSlam3Odometry(FrontEnd):
         else:  # no check: ORB-SLAM3's steps as they are (lost frames carried at constant velocity)
             pose = self.repair.copy(frame.frame_id, slam_pose)
         self.counters.update(self.repair.report.counters())
-        self.counters["orb_blanked_permille"] = int(1000 * float(np.mean(self._blanked)))
+        self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
         return pose
 
     def overruled(self) -> list[tuple[int, int]]:
