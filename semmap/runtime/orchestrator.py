@@ -69,6 +69,7 @@ class RunPlan:
     deadline_s: float = 0.0  # the whole run (0: none)
     stall_s: float = 0.0  # nothing moved for this long: the run fails (0: never)
     resume: bool = False  # continue the run in out_dir (services from their journals, the player after it)
+    budget: dict | None = None  # real time: the detector's planned cadence (semmap/cli/run.py detector_budget)
 
 
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
@@ -445,9 +446,38 @@ class Orchestrator:
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "detection_interval_ms": self._detection_cadence(),
                  "services": services}
+        if self.plan.budget is not None:
+            stats["detector_budget"] = self._budget_achieved(services, processed, detected, wall_s)
         path = self.plan.out_dir / "stats.json"
         atomic_write_text(path, json.dumps(stats, indent=2))
         return path
+
+    def _budget_achieved(self, services: dict[str, dict], processed: int, detected: int, wall_s: float) -> dict:
+        """The planned cadence next to what the run achieved; keeps the other services' CPU per frame for the
+        next plan on this machine (semmap/runtime/detector_choice.py)."""
+        budget = dict(self.plan.budget or {})
+        fps = float(budget.get("planned", {}).get("fps", 30.0))
+        video_s = processed / fps if fps > 0 else 0.0
+        det = [s for s in services.values() if s.get("service") == "detector"]
+        others_cpu = sum(s.get("cpu_s", 0.0) for s in services.values() if s.get("service") not in ("detector", None))
+        detect = det[0].get("timings_ms", {}).get("detect_ms", {}) if len(det) == 1 else {}
+        budget["achieved"] = {
+            "detected_frames": detected, "video_s": round(video_s, 2),
+            "detections_per_s": round(detected / video_s, 2) if video_s > 0 else 0.0,
+            "detect_ms_p50": detect.get("p50"), "detect_ms_p95": detect.get("p95"),
+            "detector_cpu_s": round(sum(s.get("cpu_s", 0.0) for s in det), 2),
+            "others_cpu_ms_per_frame": round(1e3 * others_cpu / processed, 1) if processed else None,
+            "wall_s": round(wall_s, 2),
+        }
+        per_frame = budget["achieved"]["others_cpu_ms_per_frame"]
+        if per_frame and processed >= 100 and self.plan.mode == "realtime":
+            try:
+                from semmap.runtime.detector_choice import record_pipeline_cost
+
+                record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame)
+            except (OSError, ValueError):
+                pass
+        return budget
 
     # -- the run --------------------------------------------------------------------------------------------
     def _on_signal(self, *_: object) -> None:

@@ -45,6 +45,14 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         f"{frames.get('detected', 0)} detected, {frames.get('dropped', 0)} dropped, "
         f"{frames.get('unreadable', 0)} unreadable; {stats.get('fps', 0):.1f} fps"
     )
+    budget = stats.get("detector_budget") or {}
+    if budget.get("planned") and budget.get("achieved"):
+        p, a = budget["planned"], budget["achieved"]
+        lines.append(
+            f"  detection   planned: {budget.get('detector')}, every {p['every_n_frames']} frame(s), "
+            f"{p['expected_detections_per_s']:.1f}/s; achieved {a['detections_per_s']:.1f}/s of video"
+            + (f", detector {a['detect_ms_p50']:.0f} ms p50 in the run" if a.get("detect_ms_p50") else "")
+        )
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")
