@@ -179,3 +179,15 @@ def test_doctor_prints_the_cached_table_and_the_choice(tmp_path: Path, monkeypat
     assert ("no VNNI" in out) != dc.has_vnni(dc.hardware_key())
     assert main(["models", "doctor", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["choice"]["config"]["height"] == 384
+
+
+def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) -> None:
+    from semmap.runtime.summary import run_summary
+
+    stats = {"outcome": "completed", "wall_s": 36.0, "frames": {"processed": 1000, "published": 1000},
+             "detector_budget": {"detector": "fp32 512x384 1 thread",
+                                 "planned": {"every_n_frames": 3, "expected_detections_per_s": 10.0},
+                                 "achieved": {"detections_per_s": 9.4, "detect_ms_p50": 97.0}}}  # fmt: skip
+    text = run_summary(tmp_path, stats)
+    assert ("  detection   planned: fp32 512x384 1 thread, every 3 frame(s), 10.0/s; achieved 9.4/s of video, "
+            "detector 97 ms p50 in the run") in text.splitlines()
