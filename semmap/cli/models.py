@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     doctor.add_argument("data", nargs="?", default=None,
                         help="frames to measure on (a dataset; default 7-Scenes in ../shared/data, else synthetic)")
     doctor.add_argument("--dir", type=Path, default=None, help="model dir (default $SEMMAP_MODEL_DIR or ~/.cache)")
-    doctor.add_argument("--frames", type=int, default=24, help="frames for the agreement check (default 24)")
+    doctor.add_argument("--frames", type=int, default=48, help="frames for the agreement check (default 48)")
     doctor.add_argument("--remeasure", action="store_true", help="measure even if this machine's choice is cached")
     doctor.add_argument("--json", action="store_true", help="print the cached document as JSON")
     doctor.set_defaults(func=_models_doctor)

@@ -235,8 +235,8 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     every_n = det.every_n_frames or plan.every_n
     if det.every_n_frames == 0:
         overrides.append(f"detector.every_n_frames={plan.every_n}")
-    budget["planned"] = {**plan.to_dict(), "every_n_frames": every_n,
-                         "expected_detections_per_s": round(fps / every_n, 2)}
+    expected = plan.detections_per_s if every_n == plan.every_n else min(fps / every_n, 1e3 / plan.interval_ms)
+    budget["planned"] = {**plan.to_dict(), "every_n_frames": every_n, "expected_detections_per_s": round(expected, 2)}
     print(f"semmap: real time, detector {setup.label()} ({setup.origin}); frame budget: "
           f"{dc.describe_plan(plan, source)}" + (f"; every_n_frames set to {every_n}" if det.every_n_frames else ""),
           file=sys.stderr)

@@ -107,13 +107,19 @@ def test_on_a_vnni_machine_the_same_rule_keeps_int8() -> None:
 def test_frame_budget_plan() -> None:
     row = _row("fp32", 1, (384, 512), 90, 90, 0.93)
     plan = dc.plan_cadence(row, cores=2, fps=30.0, others_cpu_ms=30.0)  # others: 0.9 cores
-    assert plan.free_cores == pytest.approx(1.1)
-    assert plan.interval_ms == pytest.approx(90.0) and plan.every_n == 3 and plan.detections_per_s == 10.0
+    assert plan.free_cores == pytest.approx(1.1) and plan.interval_ms == pytest.approx(90.0)
+    # one thread fits in the 1.1 cores left: offered every 2nd frame, it detects as often as it can (1 / 90 ms)
+    assert plan.flat_out and plan.every_n == 2 and plan.detections_per_s == pytest.approx(1e3 / 90)
+    slow = dc.plan_cadence(_row("fp32", 1, (384, 512), 105, 105, 0.93), cores=2, fps=30.0, others_cpu_ms=30.0)
+    assert slow.every_n == 3 and slow.detections_per_s == pytest.approx(1e3 / 105)
     two = dc.plan_cadence(_row("fp32", 2, (384, 512), 60, 120, 0.93), cores=2, fps=30.0, others_cpu_ms=30.0)
-    assert two.interval_ms == pytest.approx(120 / 1.1) and two.every_n == 4
-    loaded = dc.plan_cadence(row, cores=2, fps=30.0, others_cpu_ms=60.0)  # rgbd odometry: 1.8 cores taken
+    # two threads do not fit in 1.1 cores: held to its share, every 4th frame (109 ms a detection)
+    assert not two.flat_out and two.interval_ms == pytest.approx(120 / 1.1) and two.every_n == 4
+    assert two.detections_per_s == 7.5
+    loaded = dc.plan_cadence(row, cores=2, fps=30.0, others_cpu_ms=60.0)  # 1.8 cores taken by the others
     assert loaded.free_cores == pytest.approx(0.25) and loaded.every_n == 11  # (never less than a quarter core)
-    assert "every 3rd frame at 30 fps; expected 10.0 detections/s" in dc.describe_plan(plan, "default estimate")
+    assert "every 4th frame at 30 fps; expected 7.5 detections/s" in dc.describe_plan(two, "default estimate")
+    assert "every 2nd frame at 30 fps, taken as fast as it can (its 1 thread fit" in dc.describe_plan(plan, "x")
 
 
 # --- the cache, keyed by the machine -----------------------------------------------------------------------
@@ -154,7 +160,7 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert (lock.precision, lock.threads, lock.hw) == ("fp32", 2, None)  # lockstep: fp32's figures
     assert dc.resolve_setup("int8", 0, "auto", realtime=True).precision == "int8"
     plan, source = dc.setup_plan(rt, 30.0, "gt", tmp_path, cores=2)
-    assert plan is not None and plan.every_n == 3 and source == "default estimate"
+    assert plan is not None and plan.every_n == 2 and source == "default estimate"
     assert dc.record_pipeline_cost("rgbd", 50.0, tmp_path)
     plan, source = dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)
     assert plan.others_cpu_ms == 50.0 and source.startswith("measured")
