@@ -324,6 +324,9 @@ def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, mode
         "rows": [r.to_dict() for r in rows],
         "choice": best.to_dict() if best is not None else None,
     }
+    before = load_choice(model_dir, key)  # the same machine measured again: keep what its runs measured
+    if before and before.get("pipeline_cpu_ms_per_frame"):
+        doc["pipeline_cpu_ms_per_frame"] = before["pipeline_cpu_ms_per_frame"]
     path = choice_path(model_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())

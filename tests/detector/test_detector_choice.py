@@ -164,6 +164,8 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert dc.record_pipeline_cost("rgbd", 50.0, tmp_path)
     plan, source = dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)
     assert plan.others_cpu_ms == 50.0 and source.startswith("measured")
+    dc.save_choice([_row("fp32", 1, (384, 512), 95, 95, 0.93)], dc.hardware_key(), "again", tmp_path)
+    assert dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)[0].others_cpu_ms == 50.0  # kept when re-measured
 
 
 # --- semmap models doctor ----------------------------------------------------------------------------------
