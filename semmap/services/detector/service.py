@@ -74,6 +74,7 @@ class DetectorService(Service):
             self.bus.keys.detector_replicas_all, self._on_liveliness, history=True
         )
         self.last_mine = -1
+        self._last_detected_id: int | None = None
         self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
@@ -118,9 +119,10 @@ class DetectorService(Service):
                 self._publish_skip(frame, missed, "dropped")
         self.last_mine = frame.frame_id
         self._last_frame = frame
-        if frame.frame_id % self.every_n:
+        if self._stride_skips(frame.frame_id):
             self._publish_skip(frame, frame.frame_id, "stride")
             return
+        self._last_detected_id = frame.frame_id
         with self.metrics.timer("detect_ms") as t_detect:
             try:
                 boxes = self._detect(frame)
@@ -156,6 +158,16 @@ class DetectorService(Service):
             )
         )
         self.report_progress(frame.frame_id)
+
+    def _stride_skips(self, frame_id: int) -> bool:
+        """Lockstep: every n-th frame by id. Real time: a frame at least n frames after the last one detected, so a
+        detector that ran late (its queue handed it a newer frame) takes that frame instead of idling until the
+        next multiple of n."""
+        if self.every_n <= 1:
+            return False
+        if self.lockstep or self._last_detected_id is None:
+            return frame_id % self.every_n != 0
+        return frame_id - self._last_detected_id < self.every_n
 
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")
