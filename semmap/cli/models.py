@@ -74,6 +74,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     voc.add_argument("--max-images", type=int, default=400, help="images used, evenly spread (default 400)")
     voc.add_argument("--seed", type=int, default=0, help="random seed: same seed and images, same file")
     voc.set_defaults(func=_models_vocabulary)
+    doctor = actions.add_parser(
+        "doctor",
+        help="measure which detector configuration serves real time on this machine (cached per machine)",
+        description="Time each detector configuration that could serve real time here (fp32 / int8, 1 / 2 "
+        "threads, letterbox 640x480 / 640x384 / 512x384 / 480x352 / 416x320) on real frames, score each against "
+        "fp32 at 640x480 (F1 >= 0.9, recall per class) and cache the choice beside the models, keyed by the CPU "
+        "model, its SIMD flags, the cores and the onnxruntime version. `detector.precision: auto` in real time "
+        "takes it. Prints the cached table when this machine was already measured (--remeasure to measure again).",
+    )
+    doctor.add_argument("data", nargs="?", default=None,
+                        help="frames to measure on (a dataset; default 7-Scenes in ../shared/data, else synthetic)")
+    doctor.add_argument("--dir", type=Path, default=None, help="model dir (default $SEMMAP_MODEL_DIR or ~/.cache)")
+    doctor.add_argument("--frames", type=int, default=48, help="frames for the agreement check (default 48)")
+    doctor.add_argument("--remeasure", action="store_true", help="measure even if this machine's choice is cached")
+    doctor.add_argument("--json", action="store_true", help="print the cached document as JSON")
+    doctor.set_defaults(func=_models_doctor)
 
     det = subparsers.add_parser(
         "detect",
@@ -139,6 +155,27 @@ def _models_vocabulary(args: argparse.Namespace) -> int:
     log(f"{built.nodes} nodes, {built.words} words from {built.descriptors} descriptors of {built.images} images "
         f"in {built.seconds:.1f} s")  # fmt: skip
     print(built.path)
+
+
+def _models_doctor(args: argparse.Namespace) -> int:
+    from semmap.runtime.detector_choice import choice_path, format_table, load_choice, measure_and_save
+    from semmap.runtime.model_store import ModelMissingError, default_model_path, require_model
+
+    try:
+        require_model(default_model_path(args.dir))
+    except ModelMissingError as exc:
+        _err(str(exc))
+        return 2
+    doc = None if args.remeasure else load_choice(args.dir)
+    if doc is None:
+        print(f"measuring detector configurations on this machine (about a minute) -> {choice_path(args.dir)}",
+              file=sys.stderr)
+        try:
+            doc = measure_and_save(args.data, args.frames, args.dir, progress=lambda line: print(line, file=sys.stderr))
+        except (ValueError, OSError) as exc:
+            _err(f"cannot measure: {exc}")
+            return 1
+    print(json.dumps(doc, indent=1) if args.json else format_table(doc))
     return 0
 
 

@@ -205,6 +205,9 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     from semmap.runtime.orchestrator import Orchestrator, RunPlan
 
+    realtime = (args.mode or config.run.mode) == "realtime"
+    with_detector = "detector" in (only or PIPELINE)
+    budget = detector_budget(config, dataset, args.data, overrides) if realtime and with_detector else None
     specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map,
                            args.check_slam)
     run = config.run
@@ -216,7 +219,7 @@ def _run(args: argparse.Namespace) -> int:
                    # (an external SLAM may connect whenever it likes: no stall limit without a player)
                    stall_s=0.0 if args.data == "external" else
                    run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
-                   resume=args.resume)
+                   resume=args.resume, budget=budget)
     plan.odometry = mode if args.data != "external" or args.check_slam else "unchecked"
     if args.data != "external":
         plan.simulated_odometry = simulated_odometry(mode)
@@ -340,6 +343,45 @@ def check_detector_classes(config: Config, data: str, mode: str) -> None:
         raise
     except (OSError, ValueError):
         return  # (an unreadable model or names file: the detector says so when it starts, naming the file)
+
+
+def detector_budget(config: Config, dataset: Dataset | None, data: str, overrides: list[str]) -> dict | None:
+    """Real time with the packaged detector: this machine's measured configuration (measured now if this machine
+    never was) and the detection cadence the frame budget allows; printed now, in stats.json at the end. Adds
+    `detector.every_n_frames=N` to `overrides` when the cadence is auto (0)."""
+    from semmap.algorithms.detector import AUTO, resolve_kind
+    from semmap.runtime import detector_choice as dc
+
+    det = config.detector
+    synthetic = data == "synthetic" or data.startswith("synthetic:")
+    kind = resolve_kind(det.kind, synthetic) if det.kind == AUTO else det.kind
+    if kind != "onnx" or det.model or data == "external":
+        return None
+    try:
+        if det.precision == "auto" and dc.load_choice() is None:
+            print("semmap: the detector was never measured on this machine: measuring its configurations now "
+                  "(about a minute, once; `semmap models doctor` shows the table)", file=sys.stderr)
+            dc.measure_and_save()
+        setup = dc.resolve_setup(det.precision, det.threads, det.input_size, realtime=True)
+    except (OSError, ValueError) as exc:  # no model yet: the detector itself reports that when it starts
+        print(f"semmap: no frame budget: {exc}", file=sys.stderr)
+        return None
+    fps = float(getattr(dataset, "rate_hz", 30.0) or 30.0) * float(config.run.speed)
+    plan, source = dc.setup_plan(setup, fps, config.odometry.mode)
+    budget: dict = {"detector": setup.label(), "origin": setup.origin, "odometry": config.odometry.mode}
+    if plan is None:
+        print(f"semmap: real time, detector {setup.label()} ({setup.origin}); its cost was not measured here: "
+              "no frame budget (`semmap models doctor`)", file=sys.stderr)
+        return budget
+    every_n = det.every_n_frames or plan.every_n
+    if det.every_n_frames == 0:
+        overrides.append(f"detector.every_n_frames={plan.every_n}")
+    expected = plan.detections_per_s if every_n == plan.every_n else min(fps / every_n, 1e3 / plan.interval_ms)
+    budget["planned"] = {**plan.to_dict(), "every_n_frames": every_n, "expected_detections_per_s": round(expected, 2)}
+    print(f"semmap: real time, detector {setup.label()} ({setup.origin}); frame budget: "
+          f"{dc.describe_plan(plan, source)}" + (f"; every_n_frames set to {every_n}" if det.every_n_frames else ""),
+          file=sys.stderr)
+    return budget
 
 
 def check_plugins(config: Config) -> None:

@@ -134,9 +134,10 @@ def detect_recording(
     n = _frame_count(ds, frames)
     model = None
     if kind == "onnx":
-        from semmap.runtime.model_store import packaged_model, resolve_precision
+        from semmap.runtime.model_store import packaged_model
 
-        model = Path(det_cfg["model"] or packaged_model(resolve_precision(det_cfg["precision"], realtime=False)))
+        precision = "fp32" if det_cfg["precision"] == "auto" else det_cfg["precision"]  # (lockstep: fp32's figures)
+        model = Path(det_cfg["model"] or packaged_model(precision))
     model_id = None if model is None else (str(model), model.stat().st_size, int(model.stat().st_mtime))
     # the model file stands for `precision`; threads and queueing do not change detections
     key = _cache_key(

@@ -76,17 +76,9 @@ def require_model(path: Path | str | None = None) -> Path:
     return p
 
 
-def resolve_precision(precision: str, realtime: bool) -> str:
-    """`auto` -> int8 in real time where the int8 copy exists (it keeps up on 2 cores where fp32 does not, and
-    agrees with fp32 at F1 >= 0.93 on 7-Scenes, Bonn and KITTI: docs/PERFORMANCE.md), fp32 otherwise (lockstep
-    waits for every frame anyway, and its figures are fp32's). fp32 and int8 are taken as they are."""
-    if precision != "auto":
-        return precision
-    return "int8" if realtime and (get_model_dir() / INT8_FILENAME).is_file() else "fp32"
-
-
 def packaged_model(precision: str) -> Path:
-    """The converted YOLOv5s (fp32), or its int8 copy (~2x faster on CPU, `semmap models quantize`)."""
+    """The converted YOLOv5s (fp32), or its int8 copy (`semmap models quantize`; faster on CPUs with VNNI only).
+    Which one a real-time run takes is measured per machine: semmap/runtime/detector_choice.py."""
     if precision == "fp32":
         return require_model(default_model_path())
     if precision == "int8":

@@ -73,6 +73,7 @@ class RunPlan:
     odometry: str = ""  # odometry.mode, for stats.json and the summary
     simulated_odometry: bool = False  # gt / gt+drift: poses made from the ground truth, not a real front end
     camera: str = ""  # where the calibration came from and what it is (the start banner's camera line)
+    budget: dict | None = None  # real time: the detector's planned cadence (semmap/cli/run.py detector_budget)
 
 
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
@@ -149,6 +150,7 @@ class Orchestrator:
         self.endpoint = ""
         self.restarts: dict[str, int] = {}
         self.rss: dict[str, list[float]] = {}  # per instance, one sample a second (status period)
+        self.cpu_at_first_frame: dict[str, float] = {}  # per instance: its CPU seconds when frames began
         # the run's identity and secret: every message of the run is signed with it (semmap.runtime.bus.RunTrust);
         # children get it through their environment only (not on a command line others can read)
         self.run_id = uuid.uuid4().hex[:16]
@@ -203,6 +205,10 @@ class Orchestrator:
         with self.lock:
             self.statuses[s.instance] = s
             self.rss.setdefault(s.instance, []).append(s.rss_mb)
+            # CPU spent before the first frame (imports, model load): not a per-frame cost of the frame budget
+            if s.instance not in self.cpu_at_first_frame and any(
+                    st.counters.get("frames_published", 0) > 0 for st in self.statuses.values()):
+                self.cpu_at_first_frame[s.instance] = s.cpu_s
 
     def _on_progress(self, p: Progress) -> None:
         with self.lock:
@@ -462,9 +468,41 @@ class Orchestrator:
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "detection_interval_ms": self._detection_cadence(),
                  "services": services}
+        if self.plan.budget is not None:
+            stats["detector_budget"] = self._budget_achieved(services, processed, detected, wall_s)
         path = self.plan.out_dir / "stats.json"
         atomic_write_text(path, json.dumps(stats, indent=2))
         return path
+
+    def _budget_achieved(self, services: dict[str, dict], processed: int, detected: int, wall_s: float) -> dict:
+        """The planned cadence next to what the run achieved; keeps the other services' CPU per frame for the
+        next plan on this machine (semmap/runtime/detector_choice.py)."""
+        budget = dict(self.plan.budget or {})
+        fps = float(budget.get("planned", {}).get("fps", 30.0))
+        video_s = processed / fps if fps > 0 else 0.0
+        det = [s for s in services.values() if s.get("service") == "detector"]
+        with self.lock:
+            start = dict(self.cpu_at_first_frame)
+        others_cpu = sum(s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
+                         if s.get("service") not in ("detector", None))
+        detect = det[0].get("timings_ms", {}).get("detect_ms", {}) if len(det) == 1 else {}
+        budget["achieved"] = {
+            "detected_frames": detected, "video_s": round(video_s, 2),
+            "detections_per_s": round(detected / video_s, 2) if video_s > 0 else 0.0,
+            "detect_ms_p50": detect.get("p50"), "detect_ms_p95": detect.get("p95"),
+            "detector_cpu_s": round(sum(s.get("cpu_s", 0.0) for s in det), 2),
+            "others_cpu_ms_per_frame": round(1e3 * others_cpu / processed, 1) if processed else None,
+            "wall_s": round(wall_s, 2),
+        }
+        per_frame = budget["achieved"]["others_cpu_ms_per_frame"]
+        if per_frame and processed >= 300 and self.plan.mode == "realtime":
+            try:
+                from semmap.runtime.detector_choice import record_pipeline_cost
+
+                record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame)
+            except (OSError, ValueError):
+                pass
+        return budget
 
     # -- the run --------------------------------------------------------------------------------------------
     def _on_signal(self, *_: object) -> None:

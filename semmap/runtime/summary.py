@@ -58,6 +58,14 @@ def run_summary(out_dir: Path, stats: dict) -> str:
             lines.append(f"    frame {item.get('frame')}: {item.get('reason')}")
         if len(skipped) > 10:
             lines.append(f"    ... and {len(skipped) - 10} more")
+    budget = stats.get("detector_budget") or {}
+    if budget.get("planned") and budget.get("achieved"):
+        p, a = budget["planned"], budget["achieved"]
+        lines.append(
+            f"  detection   planned: {budget.get('detector')}, every {p['every_n_frames']} frame(s), "
+            f"{p['expected_detections_per_s']:.1f}/s; achieved {a['detections_per_s']:.1f}/s of video"
+            + (f", detector {a['detect_ms_p50']:.0f} ms p50 in the run" if a.get("detect_ms_p50") else "")
+        )
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")

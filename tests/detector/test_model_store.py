@@ -148,13 +148,3 @@ def test_quantize_refuses_foreign_models(tmp_path):
     onnx.save(helper.make_model(g), str(tmp_path / "f.onnx"))
     with pytest.raises(ValueError, match="converted by semmap"):
         ms.quantize_int8(tmp_path / "f.onnx", [tmp_path / "x.jpg"])
-
-
-def test_auto_precision_is_int8_in_real_time_where_the_int8_copy_exists(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
-    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
-    assert ms.resolve_precision("auto", realtime=True) == "fp32"  # no int8 copy yet: fp32, which every set-up has
-    (tmp_path / ms.INT8_FILENAME).write_bytes(b"")
-    assert ms.resolve_precision("auto", realtime=True) == "int8"
-    assert ms.resolve_precision("auto", realtime=False) == "fp32"  # lockstep waits for every frame: fp32's figures
-    assert ms.resolve_precision("fp32", realtime=True) == "fp32"
-    assert ms.resolve_precision("int8", realtime=False) == "int8"

@@ -30,7 +30,7 @@ class FrameDetector(Protocol):
 class _Backend:
     name: str
     description: str
-    create: Callable[[DetectorConfig, Path | None], FrameDetector]
+    create: Callable[[DetectorConfig, Path | bytes | None], FrameDetector]
     needs_model: bool  # reads `detector.model` (or the packaged model of `detector.precision`)
 
 
@@ -40,7 +40,7 @@ AUTO = "auto"
 
 def register(
     name: str,
-    create: Callable[[DetectorConfig, Path | None], FrameDetector],
+    create: Callable[[DetectorConfig, Path | bytes | None], FrameDetector],
     description: str,
     needs_model: bool = False,
 ) -> None:
@@ -69,7 +69,7 @@ def needs_model(kind: str) -> bool:
     return _REGISTRY[kind].needs_model
 
 
-def create_detector(kind: str, section: DetectorConfig, model: Path | None = None) -> FrameDetector:
+def create_detector(kind: str, section: DetectorConfig, model: Path | bytes | None = None) -> FrameDetector:
     """Back end `kind` (as `resolve_kind` gives it) built from the `detector` section."""
     backend = _REGISTRY[resolve_kind(kind, synthetic=False)]
     return backend.create(section, model if backend.needs_model else None)
@@ -117,7 +117,7 @@ def check_classes(kind: str, section: DetectorConfig, model: Path | None) -> Non
 class _OracleFrames:
     """The oracle on a frame's ground-truth instances, with the section's allow and deny lists."""
 
-    def __init__(self, section: DetectorConfig, model: Path | None) -> None:
+    def __init__(self, section: DetectorConfig, model: Path | bytes | None) -> None:
         from .oracle import OracleDetector
 
         self.oracle = OracleDetector(
@@ -138,7 +138,7 @@ class _OracleFrames:
 class _OnnxFrames:
     """A YOLO ONNX model on the frame's colour image."""
 
-    def __init__(self, section: DetectorConfig, model: Path | None) -> None:
+    def __init__(self, section: DetectorConfig, model: Path | bytes | None) -> None:
         from .onnx_detector import OnnxDetector
 
         if model is None:
@@ -147,7 +147,7 @@ class _OnnxFrames:
             model,
             conf=section.confidence,
             iou=section.iou,
-            threads=section.threads,
+            threads=section.threads or 2,
             allow=set(section.classes) or None,
             deny=set(section.exclude) or None,
             names=section.names or None,

@@ -160,7 +160,7 @@ class OnnxDetector:
 
     def __init__(
         self,
-        model_path: Path | str,
+        model_path: Path | str | bytes,
         conf: float = 0.4,
         iou: float = 0.45,
         threads: int = 2,
@@ -171,13 +171,16 @@ class OnnxDetector:
         imgsz: int = 640,
         spin: bool = False,
     ) -> None:
-        """spin: let ORT's worker threads busy-wait between ops. Slightly faster on an idle machine, but
+        """model_path: an ONNX file, or a serialized model (bytes, e.g. one resized in memory).
+
+        spin: let ORT's worker threads busy-wait between ops. Slightly faster on an idle machine, but
         with other services on the same cores it steals their CPU and made detection ~1.5x slower here; off by default.
         """
         import onnxruntime as ort  # late: the oracle and CLI help must not pay for it
 
-        self.model_path = Path(model_path)
-        if not self.model_path.is_file():
+        model_bytes = model_path if isinstance(model_path, bytes) else None
+        self.model_path = Path("<in memory>") if model_bytes is not None else Path(model_path)  # type: ignore[arg-type]
+        if model_bytes is None and not self.model_path.is_file():
             raise FileNotFoundError(f"ONNX model not found: {self.model_path}")
         self.conf = float(conf)
         self.iou = float(iou)
@@ -192,7 +195,9 @@ class OnnxDetector:
                 ("TensorrtExecutionProvider", self._trt_options()) if p == "TensorrtExecutionProvider" else p
                 for p in choose_providers(ort.get_available_providers())
             ]
-        self.session = ort.InferenceSession(str(self.model_path), so, providers=list(providers))
+        self.session = ort.InferenceSession(
+            model_bytes if model_bytes is not None else str(self.model_path), so, providers=list(providers)
+        )
         self.providers: list[str] = self.session.get_providers()
 
         inp = self.session.get_inputs()[0]

@@ -573,3 +573,73 @@ def convert_checkpoint(pt: Path | str | bytes, imgsz: tuple[int, int] = DEFAULT_
     model = build_onnx(ckpt, imgsz, hashlib.sha256(raw).hexdigest())
     names = json.loads(next(p.value for p in model.metadata_props if p.key == "names"))
     return model.SerializeToString(), names
+
+
+def resize_input(model: onnx.ModelProto, imgsz: tuple[int, int]) -> onnx.ModelProto:
+    """A copy of a semmap-converted YOLOv5 model (fp32 or its int8 copy) that takes `imgsz` (h, w) input.
+
+    Why: the convolutions do not care about the input size, only the Detect decode does (its grid, stride and
+    anchor constants are precomputed for one size), so a smaller letterbox (e.g. 416x320 for 4:3 frames, about
+    2.3x fewer FLOPs than 640x480) needs no checkpoint: the decode constants are rebuilt for the new grid, with
+    the anchors read back from the old constants.
+    """
+    h, w = int(imgsz[0]), int(imgsz[1])
+    if h % 32 or w % 32 or h <= 0 or w <= 0:
+        raise ValueError(f"input size {h}x{w}: both sides must be positive multiples of 32")
+    meta = {p.key: p.value for p in model.metadata_props}
+    if meta.get("converter") != CONVERTER_ID or "imgsz" not in meta:
+        raise ValueError("input resizing supports models converted by semmap only")
+    h0, w0 = json.loads(meta["imgsz"])
+    strides = [int(s) for s in json.loads(meta["stride"])]
+    out = onnx.ModelProto()
+    out.CopyFrom(model)
+    g = out.graph
+    inits = {t.name: t for t in g.initializer}
+    producers = {o: n for n in g.node for o in n.output}
+    decode = [n for n in g.node if n.name.startswith(DECODE_SCOPE)]
+
+    def const_input(node: onnx.NodeProto) -> str:
+        names = [i for i in node.input if i in inits]
+        if len(names) != 1:
+            raise ValueError(f"decode node {node.name}: expected one constant input")
+        return names[0]
+
+    def put(name: str, arr: np.ndarray) -> None:
+        inits[name].CopyFrom(numpy_helper.from_array(np.ascontiguousarray(arr), name))
+
+    # the first Reshape of each level reads the level's conv output: [1, na, no, h*w]
+    level_shapes = [n.input[1] for n in decode if n.op_type == "Reshape" and n.input[0] not in producers
+                    or n.op_type == "Reshape" and not producers[n.input[0]].name.startswith(DECODE_SCOPE)]
+    if len(level_shapes) != len(strides):
+        raise ValueError("decode head: levels and strides disagree")
+    _, na, no, _ = (int(v) for v in numpy_helper.to_array(inits[level_shapes[0]]))
+    add = next(n for n in decode if n.op_type == "Add")
+    gain_mul = producers[next(i for i in add.input if i not in inits)]
+    wh_mul = next(n for n in decode if n.op_type == "Mul" and any(
+        i in producers and producers[i].op_type == "Mul" and producers[i].input[0] == producers[i].input[1]
+        for i in n.input))  # fmt: skip
+    old_anchor = numpy_helper.to_array(inits[const_input(wh_mul)])[0].astype(np.float64)
+    gain, offset, anchor_wh, row = [], [], [], 0
+    for name, stride in zip(level_shapes, strides, strict=True):
+        gh, gw = h // stride, w // stride
+        n0 = (h0 // stride) * (w0 // stride)
+        anchors = old_anchor[row : row + na * n0 : n0]  # (na, 2), pixels
+        row += na * n0
+        put(name, np.array([1, na, no, gh * gw], dtype=np.int64))
+        gy, gx = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
+        grid = np.tile(np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64), (na, 1))
+        offset.append((grid - 0.5) * stride)
+        gain.append(np.full((grid.shape[0], 1), 2.0 * stride))
+        anchor_wh.append(np.repeat(anchors, gh * gw, axis=0))
+    f32 = np.float32
+    put(const_input(add), np.concatenate(offset)[None].astype(f32))
+    put(const_input(gain_mul), np.concatenate(gain)[None].astype(f32))
+    put(const_input(wh_mul), np.concatenate(anchor_wh)[None].astype(f32))
+    dims = g.input[0].type.tensor_type.shape.dim
+    dims[2].dim_value, dims[3].dim_value = h, w
+    g.output[0].type.tensor_type.shape.dim[1].dim_value = sum(na * (h // s) * (w // s) for s in strides)
+    del g.value_info[:]
+    meta["imgsz"] = json.dumps([h, w])
+    del out.metadata_props[:]
+    helper.set_model_props(out, meta)
+    return out

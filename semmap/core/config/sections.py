@@ -111,18 +111,30 @@ class DetectorConfig(Section):
     )
     precision: Literal["auto", "fp32", "int8"] = Field(
         "auto",
-        description="auto (int8 in real time where its copy exists, fp32 otherwise) | fp32 | int8 (~2x faster on "
-        "CPU, agrees with fp32 at F1 >= 0.93; `semmap models quantize DATASET` makes it, ./dev.sh does)",
+        description="auto (real time: the configuration measured fastest on this machine among those agreeing "
+        "with fp32 at full size, `semmap models doctor`; fp32 otherwise) | fp32 | int8 (~2x faster on CPUs with "
+        "VNNI, no gain without; `semmap models quantize DATASET` makes it, ./dev.sh does)",
+    )
+    input_size: str = Field(
+        "auto",
+        pattern=r"^(auto|[1-9][0-9]*x[1-9][0-9]*)$",
+        description="letterbox WxH (multiples of 32, e.g. 512x384) | auto (real time with precision auto: the "
+        "measured choice; the model's own size, 640x480, otherwise)",
     )
     names: OptionalFile = Field("", description="class names file for a bring-your-own model")
     confidence: Probability = Field(0.4, description="paper")
     iou: Probability = 0.45
     depth_min_m: NonNegative = Field(0.2, description="paper")
     depth_max_m: Positive = Field(25.0, description="paper")
-    threads: AtLeastOne = 2
+    threads: Count = Field(0, description="intra-op CPU threads; 0 = auto (the measured choice in real time "
+                           "with precision auto, 2 otherwise)")
     classes: Names = Field((), description="allow list (empty = all)")
     exclude: Names = Field((), description="deny list")
-    every_n_frames: AtLeastOne = Field(1, description="detect every n-th frame (others are passed on as skipped)")
+    every_n_frames: Count = Field(
+        0,
+        description="detect every n-th frame (others are passed on as skipped); 0 = auto: every frame in lockstep, "
+        "in real time the cadence the frame budget allows (measured detector cost, cores shared with the others)",
+    )
     depth_patch_stride: AtLeastOne = Field(2, description="subsampling of the depth pixels sent with each detection")
     queue: AtLeastOne = Field(
         1,

@@ -18,7 +18,7 @@ from semmap.algorithms.detector import create_detector, needs_model, resolve_kin
 from semmap.algorithms.detector.onnx_detector import DetectedBox
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, Detections, Frame
-from semmap.runtime.model_store import packaged_model, resolve_precision
+from semmap.runtime.detector_choice import describe_plan, load_detector_model, resolve_setup, setup_plan
 from semmap.runtime.pipeline import depth_detections
 from semmap.runtime.service import Service, service_main
 
@@ -36,15 +36,30 @@ class DetectorService(Service):
         self.cfg = cfg
         # (`semmap run` resolves `auto` for its dataset; a detector started by hand sees a camera)
         self.kind = resolve_kind(cfg.kind, synthetic=False)
-        self.every_n = cfg.every_n_frames
+        self.every_n = cfg.every_n_frames or 1
         self.stride = cfg.depth_patch_stride
-        self.precision = resolve_precision(cfg.precision, realtime=not self.lockstep)
-        model = Path(cfg.model or packaged_model(self.precision)) if needs_model(self.kind) else None
+        model: Path | bytes | None = None
+        self.precision = cfg.precision
+        if needs_model(self.kind) and cfg.model:
+            model = Path(cfg.model)
+        elif needs_model(self.kind):  # the packaged YOLOv5s: this machine's measured choice (issue 31)
+            setup = resolve_setup(cfg.precision, cfg.threads, cfg.input_size, realtime=not self.lockstep)
+            self.precision = setup.precision
+            model = load_detector_model(setup)
+            cfg = cfg.model_copy(update={"threads": setup.threads})
+            self.log.info("%s model %s (%s, %s%s)", self.kind, setup.label(), setup.origin,
+                          "auto" if self.cfg.precision == "auto" else "set",
+                          "" if isinstance(model, Path) else ", resized in memory")
+            if not self.lockstep and self.cfg.every_n_frames == 0:
+                speed = float(getattr(self.config.run, "speed", 1.0) or 1.0)
+                plan, source = setup_plan(setup, 30.0 * speed, self.config.odometry.mode)
+                if plan is not None:
+                    self.every_n = plan.every_n
+                    self.log.info("frame budget: %s", describe_plan(plan, source))
         self.detector = create_detector(self.kind, cfg, model)
         if model is not None:
-            self.log.info("%s model %s (%s%s) on %s", self.kind, model, self.precision,
-                          ", auto" if cfg.precision == "auto" and not cfg.model else "",
-                          ", ".join(getattr(self.detector, "providers", [])))
+            self.log.info("%s detector on %s, every %d frame(s)", self.kind,
+                          ", ".join(getattr(self.detector, "providers", [])), self.every_n)
         self.pub = self.publisher(self.bus.keys.detections)
         # replica membership from liveliness tokens
         self._members: set[str] = {self.instance}
@@ -63,6 +78,7 @@ class DetectorService(Service):
         # arrive after the next frame, so a gap already counted as dropped is taken back)
         self._unreadable: set[int] = set()
         self._dropped_ids: set[int] = set()
+        self._last_detected_id: int | None = None
         self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
@@ -108,9 +124,10 @@ class DetectorService(Service):
                 self._publish_skip(frame, missed, "dropped")
         self.last_mine = frame.frame_id
         self._last_frame = frame
-        if frame.frame_id % self.every_n:
+        if self._stride_skips(frame.frame_id):
             self._publish_skip(frame, frame.frame_id, "stride")
             return
+        self._last_detected_id = frame.frame_id
         with self.metrics.timer("detect_ms") as t_detect:
             try:
                 boxes = self._detect(frame)
@@ -154,6 +171,17 @@ class DetectorService(Service):
             self.metrics.counters["frames_dropped"] -= 1
         self._unreadable = {f for f in self._unreadable if f > frame_id - 1000}  # (bounded)
         self._dropped_ids = {f for f in self._dropped_ids if f > frame_id - 1000}
+
+
+    def _stride_skips(self, frame_id: int) -> bool:
+        """Lockstep: every n-th frame by id. Real time: a frame at least n frames after the last one detected, so a
+        detector that ran late (its queue handed it a newer frame) takes that frame instead of idling until the
+        next multiple of n."""
+        if self.every_n <= 1:
+            return False
+        if self.lockstep or self._last_detected_id is None:
+            return frame_id % self.every_n != 0
+        return frame_id - self._last_detected_id < self.every_n
 
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")

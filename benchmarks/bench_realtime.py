@@ -1,0 +1,111 @@
+"""Real time on the CPU at hand (issue 31): the measured detector choice and what `semmap run --realtime` achieves.
+
+    .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry gt,rgbd] [--json-out F]
+
+1. `--choice`: measures every detector configuration on this machine (as `semmap models doctor --remeasure`) and
+   prints the table: latency alone, CPU per frame, expected time per detection in a real-time run, F1 against
+   fp32 640x480 and recall per class (cups and books are small).
+2. Runs 7-Scenes redkitchen (1000 frames, 33.3 s of video) once in lockstep and `--runs` times in real time per
+   odometry mode, each with nothing else set (`semmap run DATA --odometry MODE [--realtime] --out ...`), and prints
+   per run: wall time (and its ratio to the video's length), frames detected, detections per 0.1 s of video,
+   dropped frames, frames answered, landmarks (and their share of the lockstep run's), the planned and the
+   achieved cadence, and the load average before the run (the machine is shared: quote medians).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from semmap.datasets import find_data_root  # noqa: E402
+from semmap.runtime import detector_choice as dc  # noqa: E402
+
+VIDEO_S = 1000 / 30.0
+
+
+def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
+    load = os.getloadavg()[0]
+    cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--odometry", odometry, "--out", str(out),
+           "--overwrite", "--quiet"] + (["--realtime"] if realtime else [])  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
+    stats = json.loads((out / "stats.json").read_text())
+    landmarks = len(json.loads((out / "map.json").read_text()).get("landmarks", []))
+    frames = stats["frames"]
+    answered = sum(s["counters"].get("poses_published", 0) for s in stats["services"].values()
+                   if s.get("service") == "odometry")  # fmt: skip
+    budget = stats.get("detector_budget") or {}
+    return {
+        "odometry": odometry, "mode": "realtime" if realtime else "lockstep", "wall_s": round(wall, 1),
+        "x_video": round(wall / VIDEO_S, 2), "load_before": round(load, 2), "detected": frames["detected"],
+        "per_0.1s": round(frames["detected"] / VIDEO_S / 10, 2), "dropped": frames["dropped"],
+        "processed": frames["processed"], "published": frames["published"], "landmarks": landmarks,
+        "planned": budget.get("planned", {}).get("every_n_frames"),
+        "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
+        "detector": budget.get("detector"),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--choice", action="store_true", help="measure the detector configurations first")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--odometry", default="gt,rgbd")
+    ap.add_argument("--no-lockstep", action="store_true", help="skip the lockstep reference runs")
+    ap.add_argument("--json-out", type=Path, default=None)
+    args = ap.parse_args()
+    root = find_data_root()
+    data = root / "7scenes-redkitchen" if root is not None else None
+    if data is None or not data.is_dir():
+        print("skipped: 7-Scenes redkitchen not in ../shared/data", file=sys.stderr)
+        return 0
+    if args.choice:
+        doc = dc.measure_and_save(data, progress=lambda line: print(line, file=sys.stderr))
+    else:
+        doc = dc.load_choice()
+    if doc is not None:
+        print(dc.format_table(doc))
+    results = []
+    with tempfile.TemporaryDirectory(prefix="semmap-rt-") as tmp:
+        for odometry in args.odometry.split(","):
+            lock = None if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}", odometry, False)
+            if lock:
+                results.append(lock)
+                print(json.dumps(lock), flush=True)
+            for i in range(args.runs):
+                r = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True)
+                if lock:
+                    r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
+                results.append(r)
+                print(json.dumps(r), flush=True)
+    print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
+          f"{'poses':>6} {'landmarks':>10} {'load':>6}")  # fmt: skip
+    for r in results:
+        print(f"{r['odometry']:<8} {r['mode']:<9} {r['wall_s']:7.1f} {r['x_video']:8.2f} {r['per_0.1s']:9.2f} "
+              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f}")  # fmt: skip
+    for odometry in args.odometry.split(","):
+        rt = [r for r in results if r["odometry"] == odometry and r["mode"] == "realtime"]
+        if rt:
+            med = {k: statistics.median(r[k] for r in rt) for k in ("wall_s", "per_0.1s", "landmarks")}
+            print(f"median real time, {odometry}: {med}")
+    if args.json_out:
+        args.json_out.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

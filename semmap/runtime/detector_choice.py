@@ -1,0 +1,581 @@
+"""Which detector configuration serves real time on this machine: chosen by measuring, cached per machine.
+
+Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI and gains nothing on an AVX2-only one (issue 31), so
+no fixed default is right everywhere. `measure_configs` times each configuration that could serve real time
+(precision fp32/int8 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
+size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes the fastest one that agrees
+(F1 >= AGREEMENT_F1). The result is cached as JSON beside the models (`detector_choice.json`), keyed by the CPU
+model, its SIMD flags, the core count and the onnxruntime version: another machine (or an upgrade) measures
+again. `semmap models doctor` prints the table; `detector.precision: auto` in real time reads the choice.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import platform
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from semmap.core.outputs import atomic_write_bytes
+from semmap.runtime.model_store import INT8_FILENAME, default_model_path, get_model_dir
+
+log = logging.getLogger(__name__)
+
+CHOICE_FILENAME = "detector_choice.json"
+CHOICE_VERSION = 1
+AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
+TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
+IOU_MATCH = 0.5
+FULL_HW = (480, 640)
+# letterbox sizes (h, w) tried; 4:3 frames fill 512x384 and 416x320 without padding, 640x384 pads the sides
+SIZES: tuple[tuple[int, int], ...] = ((480, 640), (384, 640), (384, 512), (352, 480), (320, 416))
+# SIMD features that decide what int8 and fp32 cost (the key of the cache)
+KEY_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16",
+             "avx_vnni", "amx_int8", "amx_bf16", "asimd", "asimddp", "i8mm", "sve")  # fmt: skip
+SMALL_CLASSES = ("cup", "book", "bottle", "mouse", "cell phone", "remote")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The machine
+
+
+def _cpuinfo() -> tuple[str, set[str]]:
+    model, flags = "", set()
+    try:
+        text = Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return platform.processor() or platform.machine(), flags
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip().lower()
+        if key in ("model name", "cpu model", "hardware") and not model:
+            model = value.strip()
+        elif key in ("flags", "features") and not flags:
+            flags = set(value.split())
+    return model or platform.processor() or platform.machine(), flags
+
+
+def hardware_key() -> dict[str, Any]:
+    """What the measurement depends on: CPU model, its SIMD flags, the cores this process may use, onnxruntime."""
+    import onnxruntime as ort
+
+    model, flags = _cpuinfo()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return {
+        "cpu": model,
+        "flags": sorted(f for f in KEY_FLAGS if f in flags),
+        "cores": cores,
+        "onnxruntime": ort.__version__,
+        "providers": sorted(ort.get_available_providers()),
+    }
+
+
+def has_vnni(key: dict[str, Any]) -> bool:
+    return any(f in key.get("flags", ()) for f in ("avx512_vnni", "avx_vnni", "amx_int8", "asimddp"))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Configurations and their agreement
+
+
+@dataclass(frozen=True)
+class DetectorConfigChoice:
+    """One way to run the detector: which copy of the model, how many threads, which letterbox."""
+
+    precision: str  # fp32 | int8
+    threads: int
+    height: int
+    width: int
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    def label(self) -> str:
+        return f"{self.precision} {self.width}x{self.height} {self.threads}t"
+
+
+@dataclass
+class Measured:
+    config: DetectorConfigChoice
+    p50_ms: float
+    p90_ms: float
+    cpu_ms: float  # process CPU time per frame (what it takes from the services sharing the cores)
+    f1: float  # with TIE_MARGIN: the gate
+    recall: float
+    precision: float
+    recall_per_class: dict[str, float] = field(default_factory=dict)
+    f1_strict: float = 0.0  # without the margin (both at the confidence threshold): reported
+    min_ms: float = 0.0  # fastest frame: the cost alone on a machine shared with others (timeit's convention)
+
+    @property
+    def alone_ms(self) -> float:
+        """Latency alone: the fastest frame, or its CPU time over its threads where that is less (other programs
+        on a shared machine stretch wall times, hardly CPU times)."""
+        wall = self.min_ms or self.p50_ms
+        return min(wall, self.cpu_ms / max(1, self.config.threads)) if self.cpu_ms > 0 else wall
+
+    @property
+    def agrees(self) -> bool:
+        return self.f1 >= AGREEMENT_F1
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["config"] = asdict(self.config)
+        d["agrees"] = self.agrees
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Measured:
+        d = {k: v for k, v in d.items() if k != "agrees"}
+        return cls(**{**d, "config": DetectorConfigChoice(**d["config"])})
+
+
+def _iou(a: Any, b: Any) -> float:
+    w = max(0.0, min(a.x2, b.x2) - max(a.x1, b.x1))
+    h = max(0.0, min(a.y2, b.y2) - max(a.y1, b.y1))
+    inter = w * h
+    union = (a.x2 - a.x1) * (a.y2 - a.y1) + (b.x2 - b.x1) * (b.y2 - b.y1) - inter
+    return inter / union if union > 0 else 0.0
+
+
+def match(ref: Sequence[Any], other: Sequence[Any]) -> list[int]:
+    """Indices of `ref` boxes matched one-to-one (same class, IoU >= 0.5, best pairs first) by `other`."""
+    pairs = sorted(
+        ((_iou(a, b), i, j) for i, a in enumerate(ref) for j, b in enumerate(other) if a.class_name == b.class_name),
+        reverse=True,
+    )
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    for value, i, j in pairs:
+        if value < IOU_MATCH:
+            break
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+    return sorted(used_a)
+
+
+def agreement(
+    ref: Sequence[Sequence[Any]], out: Sequence[Sequence[Any]], conf: float = 0.4, margin: float = 0.0
+) -> tuple[float, float, float, dict[str, float]]:
+    """(F1, recall, precision, recall per class) of detections `out` against reference `ref`, frame by frame.
+
+    Boxes scored at or above `conf` count; with a `margin`, a box may be matched by one the other model scored
+    down to `conf - margin` (both lists must then hold boxes down to that score): a box that one model scores 0.41
+    and the other 0.39 is a tie at the threshold, not a disagreement.
+    """
+    floor = conf - margin
+    ref_hi = [[b for b in r if b.score >= conf] for r in ref]
+    out_hi = [[b for b in o if b.score >= conf] for o in out]
+    ref_lo = [[b for b in r if b.score >= floor] for r in ref]
+    out_lo = [[b for b in o if b.score >= floor] for o in out]
+    n_ref = sum(len(r) for r in ref_hi)
+    n_out = sum(len(o) for o in out_hi)
+    per_class_ref: dict[str, int] = {}
+    per_class_hit: dict[str, int] = {}
+    found = kept = 0
+    for r_hi, o_lo, r_lo, o_hi in zip(ref_hi, out_lo, ref_lo, out_hi, strict=True):
+        matched = set(match(r_hi, o_lo))
+        found += len(matched)
+        kept += len(match(o_hi, r_lo))
+        for i, box in enumerate(r_hi):
+            per_class_ref[box.class_name] = per_class_ref.get(box.class_name, 0) + 1
+            per_class_hit[box.class_name] = per_class_hit.get(box.class_name, 0) + (i in matched)
+    recall = found / n_ref if n_ref else 1.0
+    precision = kept / n_out if n_out else (1.0 if n_ref == 0 else 0.0)
+    f1 = 2 * recall * precision / (recall + precision) if recall + precision > 0 else 0.0
+    per_class = {c: per_class_hit[c] / n for c, n in sorted(per_class_ref.items())}
+    return f1, recall, precision, per_class
+
+
+def choose(rows: Sequence[Measured], cores: int) -> Measured | None:
+    """The configuration whose detections agree with fp32 at full size and that detects most often in a
+    real-time run (`rank_for_realtime`: its CPU time over the cores the other services leave, or its latency)."""
+    ranked = rank_for_realtime(rows, cores)
+    return ranked[0] if ranked else None
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Measuring
+
+
+def candidate_configs(
+    have_int8: bool, cores: int, sizes: Sequence[tuple[int, int]] = SIZES
+) -> list[DetectorConfigChoice]:
+    precisions = ["fp32", "int8"] if have_int8 else ["fp32"]
+    threads = sorted({1, min(2, max(1, cores))})
+    return [DetectorConfigChoice(p, t, h, w) for p in precisions for (h, w) in sizes for t in threads]
+
+
+def model_bytes(precision: str, hw: tuple[int, int], model_dir: Path | None = None) -> bytes:
+    """The packaged model of `precision` with its input resized to `hw` (serialized ONNX, built in memory)."""
+    import onnx
+
+    from semmap.algorithms.detector.yolov5_convert import resize_input
+    from semmap.runtime.model_store import packaged_model
+
+    directory = Path(model_dir) if model_dir is not None else get_model_dir()
+    path = default_model_path(directory) if precision == "fp32" else directory / INT8_FILENAME
+    if not path.is_file():
+        path = packaged_model(precision)  # raises the usual "fetch"/"quantize" hint
+    model = onnx.load(str(path))
+    return resize_input(model, hw).SerializeToString()
+
+
+def measure_configs(
+    images: Sequence[Any],
+    configs: Sequence[DetectorConfigChoice],
+    timing_frames: int = 12,
+    conf: float = 0.4,
+    iou: float = 0.45,
+    model_dir: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[Measured]:
+    """Time each configuration on `images` (RGB uint8 arrays) and score it against fp32 at full size."""
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector
+
+    def detector(c: DetectorConfigChoice, blob: bytes) -> OnnxDetector:
+        return OnnxDetector(blob, conf=conf, iou=iou, threads=c.threads)
+
+    def low(det: OnnxDetector) -> list[Any]:  # every image's boxes down to conf - TIE_MARGIN
+        det.conf = conf - TIE_MARGIN
+        try:
+            return [det.detect(img) for img in images]
+        finally:
+            det.conf = conf
+
+    blobs: dict[tuple[str, tuple[int, int]], bytes] = {}
+    outputs: dict[tuple[str, tuple[int, int]], list[Any]] = {}
+    ref_cfg = DetectorConfigChoice("fp32", max(c.threads for c in configs), *FULL_HW)
+    ref_key = ("fp32", FULL_HW)
+    blobs[ref_key] = model_bytes("fp32", FULL_HW, model_dir)
+    ref_det = detector(ref_cfg, blobs[ref_key])
+    outputs[ref_key] = low(ref_det)
+    del ref_det
+    rows = []
+    timing = list(images[: max(1, timing_frames)])
+    for c in configs:
+        key = (c.precision, c.hw)
+        if key not in blobs:
+            blobs[key] = model_bytes(c.precision, c.hw, model_dir)
+        det = detector(c, blobs[key])
+        det.detect(timing[0])  # warm-up: first-run allocations
+        wall = []
+        cpu0 = time.process_time()
+        for img in timing:
+            t0 = time.perf_counter()
+            det.detect(img)
+            wall.append((time.perf_counter() - t0) * 1e3)
+        cpu_ms = (time.process_time() - cpu0) * 1e3 / len(timing)
+        if key not in outputs:
+            outputs[key] = low(det)
+        f1, rec, prec, per_class = agreement(outputs[ref_key], outputs[key], conf, TIE_MARGIN)
+        strict = agreement(outputs[ref_key], outputs[key], conf, 0.0)[0]
+        wall.sort()
+        row = Measured(c, wall[len(wall) // 2], wall[min(len(wall) - 1, int(0.9 * len(wall)))], cpu_ms, f1, rec,
+                       prec, per_class, strict, wall[0])  # fmt: skip
+        rows.append(row)
+        if progress is not None:
+            progress(f"{c.label():>18}: {row.p50_ms:6.1f} ms p50, F1 {row.f1:.2f}")
+    return rows
+
+
+def calibration_images(source: str | Path | None, count: int = 24) -> tuple[list[Any], str]:
+    """`count` RGB frames evenly spread over a dataset (7-Scenes under ../shared/data when none is given and it is
+    there, else the synthetic scene); returns (images, where they came from)."""
+    import numpy as np
+
+    from semmap.datasets import find_data_root, open_dataset
+
+    if source is None:
+        root = find_data_root()
+        seven = root / "7scenes-redkitchen" if root is not None else None
+        source = seven if seven is not None and seven.is_dir() else f"synthetic:frames={count * 4}"
+    dataset = open_dataset(source)
+    idx = np.linspace(0, len(dataset) - 1, min(count, len(dataset))).astype(int)
+    return [dataset[int(i)].rgb for i in idx], str(source)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The cache
+
+
+def choice_path(model_dir: Path | None = None) -> Path:
+    return (Path(model_dir) if model_dir is not None else get_model_dir()) / CHOICE_FILENAME
+
+
+def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, model_dir: Path | None = None) -> Path:
+    best = choose(rows, int(key.get("cores", 1)))
+    doc = {
+        "version": CHOICE_VERSION,
+        "key": key,
+        "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "load_average": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
+        "frames": source,
+        "rule": f"F1 >= {AGREEMENT_F1} against fp32 {FULL_HW[1]}x{FULL_HW[0]} (ties within {TIE_MARGIN} of the "
+        "confidence threshold count as agreement), then the shortest time per detection in a real-time run",
+        "rows": [r.to_dict() for r in rows],
+        "choice": best.to_dict() if best is not None else None,
+    }
+    before = load_choice(model_dir, key)  # the same machine measured again: keep what its runs measured
+    if before and before.get("pipeline_cpu_ms_per_frame"):
+        doc["pipeline_cpu_ms_per_frame"] = before["pipeline_cpu_ms_per_frame"]
+    path = choice_path(model_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
+    return path
+
+
+def load_choice(model_dir: Path | None = None, key: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """The cached measurement if it was made on this machine (same key), else None (measure again)."""
+    path = choice_path(model_dir)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict) or doc.get("version") != CHOICE_VERSION:
+        return None
+    if doc.get("key") != (key if key is not None else hardware_key()):
+        return None
+    return doc
+
+
+def cached_choice(model_dir: Path | None = None, key: dict[str, Any] | None = None) -> Measured | None:
+    doc = load_choice(model_dir, key)
+    if doc is None or not doc.get("choice"):
+        return None
+    return Measured.from_dict(doc["choice"])
+
+
+def measure_and_save(
+    source: str | Path | None = None,
+    frames: int = 48,
+    model_dir: Path | None = None,
+    sizes: Sequence[tuple[int, int]] = SIZES,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Measure every candidate on this machine and cache the result; returns the cached document."""
+    key = hardware_key()
+    directory = Path(model_dir) if model_dir is not None else get_model_dir()
+    images, where = calibration_images(source, frames)
+    configs = candidate_configs((directory / INT8_FILENAME).is_file(), int(key["cores"]), sizes)
+    rows = measure_configs(images, configs, model_dir=directory, progress=progress)
+    save_choice(rows, key, where, directory)
+    doc = load_choice(directory, key)
+    assert doc is not None
+    return doc
+
+
+def format_table(doc: dict[str, Any]) -> str:
+    """The measured configurations as a text table, fastest first, and the choice."""
+    key = doc["key"]
+    lines = [
+        f"machine: {key['cpu']}, {key['cores']} cores, flags {' '.join(key['flags']) or '-'}"
+        f" ({'VNNI' if has_vnni(key) else 'no VNNI'}), onnxruntime {key['onnxruntime']}",
+        f"measured {doc['measured_at']} (load average {doc.get('load_average')}) on {doc['frames']}",
+        f"rule: {doc['rule']}",
+        f"{'config':<20} {'min ms':>7} {'p50 ms':>7} {'cpu ms':>7} {'in run':>7} {'F1':>5} {'strict':>6} "
+        f"{'recall':>6}  small-object recall",
+    ]
+    cores = int(key.get("cores", 1))
+    others, _ = others_cpu_ms("gt", doc)
+
+    def in_run(r: Measured) -> float:
+        return plan_cadence(r, cores, 30.0, others).interval_ms
+
+    rows = sorted((Measured.from_dict(r) for r in doc["rows"]), key=in_run)
+    for r in rows:
+        small = ", ".join(f"{c} {v:.2f}" for c, v in r.recall_per_class.items() if c in SMALL_CLASSES)
+        mark = "" if r.agrees else "  (disagrees)"
+        lines.append(f"{r.config.label():<20} {r.alone_ms:7.1f} {r.p50_ms:7.1f} {r.cpu_ms:7.1f} {in_run(r):7.1f} "
+                     f"{r.f1:5.2f} {r.f1_strict:6.2f} {r.recall:6.2f}  {small}{mark}")  # fmt: skip
+    lines.append(f"(in run: expected ms per detection in a real-time run at 30 fps, the other services taking "
+                 f"{others:.0f} ms of CPU per frame of the {cores} cores)")
+    best = doc.get("choice")
+    if best:
+        lines.append(f"choice (detector.precision auto, real time): {Measured.from_dict(best).config.label()}")
+    else:
+        lines.append("choice: none agrees with fp32; real time runs fp32 at full size")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The frame budget: how often the detector can run while the other services share the cores
+
+# CPU the other services of a real-time run take per frame of video (player, odometry, tracker, associator,
+# backend, viewer), used until a run on this machine has measured it (then `record_pipeline_cost` keeps the
+# figure in the cache, per odometry mode). Measured on the 2-core AMD EPYC (7-Scenes, 30 fps, session 11).
+DEFAULT_OTHERS_CPU_MS = {"gt": 30.0, "rgbd": 40.0}
+DEFAULT_OTHERS_FALLBACK_MS = 40.0
+MIN_FREE_CORES = 0.25
+
+
+@dataclass(frozen=True)
+class CadencePlan:
+    """What real time will achieve: a detection at most every `interval_ms` of video."""
+
+    detect_alone_ms: float  # latency alone (the measurement)
+    interval_ms: float  # expected time per detection inside the pipeline
+    free_cores: float  # cores left to the detector by the other services
+    others_cpu_ms: float  # the other services' CPU per frame of video
+    fps: float
+    threads: int = 1
+
+    @property
+    def flat_out(self) -> bool:
+        """Its threads fit in the cores the others leave: it may take the next frame as soon as it is free (its
+        queue keeps the newest) without starving them. Otherwise its cadence is held to its share."""
+        return self.threads <= self.free_cores
+
+    @property
+    def every_n(self) -> int:
+        ratio = self.interval_ms * self.fps / 1e3  # frames of video per detection
+        if self.flat_out:
+            return max(1, math.floor(ratio + 0.05))
+        return max(1, math.ceil(ratio - 0.05))  # (a 5 % slack: the next frame is close)
+
+    @property
+    def detections_per_s(self) -> float:
+        return min(self.fps / self.every_n, 1e3 / self.interval_ms)
+
+    def to_dict(self) -> dict[str, float]:
+        return {"detect_alone_ms": round(self.detect_alone_ms, 1), "interval_ms": round(self.interval_ms, 1),
+                "free_cores": round(self.free_cores, 2), "others_cpu_ms_per_frame": round(self.others_cpu_ms, 1),
+                "fps": self.fps, "every_n_frames": self.every_n,
+                "expected_detections_per_s": round(self.detections_per_s, 2)}  # fmt: skip
+
+
+def plan_cadence(row: Measured, cores: int, fps: float, others_cpu_ms: float) -> CadencePlan:
+    """The detector's time per frame inside a real-time run: its CPU time spread over the cores the others leave
+    (cores - their CPU per second), never less than its latency alone."""
+    others_cores = others_cpu_ms * fps / 1e3
+    free = max(MIN_FREE_CORES, float(cores) - others_cores)
+    interval = max(row.alone_ms, row.cpu_ms / min(float(row.config.threads), free))
+    return CadencePlan(row.alone_ms, interval, free, others_cpu_ms, fps, row.config.threads)
+
+
+def others_cpu_ms(odometry: str, doc: dict[str, Any] | None) -> tuple[float, str]:
+    """(CPU ms per frame the other services take, where the figure comes from) for this odometry mode."""
+    mode = odometry.split(":", 1)[0]
+    measured = (doc or {}).get("pipeline_cpu_ms_per_frame", {}).get(mode)
+    if measured:
+        return float(measured), "measured by the last real-time run here"
+    return DEFAULT_OTHERS_CPU_MS.get(mode, DEFAULT_OTHERS_FALLBACK_MS), "default estimate"
+
+
+def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path | None = None) -> bool:
+    """Keep the other services' CPU per frame measured by a real-time run (only in this machine's cache)."""
+    doc = load_choice(model_dir)
+    if doc is None or cpu_ms_per_frame <= 0:
+        return False
+    doc.setdefault("pipeline_cpu_ms_per_frame", {})[odometry.split(":", 1)[0]] = round(cpu_ms_per_frame, 1)
+    atomic_write_bytes(choice_path(model_dir), (json.dumps(doc, indent=1) + "\n").encode())
+    return True
+
+
+def rank_for_realtime(rows: Sequence[Measured], cores: int, fps: float = 30.0,
+                      others: float = DEFAULT_OTHERS_CPU_MS["gt"]) -> list[Measured]:
+    """Agreeing configurations, best for real time first: shortest time per detection inside the pipeline."""
+    ok = [r for r in rows if r.agrees]
+    return sorted(ok, key=lambda r: (plan_cadence(r, cores, fps, others).interval_ms, r.alone_ms))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# What a detector of a run uses
+
+
+@dataclass(frozen=True)
+class DetectorSetup:
+    """How the detector of a run is built, and why."""
+
+    precision: str
+    threads: int
+    hw: tuple[int, int] | None  # letterbox (h, w); None: the model's own input size
+    origin: str  # "measured on this machine" | "set" | "not measured here: ..."
+    measured: Measured | None = None  # the cached row of this configuration, if there is one
+
+    def label(self) -> str:
+        size = f"{self.hw[1]}x{self.hw[0]}" if self.hw else "model size"
+        return f"{self.precision} {size} {self.threads} thread{'s' if self.threads != 1 else ''}"
+
+
+def parse_size(text: str) -> tuple[int, int] | None:
+    """'512x384' (W x H) -> (384, 512) (h, w); 'auto' -> None."""
+    if text == "auto":
+        return None
+    w, _, h = text.partition("x")
+    hw = (int(h), int(w))
+    if hw[0] % 32 or hw[1] % 32:
+        raise ValueError(f"detector.input_size {text}: both sides must be multiples of 32")
+    return hw
+
+
+def resolve_setup(precision: str, threads: int, input_size: str, realtime: bool,
+                  model_dir: Path | None = None) -> DetectorSetup:  # fmt: skip
+    """The detector configuration of a run. `auto` precision in real time takes this machine's measured choice
+    (`semmap models doctor`); where nothing was measured here, fp32 at full size (int8 only gains on CPUs with
+    VNNI, and nothing says this one has it). Explicit settings win; lockstep is fp32 at full size (its figures
+    are fp32's)."""
+    hw = parse_size(input_size)
+    if precision == "auto" and realtime:
+        doc = load_choice(model_dir)
+        best = Measured.from_dict(doc["choice"]) if doc and doc.get("choice") else None
+        if best is not None:
+            c = best.config
+            return DetectorSetup(c.precision, threads or c.threads, hw or (c.height, c.width),
+                                 "measured on this machine", best)  # fmt: skip
+        return DetectorSetup("fp32", threads or 2, hw, "not measured on this machine (`semmap models doctor`)")
+    fixed = "fp32" if precision == "auto" else precision
+    row = None
+    doc = load_choice(model_dir) if realtime else None
+    for r in (doc or {}).get("rows", []):
+        m = Measured.from_dict(r)
+        if (m.config.precision, m.config.threads, m.config.hw) == (fixed, threads or 2, hw or FULL_HW):
+            row = m
+    return DetectorSetup(fixed, threads or 2, hw, "set" if precision != "auto" else "lockstep", row)
+
+
+def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path | None = None,
+               cores: int | None = None) -> tuple[CadencePlan | None, str]:  # fmt: skip
+    """The real-time cadence for `setup` (None when its cost was never measured here) and where the other
+    services' cost comes from."""
+    if setup.measured is None:
+        return None, ""
+    doc = load_choice(model_dir)
+    others, source = others_cpu_ms(odometry, doc)
+    n = cores if cores is not None else int((doc or {}).get("key", {}).get("cores") or os.cpu_count() or 1)
+    m = setup.measured
+    row = Measured(DetectorConfigChoice(setup.precision, setup.threads, *(setup.hw or FULL_HW)), m.p50_ms,
+                   m.p90_ms, m.cpu_ms, m.f1, m.recall, m.precision, min_ms=m.min_ms)  # fmt: skip
+    return plan_cadence(row, n, fps, others), source
+
+
+def load_detector_model(setup: DetectorSetup, model_dir: Path | None = None) -> Path | bytes:
+    """The packaged model file of the setup's precision, or a copy resized in memory to its letterbox."""
+    from semmap.runtime.model_store import packaged_model
+
+    path = packaged_model(setup.precision)
+    if setup.hw is None or setup.hw == FULL_HW:
+        return path
+    return model_bytes(setup.precision, setup.hw, model_dir)
+
+
+def ordinal(n: int) -> str:  # "every 3rd frame"
+    return {1: "every frame", 2: "every 2nd frame", 3: "every 3rd frame"}.get(n, f"every {n}th frame")
+
+
+def describe_plan(plan: CadencePlan, source: str) -> str:
+    """One line: what a real-time run will achieve with this plan."""
+    return (f"detector {plan.detect_alone_ms:.0f} ms alone, ~{plan.interval_ms:.0f} ms in the run (the other services "
+            f"take {plan.others_cpu_ms:.0f} ms CPU per frame, {source}: {plan.free_cores:.1f} cores left), "
+            f"{ordinal(plan.every_n)} at {plan.fps:g} fps"
+            + (f", taken as fast as it can (its {plan.threads} thread{'s' if plan.threads > 1 else ''} fit in the "
+               "cores left)" if plan.flat_out else "")
+            + f"; expected {plan.detections_per_s:.1f} detections/s")

@@ -1,0 +1,201 @@
+"""The real-time detector choice (issue 31): input resizing, the agreement rule, the cache keyed by the machine,
+the frame budget and `semmap models doctor`. Nothing here times anything for pass/fail: the measured rows are
+made up; only their bookkeeping is checked."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+
+from semmap.algorithms.detector.onnx_detector import DetectedBox
+from semmap.algorithms.detector.yolov5_convert import convert_checkpoint, resize_input
+from semmap.runtime import detector_choice as dc
+from semmap.runtime.model_store import MODEL_FILENAME
+
+from .tiny_yolo import tiny_checkpoint
+
+
+def _box(cls: str, x: float, score: float = 0.8, size: float = 20.0) -> DetectedBox:
+    return DetectedBox(x, 10.0, x + size, 10.0 + size, 0, cls, score)
+
+
+def _row(precision: str, threads: int, hw: tuple[int, int], p50: float, cpu: float, f1: float) -> dc.Measured:
+    return dc.Measured(dc.DetectorConfigChoice(precision, threads, *hw), p50, p50 * 1.1, cpu, f1, f1, f1,
+                       {"cup": f1}, f1, p50)  # fmt: skip
+
+
+def _run(model: bytes, x: np.ndarray) -> np.ndarray:
+    sess = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
+    return sess.run(None, {"images": x})[0]
+
+
+# --- resizing the input of a converted model --------------------------------------------------------------
+
+
+def test_resized_model_equals_one_converted_at_that_size() -> None:
+    pt = tiny_checkpoint(nc=3, seed=0)
+    small, _ = convert_checkpoint(pt, (64, 96))
+    big, _ = convert_checkpoint(pt, (96, 128))
+    resized = resize_input(onnx.load_from_string(small), (96, 128))
+    assert json.loads({p.key: p.value for p in resized.metadata_props}["imgsz"]) == [96, 128]
+    x = np.random.default_rng(0).random((1, 3, 96, 128), dtype=np.float32)
+    np.testing.assert_allclose(_run(resized.SerializeToString(), x), _run(big, x), rtol=1e-5, atol=1e-4)
+    same = resize_input(onnx.load_from_string(small), (64, 96))  # a no-op round trip
+    assert {t.name: t.raw_data for t in same.graph.initializer} == {
+        t.name: t.raw_data for t in onnx.load_from_string(small).graph.initializer}
+
+
+def test_resize_refuses_foreign_models_and_odd_sizes() -> None:
+    small, _ = convert_checkpoint(tiny_checkpoint(nc=3, seed=0), (64, 96))
+    with pytest.raises(ValueError, match="multiples of 32"):
+        resize_input(onnx.load_from_string(small), (100, 96))
+    foreign = onnx.load_from_string(small)
+    del foreign.metadata_props[:]
+    with pytest.raises(ValueError, match="converted by semmap"):
+        resize_input(foreign, (96, 96))
+
+
+# --- the agreement rule ------------------------------------------------------------------------------------
+
+
+def test_agreement_counts_same_class_overlaps_and_recall_per_class() -> None:
+    ref = [[_box("cup", 0), _box("book", 100)], [_box("chair", 0, size=100)]]
+    out = [[_box("cup", 2), _box("cup", 100)], [_box("chair", 5, size=100), _box("tv", 300)]]
+    f1, recall, precision, per_class = dc.agreement(ref, out)
+    assert (recall, precision) == (2 / 3, 2 / 4)  # the book was called a cup; the tv is extra
+    assert f1 == pytest.approx(2 * (2 / 3) * 0.5 / (2 / 3 + 0.5))
+    assert per_class == {"book": 0.0, "chair": 1.0, "cup": 1.0}
+
+
+def test_a_score_just_under_the_threshold_is_a_tie_not_a_miss() -> None:
+    ref = [[_box("cup", 0, score=0.45), _box("book", 100, score=0.35)]]
+    out = [[_box("cup", 1, score=0.37), _box("book", 101, score=0.42)]]
+    strict = dc.agreement(ref, out, conf=0.4, margin=0.0)
+    tolerant = dc.agreement(ref, out, conf=0.4, margin=dc.TIE_MARGIN)
+    assert strict[0] == 0.0  # at the threshold alone the two disagree on both boxes
+    assert tolerant[:3] == (1.0, 1.0, 1.0)
+    far = dc.agreement(ref, [[_box("cup", 1, score=0.2)]], conf=0.4, margin=dc.TIE_MARGIN)
+    assert far[1] == 0.0  # 0.2 is no tie with 0.45
+
+
+def test_choice_is_the_quickest_in_a_run_among_those_that_agree() -> None:
+    rows = [
+        _row("fp32", 2, (480, 640), 110, 200, 1.0),
+        _row("int8", 2, (480, 640), 105, 190, 0.85),  # faster, but disagrees
+        _row("fp32", 2, (384, 512), 70, 130, 0.93),
+        _row("fp32", 1, (384, 512), 95, 95, 0.93),  # slower alone, cheaper in a run sharing 2 cores
+        _row("fp32", 2, (320, 416), 40, 75, 0.87),  # fastest, disagrees (small objects)
+    ]
+    best = dc.choose(rows, cores=2)
+    assert best is not None and best.config == dc.DetectorConfigChoice("fp32", 1, 384, 512)
+    assert dc.choose(rows, cores=8).config == dc.DetectorConfigChoice("fp32", 2, 384, 512)  # cores to spare
+    assert dc.choose([rows[1], rows[4]], cores=2) is None
+
+
+def test_on_a_vnni_machine_the_same_rule_keeps_int8() -> None:
+    rows = [_row("fp32", 2, (480, 640), 70, 130, 1.0), _row("int8", 2, (480, 640), 30, 55, 0.95),
+            _row("int8", 1, (480, 640), 47, 47, 0.95)]  # fmt: skip
+    best = dc.choose(rows, cores=2)
+    assert best is not None and best.config.precision == "int8"
+
+
+def test_frame_budget_plan() -> None:
+    row = _row("fp32", 1, (384, 512), 90, 90, 0.93)
+    plan = dc.plan_cadence(row, cores=2, fps=30.0, others_cpu_ms=30.0)  # others: 0.9 cores
+    assert plan.free_cores == pytest.approx(1.1) and plan.interval_ms == pytest.approx(90.0)
+    # one thread fits in the 1.1 cores left: offered every 2nd frame, it detects as often as it can (1 / 90 ms)
+    assert plan.flat_out and plan.every_n == 2 and plan.detections_per_s == pytest.approx(1e3 / 90)
+    slow = dc.plan_cadence(_row("fp32", 1, (384, 512), 105, 105, 0.93), cores=2, fps=30.0, others_cpu_ms=30.0)
+    assert slow.every_n == 3 and slow.detections_per_s == pytest.approx(1e3 / 105)
+    two = dc.plan_cadence(_row("fp32", 2, (384, 512), 60, 120, 0.93), cores=2, fps=30.0, others_cpu_ms=30.0)
+    # two threads do not fit in 1.1 cores: held to its share, every 4th frame (109 ms a detection)
+    assert not two.flat_out and two.interval_ms == pytest.approx(120 / 1.1) and two.every_n == 4
+    assert two.detections_per_s == 7.5
+    loaded = dc.plan_cadence(row, cores=2, fps=30.0, others_cpu_ms=60.0)  # 1.8 cores taken by the others
+    assert loaded.free_cores == pytest.approx(0.25) and loaded.every_n == 11  # (never less than a quarter core)
+    assert "every 4th frame at 30 fps; expected 7.5 detections/s" in dc.describe_plan(two, "default estimate")
+    assert "every 2nd frame at 30 fps, taken as fast as it can (its 1 thread fit" in dc.describe_plan(plan, "x")
+
+
+# --- the cache, keyed by the machine -----------------------------------------------------------------------
+
+KEY = {"cpu": "AMD EPYC", "flags": ["avx", "avx2", "f16c", "fma"], "cores": 2, "onnxruntime": "1.31.1",
+       "providers": ["CPUExecutionProvider"]}  # fmt: skip
+
+
+def test_cache_is_keyed_by_the_machine(tmp_path: Path) -> None:
+    rows = [_row("fp32", 2, (480, 640), 110, 200, 1.0), _row("fp32", 1, (384, 512), 95, 95, 0.93)]
+    dc.save_choice(rows, KEY, "7scenes", tmp_path)
+    assert dc.cached_choice(tmp_path, KEY).config == dc.DetectorConfigChoice("fp32", 1, 384, 512)
+    vnni = {**KEY, "flags": [*KEY["flags"], "avx512_vnni"]}
+    assert dc.load_choice(tmp_path, vnni) is None  # another CPU: measure again
+    assert dc.load_choice(tmp_path, {**KEY, "onnxruntime": "1.32.0"}) is None  # another runtime: too
+    assert dc.load_choice(tmp_path, {**KEY, "cores": 4}) is None
+    (tmp_path / dc.CHOICE_FILENAME).write_text("{ not json")
+    assert dc.load_choice(tmp_path, KEY) is None
+
+
+def test_hardware_key_names_the_simd_flags() -> None:
+    key = dc.hardware_key()
+    assert key["cpu"] and key["cores"] >= 1 and key["onnxruntime"] == ort.__version__
+    assert set(key["flags"]) <= set(dc.KEY_FLAGS)
+    assert dc.has_vnni({"flags": ["avx2", "avx512_vnni"]}) and not dc.has_vnni(KEY)
+
+
+def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    none = dc.resolve_setup("auto", 0, "auto", realtime=True)  # not measured here: fp32, full size, 2 threads
+    assert (none.precision, none.threads, none.hw, none.measured) == ("fp32", 2, None, None)
+    dc.save_choice([_row("fp32", 1, (384, 512), 95, 95, 0.93), _row("int8", 2, (480, 640), 50, 90, 0.8)],
+                   dc.hardware_key(), "test", tmp_path)  # fmt: skip
+    rt = dc.resolve_setup("auto", 0, "auto", realtime=True)
+    assert (rt.precision, rt.threads, rt.hw, rt.origin) == ("fp32", 1, (384, 512), "measured on this machine")
+    assert dc.resolve_setup("auto", 2, "416x320", realtime=True).hw == (320, 416)  # explicit settings win
+    lock = dc.resolve_setup("auto", 0, "auto", realtime=False)
+    assert (lock.precision, lock.threads, lock.hw) == ("fp32", 2, None)  # lockstep: fp32's figures
+    assert dc.resolve_setup("int8", 0, "auto", realtime=True).precision == "int8"
+    plan, source = dc.setup_plan(rt, 30.0, "gt", tmp_path, cores=2)
+    assert plan is not None and plan.every_n == 2 and source == "default estimate"
+    assert dc.record_pipeline_cost("rgbd", 50.0, tmp_path)
+    plan, source = dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)
+    assert plan.others_cpu_ms == 50.0 and source.startswith("measured")
+    dc.save_choice([_row("fp32", 1, (384, 512), 95, 95, 0.93)], dc.hardware_key(), "again", tmp_path)
+    assert dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)[0].others_cpu_ms == 50.0  # kept when re-measured
+
+
+# --- semmap models doctor ----------------------------------------------------------------------------------
+
+
+def test_doctor_prints_the_cached_table_and_the_choice(tmp_path: Path, monkeypatch, capsys) -> None:  # noqa: ANN001
+    from semmap.cli.main import main
+
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    assert main(["models", "doctor"]) == 2  # no model fetched
+    (tmp_path / MODEL_FILENAME).write_bytes(b"x")  # (never loaded: the choice is cached for this machine)
+    dc.save_choice([_row("fp32", 2, (480, 640), 110, 200, 1.0), _row("fp32", 1, (384, 512), 95, 95, 0.93),
+                    _row("int8", 2, (320, 416), 40, 75, 0.74)], dc.hardware_key(), "7scenes", tmp_path)  # fmt: skip
+    capsys.readouterr()
+    assert main(["models", "doctor"]) == 0
+    out = capsys.readouterr().out
+    assert "choice (detector.precision auto, real time): fp32 512x384 1t" in out
+    assert "int8 416x320 2t" in out and "(disagrees)" in out and "cup 0.74" in out
+    assert ("no VNNI" in out) != dc.has_vnni(dc.hardware_key())
+    assert main(["models", "doctor", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["choice"]["config"]["height"] == 384
+
+
+def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) -> None:
+    from semmap.runtime.summary import run_summary
+
+    stats = {"outcome": "completed", "wall_s": 36.0, "frames": {"processed": 1000, "published": 1000},
+             "detector_budget": {"detector": "fp32 512x384 1 thread",
+                                 "planned": {"every_n_frames": 3, "expected_detections_per_s": 10.0},
+                                 "achieved": {"detections_per_s": 9.4, "detect_ms_p50": 97.0}}}  # fmt: skip
+    text = run_summary(tmp_path, stats)
+    assert ("  detection   planned: fp32 512x384 1 thread, every 3 frame(s), 10.0/s; achieved 9.4/s of video, "
+            "detector 97 ms p50 in the run") in text.splitlines()
