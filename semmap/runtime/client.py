@@ -184,10 +184,18 @@ class SemmapClient:
                     raise SemmapTimeout(f"frame {frame_id} not done after {timeout:g} s by {', '.join(late)}")
                 self._cv.wait(min(left, 0.1))
 
-    def end_of_stream(self, last_frame_id: int, frames: int | None = None) -> None:
-        """No more frames: services write their outputs (map.json, trajectories)."""
+    def frames_done(self, services: Iterable[str] = PIPELINE_SERVICES) -> int:
+        """How many frames (ids 0..n-1) every one of `services` has finished, from their progress messages."""
+        with self._cv:
+            return min((self._progress.get(s, -1) for s in services), default=-1) + 1
+
+    def end_of_stream(self, last_frame_id: int, frames: int | None = None,
+                      counters: dict[str, int] | None = None) -> None:
+        """No more frames: services write their outputs (map.json, trajectories). `frames`: how many this client
+        sent (default last_frame_id + 1); `counters`: what it counted on its side (e.g. frames it lost, by
+        reason), kept in the run's stats.json as "source"."""
         self._control.put(Control(self.robot, "end_of_stream", last_frame_id,
-                                  last_frame_id + 1 if frames is None else frames))
+                                  last_frame_id + 1 if frames is None else frames, counters=dict(counters or {})))
 
     def query_map(self, query: MapQuery | None = None, timeout: float = 3.0) -> list[Landmark]:
         import json

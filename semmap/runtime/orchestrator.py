@@ -151,6 +151,7 @@ class Orchestrator:
         self._moved_at = time.monotonic()
         self._last_motion: tuple = ()
         self._bus_rejected: dict[str, int] = {}
+        self.source: dict = {}  # external runs: the source's end_of_stream report (frames sent, its counters)
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _open_bus(self) -> tuple[Bus, list[str]]:
@@ -194,6 +195,12 @@ class Orchestrator:
         with self.lock:
             self.statuses[s.instance] = s
             self.rss.setdefault(s.instance, []).append(s.rss_mb)
+
+    def _on_control(self, c: Control) -> None:
+        if c.command == "end_of_stream":
+            with self.lock:
+                self.source = {"frames_sent": int(c.frames), "last_frame_id": int(c.last_frame_id),
+                               "counters": dict(c.counters)}
 
     def _on_progress(self, p: Progress) -> None:
         with self.lock:
@@ -421,6 +428,10 @@ class Orchestrator:
                                   "rss_early_mb": round(fmean(series[quarter:2 * quarter] or series), 1),
                                   "rss_late_mb": round(fmean(series[-quarter:]), 1)}
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
+        with self.lock:
+            source = dict(self.source)
+        if self.plan.data == EXTERNAL:  # no player: the frames the client / bridge says it sent
+            published = max(published, int(source.get("frames_sent", 0)))
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
@@ -445,6 +456,8 @@ class Orchestrator:
                  "fps": round(processed / wall_s, 2) if wall_s > 0 else 0.0, "restarts": sum(restarts.values()),
                  "detection_interval_ms": self._detection_cadence(),
                  "services": services}
+        if source:
+            stats["source"] = source
         path = self.plan.out_dir / "stats.json"
         atomic_write_text(path, json.dumps(stats, indent=2))
         return path
@@ -473,6 +486,8 @@ class Orchestrator:
                          self.run_id, self.endpoint)
             bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
             bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
+            if plan.data == EXTERNAL:  # what the external source says it sent (and lost) at its end of stream
+                bus.subscribe(bus.keys.control, Control, self._on_control)
             control_pub = bus.publisher(bus.keys.control)
             self._start(child_args)
             while True:

@@ -45,6 +45,11 @@ def run_summary(out_dir: Path, stats: dict) -> str:
         f"{frames.get('detected', 0)} detected, {frames.get('dropped', 0)} dropped, "
         f"{frames.get('unreadable', 0)} unreadable; {stats.get('fps', 0):.1f} fps"
     )
+    lost = stats.get("source", {}).get("counters", {})
+    if lost:  # an external source's own count of frames it lost before semmap (the ROS 2 bridge: by reason)
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(lost.items()) if k != "total" and v)
+        total = lost.get("total", 0)
+        lines.append(f"  source      {total} frames lost before semmap" + (f": {reasons}" if reasons else ""))
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")

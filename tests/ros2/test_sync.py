@@ -18,7 +18,7 @@ from semmap.datasets.ros_convert import (
     parse_pose_to_optical,
     quaternion_matrix,
 )
-from semmap.services.ros2.sync import FrameSync
+from semmap.services.ros2.sync import FrameSync, StampGaps
 
 W, H = 8, 6
 
@@ -127,3 +127,33 @@ def test_conversions() -> None:
     assert np.allclose(parse_pose_to_optical("0 0 0.1 0 0 0 1")[:3, 3], [0, 0, 0.1])
     with pytest.raises(ValueError):
         parse_pose_to_optical("sideways")
+
+
+def test_stamp_gaps_count_the_messages_missing_from_a_stream() -> None:
+    """30 Hz stamps with 1, then 3 messages missing: two gaps, four messages; repeated stamps apart."""
+    gaps = StampGaps()
+    stamps = [i / 30 for i in range(40) if i not in (20, 30, 31, 32)]
+    assert sum(gaps.add(t) for t in stamps) == 4
+    assert gaps.gaps == 2 and gaps.missing == 4 and gaps.as_dict()["period_s"] == pytest.approx(1 / 30, abs=1e-6)
+    gaps.add(stamps[-1])
+    assert gaps.out_of_order == 1 and gaps.missing == 4
+
+
+def test_the_last_frame_is_sent_by_flush_and_what_cannot_match_is_counted_at_the_end() -> None:
+    """The last colour image of a recording, whose depth is a little older and whose pose is the last one, is held
+    for a closer depth or a newer pose; flush() sends it. finish() counts colour images without depth."""
+    sync = FrameSync(tolerance_s=0.02)
+    sync.add_camera_info(info())
+    out = []
+    for i in range(5):
+        t = i / 30
+        out += sync.add_pose(pose(t), ODOM)
+        out += sync.add_depth(depth(t - 0.005))
+        out += sync.add_colour(colour(t))
+    assert len(out) == 4 and sync.pending() == 1  # the last one waits for a closer depth image
+    last = sync.flush()
+    assert len(last) == 1 and last[0].stamp == pytest.approx(4 / 30)
+    sync.add_colour(colour(10.0))  # no depth ever comes for it
+    assert sync.finish() == []
+    assert sync.counters["colour_unmatched_at_end"] + sync.counters["colour_without_depth"] == 1
+    assert sync.pending() == 0

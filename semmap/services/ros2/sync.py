@@ -6,12 +6,18 @@ poses around it (no further apart than `pose_max_gap_s`) interpolated. Messages 
 one (unsupported encoding, short buffer, NaN pose) is counted and dropped at once; a colour image that can no
 longer be matched (a newer depth or pose has passed it, or it is older than `max_wait_s` behind the newest input)
 is counted and dropped too. Nothing here raises on bad input.
+
+Messages lost before they reach the bridge (a DDS reader's full history, a lost UDP fragment) leave holes in
+each stream's stamps: `StampGaps` finds them from the stream's median period and counts the frames missing.
+`flush()` (at the end of a recording, or when the inputs go quiet) matches what is still held with what there
+is: the last frame of a recording is sent, not held for a closer depth image that never comes.
 """
 
 from __future__ import annotations
 
 import bisect
-from collections import Counter
+import statistics
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +34,54 @@ from semmap.datasets.ros_convert import (
     pose_message,
     stamp_seconds,
 )
+
+
+class StampGaps:
+    """Holes in a stream of header stamps: a step longer than `factor` x the median of the last `window` steps
+    counts as one gap of round(step / median) - 1 missing messages. Repeated or backward stamps are counted
+    apart (`out_of_order`); the first `min_steps` steps only learn the period."""
+
+    def __init__(self, factor: float = 1.5, window: int = 31, min_steps: int = 5) -> None:
+        self.factor = float(factor)
+        self.min_steps = int(min_steps)
+        self.steps: deque[float] = deque(maxlen=int(window))
+        self.last: float | None = None
+        self.gaps = 0
+        self.missing = 0
+        self.out_of_order = 0
+
+    @property
+    def period(self) -> float | None:
+        return statistics.median(self.steps) if len(self.steps) >= self.min_steps else None
+
+    def add(self, stamp: float) -> int:
+        """Record a stamp; return how many messages are missing just before it (0 if none)."""
+        if self.last is None:
+            self.last = stamp
+            return 0
+        step = stamp - self.last
+        if step <= 0:
+            self.out_of_order += 1
+            return 0
+        self.last = stamp
+        period = self.period
+        missing = 0
+        if period is not None and period > 0 and step > self.factor * period:
+            missing = max(1, round(step / period) - 1)
+            self.gaps += 1
+            self.missing += missing
+        else:
+            self.steps.append(step)
+        return missing
+
+    def as_dict(self) -> dict:
+        period = self.period
+        return {
+            "gaps": self.gaps,
+            "missing": self.missing,
+            "out_of_order": self.out_of_order,
+            "period_s": round(period, 6) if period is not None else None,
+        }
 
 
 @dataclass
@@ -73,6 +127,8 @@ class FrameSync:
         self._pose_stamps: list[float] = []
         self._poses: list[np.ndarray] = []
         self._newest = -np.inf
+        self._final = False  # flush(): match what is held with what there is, wait for nothing
+        self.gaps = {"colour": StampGaps(), "depth": StampGaps(), "pose": StampGaps()}
 
     # -- inputs ------------------------------------------------------------------------------------------------
     def add_camera_info(self, msg: Any) -> list[MatchedFrame]:
@@ -94,6 +150,7 @@ class FrameSync:
             self.counters["bad_colour"] += 1
             return []
         self.counters["colour"] += 1
+        self.gaps["colour"].add(stamp)
         _insert(self._colours, _Image(stamp, rgb, str(msg.header.frame_id)))
         return self._seen(stamp)
 
@@ -107,6 +164,7 @@ class FrameSync:
             self.counters["bad_depth"] += 1
             return []
         self.counters["depth"] += 1
+        self.gaps["depth"].add(stamp)
         _insert(self._depths, _Image(stamp, mm, str(msg.header.frame_id)))
         return self._seen(stamp)
 
@@ -117,11 +175,36 @@ class FrameSync:
             self.counters["bad_pose"] += 1
             return []
         self.counters["pose"] += 1
+        self.gaps["pose"].add(stamp)
         self.world_frame = str(msg.header.frame_id) or self.world_frame
         i = bisect.bisect_right(self._pose_stamps, stamp)
         self._pose_stamps.insert(i, stamp)
         self._poses.insert(i, matrix @ self.pose_to_optical)
         return self._seen(stamp)
+
+    def flush(self) -> list[MatchedFrame]:
+        """No more input for now (the end of a recording, or the inputs went quiet): every colour image held
+        for a closer depth image or a newer pose is matched with what there is, or counted and dropped if it
+        cannot be (no depth or pose within the tolerances). Depth images left unmatched are counted too."""
+        self._final = True
+        try:
+            out = self._match()
+        finally:
+            self._final = False
+        return out
+
+    def finish(self) -> list[MatchedFrame]:
+        """The end: flush, then count what is still held (colour images that could never be matched)."""
+        out = self.flush()
+        self.counters["colour_unmatched_at_end"] += len(self._colours)
+        self.counters["depth_unmatched"] += len(self._depths)
+        self._colours.clear()
+        self._depths.clear()
+        return out
+
+    def pending(self) -> int:
+        """Colour images held, waiting for their depth or pose."""
+        return len(self._colours)
 
     # -- matching ----------------------------------------------------------------------------------------------
     def _seen(self, stamp: float) -> list[MatchedFrame]:
@@ -137,7 +220,7 @@ class FrameSync:
         tol = self.tolerance_s
         while self._colours:
             colour = self._colours[0]
-            stale = exceeds(self._newest - colour.stamp, self.max_wait_s)
+            stale = self._final or exceeds(self._newest - colour.stamp, self.max_wait_s)
             if self.intrinsics is None:
                 if stale:
                     self._drop("no_camera_info")
@@ -172,6 +255,7 @@ class FrameSync:
                 self._drop("size_mismatch")
                 continue
             self._colours.pop(0)
+            self.counters["depth_unmatched"] += depth_index  # older depth images no colour image took
             del self._depths[: depth_index + 1]
             self._prune_poses(colour.stamp)
             self.counters["matched"] += 1
@@ -190,7 +274,7 @@ class FrameSync:
         i = min(range(len(self._pose_stamps)), key=lambda k: abs(self._pose_stamps[k] - t))
         if abs(self._pose_stamps[i] - t) > self.tolerance_s:
             return None
-        if t > self._pose_stamps[-1] and self._newest - t <= self.tolerance_s:
+        if t > self._pose_stamps[-1] and self._newest - t <= self.tolerance_s and not self._final:
             return None  # a newer pose may still come to interpolate with
         return self._poses[i].copy()
 
