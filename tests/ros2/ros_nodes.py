@@ -16,8 +16,8 @@ i at t0 + i / rate whatever happens downstream (best effort by default, as a Rea
 does. It writes what it sent (and how late it was) to OUT.json.
 Depth goes out in millimetres whatever the dataset's unit (TUM folders: 1/5000 m).
 `listen` keeps the last MarkerArray, the last Path, the bridge status and every MarkerArray on /semmap/dynamic; it
-writes them as JSON once the bridge reports FRAMES frames done (FRAMES 0: any number) and its stream ended (or after
-its timeout).
+writes them as JSON once the bridge reports FRAMES frames done (FRAMES 0: every frame it sent) and its stream ended
+(or after its timeout).
 """
 
 from __future__ import annotations
@@ -225,7 +225,8 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
         if not ready.exists() and dynamic.get_publisher_count() > 0:
             ready.write_text("matched")  # the bridge's volatile topic reaches us: frames may start (see test)
         status = state["status"] or {}
-        if done_at is None and status.get("ended") and (frames == 0 or status.get("frames_done", 0) >= frames):
+        want = frames or max(status.get("frames_sent", 0), 1)  # 0: every frame the bridge sent
+        if done_at is None and status.get("ended") and status.get("frames_done", 0) >= want:
             done_at = time.monotonic()
         if done_at is not None and time.monotonic() - done_at > 3.0:  # the last map update and path
             break
