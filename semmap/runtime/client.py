@@ -79,6 +79,17 @@ class SemmapClient:
         self.bus.subscribe(self.bus.keys.landmark_tags, TagDetections, lambda m: self._emit("tags", m))
         self.bus.subscribe(self.bus.keys.dynamic, DynamicObjects, lambda m: self._emit("dynamic", m))
 
+    @classmethod
+    def attach(cls, robot: str | None = None, run_dir: str | None = None, mode: str | None = None,
+               keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> SemmapClient:
+        """A client of the run a `semmap run external` on this host recorded (semmap.runtime.run_registry): the
+        one whose out dir is `run_dir`, else the only live run of `robot` (of any robot when None). Raises
+        RunNotFound when there is none or more than one."""
+        from semmap.runtime.run_registry import find_run
+
+        info = find_run(run_dir, None if run_dir else robot)
+        return cls(info.robot, info.endpoint, mode, keyframe_every)
+
     # -- inbound ----------------------------------------------------------------------------------------------
     def _emit(self, kind: str, message: object) -> None:
         for callback in list(self._callbacks[kind]):

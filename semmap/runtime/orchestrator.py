@@ -30,6 +30,7 @@ from statistics import fmean
 from semmap.core.messages import Control, Progress, ServiceStatus
 from semmap.core.outputs import atomic_write_text, describe_disk_error
 from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
+from semmap.runtime.run_registry import RunInfo, register, unregister
 from semmap.runtime.service import exit_backstop
 
 log = logging.getLogger("semmap.run")
@@ -476,11 +477,16 @@ class Orchestrator:
         last_line = 0.0
         bus: Bus | None = None
         control_pub = None
+        run_info: RunInfo | None = None
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         try:
             plan.out_dir.mkdir(parents=True, exist_ok=True)
             bus, child_args = self._open_bus()
+            endpoint = self.endpoint or plan.connect
+            if endpoint:  # clients (the ROS 2 bridge) find this run here instead of guessing a port
+                run_info = RunInfo(plan.robot, self.run_id, endpoint, str(plan.out_dir.resolve()), os.getpid())
+                register(run_info)
             if self.endpoint:
                 log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,
                          self.run_id, self.endpoint)
@@ -529,6 +535,8 @@ class Orchestrator:
                 code = code or 1
             if bus is not None:
                 bus.close()
+            if run_info is not None:
+                unregister(run_info)
             for sig in (signal.SIGINT, signal.SIGTERM):  # from here on a signal just ends the process
                 signal.signal(sig, signal.SIG_DFL)
         if code in (0, 130) and stats is not None:  # what was mapped and where it is, also after Ctrl-C

@@ -84,7 +84,11 @@ def live_session(
     listened = tmp_path / "listened.json"
     sent = tmp_path / "camera.json"
     try:
-        bridge = [sys.executable, "-m", "semmap.cli", "ros2", "--connect", router.endpoint, "--zenoh-mode", "client"]
+        deadline = time.monotonic() + 120  # the run records its endpoint, robot and run id: the bridge finds it
+        while not (out / "run.json").exists():
+            assert time.monotonic() < deadline and runner.is_alive(), "semmap run external wrote no run.json"
+            time.sleep(0.1)
+        bridge = [sys.executable, "-m", "semmap.cli", "ros2", "--run", str(out), "--zenoh-mode", "client"]
         bridge += ["--ros-args", "-r", "/odom:=/slam/odom"]
         for item in bridge_params:
             bridge += ["-p", item]
@@ -153,7 +157,8 @@ def test_lockstep_with_the_documented_settings_processes_every_frame_the_camera_
     assert status["lost"] == {"total": 0}, status
     assert status["input_history"] == "keep all"
     assert stats["frames"]["processed"] == LOCKSTEP_FRAMES
-    assert stats["frames"]["published"] == LOCKSTEP_FRAMES, stats["frames"]
+    assert stats["frames"]["published"] == LOCKSTEP_FRAMES, stats["frames"]  # what the bridge sent
+    assert stats["source"]["counters"] == {"total": 0}
     got = _landmarks(out)
     assert [(lm["id"], lm["class"]) for lm in got] == [(lm["id"], lm["class"]) for lm in want]
     for a, b in zip(got, want, strict=True):
@@ -187,6 +192,8 @@ def test_real_time_at_30_hz_best_effort_maps_and_counts_every_lost_frame(
     assert processed == status["frames_sent"], "semmap processes every frame it is sent (detecting some)"
     # every frame the camera sent: processed, or lost for a counted reason
     assert processed + lost["total"] - lost.get("not_processed", 0) == camera["sent"], (processed, lost)
+    # ... and the run's stats.json has the bridge's count of frames lost before semmap
+    assert stats["source"]["counters"]["total"] == lost["total"] - lost.get("not_processed", 0)
     landmarks = _landmarks(out)
     classes = {lm["class"] for lm in landmarks}
     assert len(landmarks) >= 3 and len(classes) >= 2, landmarks

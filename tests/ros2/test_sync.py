@@ -18,7 +18,7 @@ from semmap.datasets.ros_convert import (
     parse_pose_to_optical,
     quaternion_matrix,
 )
-from semmap.services.ros2.sync import FrameSync, StampGaps
+from semmap.services.ros2.sync import FrameSync, StampGaps, missing_at_ends
 
 W, H = 8, 6
 
@@ -157,3 +157,14 @@ def test_the_last_frame_is_sent_by_flush_and_what_cannot_match_is_counted_at_the
     assert sync.finish() == []
     assert sync.counters["colour_unmatched_at_end"] + sync.counters["colour_without_depth"] == 1
     assert sync.pending() == 0
+
+
+def test_colour_images_lost_at_the_ends_are_counted_from_the_depth_stream() -> None:
+    """No gap shows the first two and the last three colour images lost; the depth stream (same rate) does."""
+    colour, depth_stream, odom = StampGaps(), StampGaps(), StampGaps()
+    for i in range(40):
+        depth_stream.add(i / 30)
+        odom.add(i / 100)  # another rate: says nothing about the camera's frames
+        if 2 <= i < 37:
+            colour.add(i / 30)
+    assert missing_at_ends(colour.as_dict(), [depth_stream.as_dict(), odom.as_dict()]) == 5

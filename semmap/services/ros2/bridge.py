@@ -47,7 +47,7 @@ import numpy as np
 
 from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Landmark, MapUpdate, Observations
 from semmap.datasets.ros_convert import matrix_quaternion, parse_pose_to_optical
-from semmap.services.ros2.sync import FrameSync, MatchedFrame
+from semmap.services.ros2.sync import FrameSync, MatchedFrame, missing_at_ends
 from semmap.services.ros2.transport import use_profile, write_profile
 
 log = logging.getLogger("semmap.services.ros2")
@@ -333,11 +333,14 @@ LOSS_REASONS = (  # sync counters that are a colour image (a frame) lost, in the
 
 def lost_frames(sync: Counter, link: Counter, gaps: dict, status: dict) -> dict:
     """Every frame lost between the camera and semmap, by reason: `before_bridge` (colour images missing from
-    the stream's stamps: lost in transport or by a full reader history), each sync reason (colour images that did
+    the stream's stamps, or before / after it where depth and camera info went on: lost in transport or by a full
+    reader history), each sync reason (colour images that did
     not become a frame), the link's drops (`dropped_busy`: real time, semmap busy; `dropped_at_stop`,
     `after_end_of_stream`); `not_processed`: sent to semmap, not (yet) finished by every service. `total`: their
     sum, the frames the camera sent (as far as stamps tell) that did not reach the map."""
-    lost = {"before_bridge": int(gaps.get("colour", {}).get("missing", 0))}
+    colour = gaps.get("colour", {})
+    at_ends = missing_at_ends(colour, [gaps.get("depth", {}), gaps.get("camera_info", {})])
+    lost = {"before_bridge": int(colour.get("missing", 0)) + at_ends}
     for reason in LOSS_REASONS:
         lost[reason] = int(sync.get(reason, 0))
     for reason in ("dropped_busy", "dropped_at_stop", "after_end_of_stream"):
@@ -363,7 +366,7 @@ def _declare(node: Any) -> dict[str, Any]:
 
 
 def run_bridge(
-    robot: str, connect: str | None, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True
+    robot: str, connect: str, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
@@ -383,7 +386,7 @@ def run_bridge(
     client = None
     node = None
     try:
-        client = SemmapClient(robot, connect or "tcp/127.0.0.1:7447", zenoh_mode)
+        client = SemmapClient(robot, connect, zenoh_mode)
         node = node_class(client)
         node.start()
         rclpy.spin(node)
@@ -840,12 +843,23 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", default="robot1", help="semmap robot name (key space semmap/v1/<robot>)")
+    parser.add_argument(
+        "--robot",
+        default=None,
+        help="semmap robot name (key space semmap/v1/<robot>); without --connect, the live run of this robot is "
+        "served (default: the only live run on this host, whatever its robot)",
+    )
+    parser.add_argument(
+        "--run",
+        metavar="OUT_DIR",
+        default=None,
+        help="serve the run whose out dir this is (its run.json: endpoint, robot, run id)",
+    )
     parser.add_argument(
         "--connect",
         default=None,
-        help="semmap's Zenoh endpoint (default tcp/127.0.0.1:7447, where "
-        "`semmap run external` listens); env SEMMAP_ZENOH_CONNECT",
+        help="semmap's Zenoh endpoint, e.g. tcp/HOST:7447 (env SEMMAP_ZENOH_CONNECT); default: found from the "
+        "run's own record (--run, else the only live run of --robot on this host)",
     )
     parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
     parser.add_argument(
@@ -870,9 +884,25 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
     if args.write_fastdds_profile:
         print(write_profile(args.write_fastdds_profile))
         return 0
+    from semmap.runtime.run_registry import RunNotFound, find_run
+
+    connect = args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT")
+    robot = args.robot
+    if args.run or not connect:
+        try:
+            info = find_run(args.run, None if args.run else robot)
+        except (RunNotFound, OSError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if robot and info.robot != robot:
+            print(f"error: the run in {args.run} maps robot {info.robot!r}, not {robot!r}", file=sys.stderr)
+            return 2
+        connect = connect if args.connect else info.endpoint
+        robot = info.robot
+        log.info("serving run %s (robot %s, %s, out %s)", info.run_id, info.robot, connect, info.out_dir)
     return run_bridge(
-        args.robot,
-        args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT"),
+        robot or "robot1",
+        connect,
         args.zenoh_mode,
         ros_args,
         not args.no_fastdds_profile,

@@ -16,6 +16,7 @@ is: the last frame of a recording is sent, not held for a closer depth image tha
 from __future__ import annotations
 
 import bisect
+import contextlib
 import statistics
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ class StampGaps:
         self.factor = float(factor)
         self.min_steps = int(min_steps)
         self.steps: deque[float] = deque(maxlen=int(window))
+        self.first: float | None = None
         self.last: float | None = None
         self.gaps = 0
         self.missing = 0
@@ -57,7 +59,7 @@ class StampGaps:
     def add(self, stamp: float) -> int:
         """Record a stamp; return how many messages are missing just before it (0 if none)."""
         if self.last is None:
-            self.last = stamp
+            self.first = self.last = stamp
             return 0
         step = stamp - self.last
         if step <= 0:
@@ -81,7 +83,25 @@ class StampGaps:
             "missing": self.missing,
             "out_of_order": self.out_of_order,
             "period_s": round(period, 6) if period is not None else None,
+            "first": self.first,
+            "last": self.last,
         }
+
+
+def missing_at_ends(colour: dict, others: list[dict]) -> int:
+    """Colour images lost before the first or after the last one received, which no gap shows: the streams the
+    camera sends with every colour image (depth, camera info; same rate) started earlier or went on later."""
+    period = colour.get("period_s")
+    if not period or colour.get("first") is None:
+        return 0
+    missing = 0
+    for other in others:
+        if other.get("first") is None or not other.get("period_s") or abs(other["period_s"] - period) > 0.1 * period:
+            continue  # another rate: not one message per colour image
+        head = round((colour["first"] - other["first"]) / period)
+        tail = round((other["last"] - colour["last"]) / period)
+        missing = max(missing, max(head, 0) + max(tail, 0))
+    return missing
 
 
 @dataclass
@@ -128,7 +148,7 @@ class FrameSync:
         self._poses: list[np.ndarray] = []
         self._newest = -np.inf
         self._final = False  # flush(): match what is held with what there is, wait for nothing
-        self.gaps = {"colour": StampGaps(), "depth": StampGaps(), "pose": StampGaps()}
+        self.gaps = {"colour": StampGaps(), "depth": StampGaps(), "pose": StampGaps(), "camera_info": StampGaps()}
 
     # -- inputs ------------------------------------------------------------------------------------------------
     def add_camera_info(self, msg: Any) -> list[MatchedFrame]:
@@ -137,6 +157,8 @@ class FrameSync:
         except (ConversionError, AttributeError, TypeError, ValueError):
             self.counters["bad_camera_info"] += 1
             return []
+        with contextlib.suppress(AttributeError, TypeError, ValueError):  # without a stamp: still the intrinsics
+            self.gaps["camera_info"].add(stamp_seconds(msg.header.stamp))
         return self._match()
 
     def add_colour(self, msg: Any, compressed: bool = False) -> list[MatchedFrame]:
