@@ -18,7 +18,7 @@ from semmap.datasets.ros_convert import (
     parse_pose_to_optical,
     quaternion_matrix,
 )
-from semmap.services.ros2.sync import FrameSync, StampGaps, missing_at_ends
+from semmap.services.ros2.sync import CameraFrames, FrameSync, StampGaps, missing_at_ends
 
 W, H = 8, 6
 
@@ -168,3 +168,17 @@ def test_colour_images_lost_at_the_ends_are_counted_from_the_depth_stream() -> N
         if 2 <= i < 37:
             colour.add(i / 30)
     assert missing_at_ends(colour.as_dict(), [depth_stream.as_dict(), odom.as_dict()]) == 5
+
+
+def test_camera_frames_count_colour_images_lost_even_when_most_are() -> None:
+    """150 frames at 30 Hz, camera info for all but two, colour for one in five (the median colour step is then
+    the loss pattern's, not the camera's): the colour images missing are 150 - 30, also for the frames whose camera
+    info was lost too, and stamps far behind the newest are only counted."""
+    frames = CameraFrames(horizon_s=1.0)
+    for i in range(150):
+        t = 100 + i / 30
+        if i not in (50, 51):
+            frames.add(t, colour=False)
+        if i % 5 == 0:
+            frames.add(t, colour=True)
+    assert frames.frames() == 150 and frames.colour_missing() == 120

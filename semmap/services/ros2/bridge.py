@@ -331,16 +331,17 @@ LOSS_REASONS = (  # sync counters that are a colour image (a frame) lost, in the
 )
 
 
-def lost_frames(sync: Counter, link: Counter, gaps: dict, status: dict) -> dict:
-    """Every frame lost between the camera and semmap, by reason: `before_bridge` (colour images missing from
-    the stream's stamps, or before / after it where depth and camera info went on: lost in transport or by a full
-    reader history), each sync reason (colour images that did
+def lost_frames(sync: Counter, link: Counter, gaps: dict, status: dict, camera_missing: int = 0) -> dict:
+    """Every frame lost between the camera and semmap, by reason: `before_bridge` (colour images missing: frames
+    whose camera info arrived without them, holes in the joint colour + camera-info stamps, holes in the colour
+    stamps, images before / after the colour stream where depth and camera info went on; the largest of these
+    estimates: lost in transport or by a full reader history), each sync reason (colour images that did
     not become a frame), the link's drops (`dropped_busy`: real time, semmap busy; `dropped_at_stop`,
     `after_end_of_stream`); `not_processed`: sent to semmap, not (yet) finished by every service. `total`: their
     sum, the frames the camera sent (as far as stamps tell) that did not reach the map."""
     colour = gaps.get("colour", {})
     at_ends = missing_at_ends(colour, [gaps.get("depth", {}), gaps.get("camera_info", {})])
-    lost = {"before_bridge": int(colour.get("missing", 0)) + at_ends}
+    lost = {"before_bridge": max(int(colour.get("missing", 0)) + at_ends, int(camera_missing))}
     for reason in LOSS_REASONS:
         lost[reason] = int(sync.get(reason, 0))
     for reason in ("dropped_busy", "dropped_at_stop", "after_end_of_stream"):
@@ -618,7 +619,10 @@ def _make_node_class() -> type:
                 "link": dict(self.counters),
                 "gaps": gaps,
                 **link,
-                "lost": lost_frames(self.sync.counters, self.counters, gaps, link),
+                "lost": lost_frames(
+                    self.sync.counters, self.counters, gaps, link, self.sync.camera_frames.colour_missing()
+                ),
+                "camera_frames": self.sync.camera_frames.frames(),
                 "input_history": self.input_history,
                 "missing_topics": missing,
             }
@@ -626,7 +630,7 @@ def _make_node_class() -> type:
         def _lost_before_semmap(self) -> dict[str, int]:
             """What end-of-stream reports to the run: frames lost between the camera and semmap, by reason."""
             gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
-            lost = lost_frames(self.sync.counters, self.counters, gaps, {})
+            lost = lost_frames(self.sync.counters, self.counters, gaps, {}, self.sync.camera_frames.colour_missing())
             lost.pop("total", None)
             return {**lost, "total": sum(lost.values())}
 

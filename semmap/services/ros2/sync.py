@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import math
 import statistics
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -88,6 +89,44 @@ class StampGaps:
         }
 
 
+class CameraFrames:
+    """The frames a camera sent, as far as the bridge can tell: every stamp seen on the colour or the camera-info
+    stream (a camera publishes its camera info with each colour image, at the same stamp; it is small and rarely
+    lost), plus the holes in that joint stream (`StampGaps`). `colour_missing()`: those frames of which no colour
+    image arrived. Stamps are kept for `horizon_s` behind the newest, then only counted."""
+
+    def __init__(self, horizon_s: float = 30.0) -> None:
+        self.horizon_s = float(horizon_s)
+        self._seen: dict[int, bool] = {}  # stamp (0.1 ms) -> a colour image arrived for it
+        self._newest = -math.inf
+        self._old_frames = 0
+        self._old_colour = 0
+        self.gaps = StampGaps()
+
+    def add(self, stamp: float, colour: bool) -> None:
+        key = round(stamp * 1e4)
+        if key not in self._seen:
+            if stamp < self._newest - self.horizon_s:
+                return  # far older than anything kept: already counted, or never will be
+            self._seen[key] = False
+            self.gaps.add(stamp)
+        if colour:
+            self._seen[key] = True
+        if stamp > self._newest:
+            self._newest = stamp
+            horizon = round((stamp - self.horizon_s) * 1e4)
+            if next(iter(self._seen)) < horizon:
+                for old in [k for k in self._seen if k < horizon]:
+                    self._old_frames += 1
+                    self._old_colour += self._seen.pop(old)
+
+    def frames(self) -> int:
+        return self._old_frames + len(self._seen) + self.gaps.missing
+
+    def colour_missing(self) -> int:
+        return self.frames() - self._old_colour - sum(self._seen.values())
+
+
 def missing_at_ends(colour: dict, others: list[dict]) -> int:
     """Colour images lost before the first or after the last one received, which no gap shows: the streams the
     camera sends with every colour image (depth, camera info; same rate) started earlier or went on later."""
@@ -149,6 +188,7 @@ class FrameSync:
         self._newest = -np.inf
         self._final = False  # flush(): match what is held with what there is, wait for nothing
         self.gaps = {"colour": StampGaps(), "depth": StampGaps(), "pose": StampGaps(), "camera_info": StampGaps()}
+        self.camera_frames = CameraFrames()
 
     # -- inputs ------------------------------------------------------------------------------------------------
     def add_camera_info(self, msg: Any) -> list[MatchedFrame]:
@@ -158,7 +198,9 @@ class FrameSync:
             self.counters["bad_camera_info"] += 1
             return []
         with contextlib.suppress(AttributeError, TypeError, ValueError):  # without a stamp: still the intrinsics
-            self.gaps["camera_info"].add(stamp_seconds(msg.header.stamp))
+            stamp = stamp_seconds(msg.header.stamp)
+            self.gaps["camera_info"].add(stamp)
+            self.camera_frames.add(stamp, colour=False)
         return self._match()
 
     def add_colour(self, msg: Any, compressed: bool = False) -> list[MatchedFrame]:
@@ -173,6 +215,7 @@ class FrameSync:
             return []
         self.counters["colour"] += 1
         self.gaps["colour"].add(stamp)
+        self.camera_frames.add(stamp, colour=True)
         _insert(self._colours, _Image(stamp, rgb, str(msg.header.frame_id)))
         return self._seen(stamp)
 
