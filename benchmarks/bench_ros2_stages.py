@@ -1,6 +1,6 @@
 """Per-message cost of the ROS 2 bridge (`semmap ros2`) for 30 Hz 640x480 RGB-D input; prints p50 / p95.
 
-    python benchmarks/bench_ros2.py [--frames 300] [--data ../shared/data/7scenes-redkitchen]
+    python benchmarks/bench_ros2_stages.py [--frames 300] [--data ../shared/data/7scenes-redkitchen]
 
 Stages, per frame, measured on real rclpy messages and a real Zenoh session (loopback, a subscriber taking the
 frames as semmap's services would):

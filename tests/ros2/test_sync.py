@@ -182,3 +182,15 @@ def test_camera_frames_count_colour_images_lost_even_when_most_are() -> None:
         if i % 5 == 0:
             frames.add(t, colour=True)
     assert frames.frames() == 150 and frames.colour_missing() == 120
+
+
+def test_stamp_gaps_find_the_period_when_most_messages_are_lost() -> None:
+    """30 % of a 30 Hz stream arrives, at random: the period is still the camera's, and every message missing
+    between the first and the last received is counted, those before the period was known included."""
+    rng = np.random.default_rng(7)
+    kept = [i for i in range(300) if rng.random() < 0.3]
+    gaps = StampGaps()
+    for i in kept:
+        gaps.add(5 + i / 30)
+    assert gaps.period == pytest.approx(1 / 30, abs=1e-6)
+    assert gaps.missing == (kept[-1] - kept[0] + 1) - len(kept)

@@ -371,7 +371,9 @@ def run_bridge(
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
-    if fastdds_profile:  # shared memory + large loopback buffers, unless the user set a profile of their own
+    # shared memory + large loopback buffers, unless the user set a profile of their own; it confines DDS to
+    # this host, so not when the user asked for discovery beyond it (a camera on another computer)
+    if fastdds_profile and os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST":
         log.info("Fast DDS profile: %s", use_profile())
     try:
         import rclpy

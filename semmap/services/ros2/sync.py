@@ -39,14 +39,17 @@ from semmap.datasets.ros_convert import (
 
 
 class StampGaps:
-    """Holes in a stream of header stamps: a step longer than `factor` x the median of the last `window` steps
-    counts as one gap of round(step / median) - 1 missing messages. Repeated or backward stamps are counted
-    apart (`out_of_order`); the first `min_steps` steps only learn the period."""
+    """Holes in a stream of header stamps. The stream's period is the shortest step that recurs (at least
+    `min_support` of the last `window` steps within 20 % of it, their median): losses make steps longer, never
+    shorter, so the period is found even when most messages are lost. A step longer than `factor` x the period is
+    a gap of round(step / period) - 1 missing messages; steps taken before the period is known are counted once it
+    is. Repeated or backward stamps are counted apart (`out_of_order`)."""
 
-    def __init__(self, factor: float = 1.5, window: int = 31, min_steps: int = 5) -> None:
+    def __init__(self, factor: float = 1.5, window: int = 61, min_support: int = 3) -> None:
         self.factor = float(factor)
-        self.min_steps = int(min_steps)
+        self.min_support = int(min_support)
         self.steps: deque[float] = deque(maxlen=int(window))
+        self._unchecked: list[float] = []
         self.first: float | None = None
         self.last: float | None = None
         self.gaps = 0
@@ -55,10 +58,15 @@ class StampGaps:
 
     @property
     def period(self) -> float | None:
-        return statistics.median(self.steps) if len(self.steps) >= self.min_steps else None
+        ordered = sorted(self.steps)
+        for i, step in enumerate(ordered):
+            j = bisect.bisect_right(ordered, 1.2 * step)
+            if j - i >= self.min_support:
+                return statistics.median(ordered[i:j])
+        return None
 
     def add(self, stamp: float) -> int:
-        """Record a stamp; return how many messages are missing just before it (0 if none)."""
+        """Record a stamp; return how many messages are missing before it (0 if none)."""
         if self.last is None:
             self.first = self.last = stamp
             return 0
@@ -67,14 +75,18 @@ class StampGaps:
             self.out_of_order += 1
             return 0
         self.last = stamp
+        self.steps.append(step)
         period = self.period
+        if period is None or period <= 0:
+            self._unchecked.append(step)
+            return 0
         missing = 0
-        if period is not None and period > 0 and step > self.factor * period:
-            missing = max(1, round(step / period) - 1)
-            self.gaps += 1
-            self.missing += missing
-        else:
-            self.steps.append(step)
+        for earlier in [*self._unchecked, step]:
+            if earlier > self.factor * period:
+                missing += max(1, round(earlier / period) - 1)
+                self.gaps += 1
+        self._unchecked.clear()
+        self.missing += missing
         return missing
 
     def as_dict(self) -> dict:
