@@ -431,8 +431,9 @@ class Orchestrator:
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
         with self.lock:
             source = dict(self.source)
-        if self.plan.data == EXTERNAL:  # no player: the frames the client / bridge says it sent
-            published = max(published, int(source.get("frames_sent", 0)))
+        if self.plan.data == EXTERNAL:  # no player: the frames the client / bridge says it sent (at least those
+            # processed, when the source never said: a client that stopped without end of stream)
+            published = max(published, int(source.get("frames_sent", 0)), self._frames_done(default=0))
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
