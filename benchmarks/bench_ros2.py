@@ -126,13 +126,14 @@ def main() -> int:
     parser.add_argument("--configs", default="profile,default")
     parser.add_argument("--lockstep", action="store_true")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--keep", type=Path, default=None, help="keep each configuration's run and logs here")
     args = parser.parse_args()
     with open("/proc/loadavg") as f:
         print(f"load average at the start: {' '.join(f.read().split()[:3])}")
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_ros2_") as tmp:
         for config in args.configs.split(","):
-            r = _session(args.data, args.frames, args.rate, config, args.lockstep, Path(tmp) / config)
+            r = _session(args.data, args.frames, args.rate, config, args.lockstep, (args.keep or Path(tmp)) / config)
             results.append(r)
             rec = r["received"]
             print(
