@@ -15,8 +15,9 @@ node on the same host gets the same by exporting FASTDDS_DEFAULT_PROFILES_FILE t
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
+
+from semmap.runtime.run_registry import runtime_dir
 
 PROFILE_ENV = "FASTDDS_DEFAULT_PROFILES_FILE"
 SHM_SEGMENT_BYTES = 64 * 1024 * 1024  # ~45 colour + depth pairs of 640x480 in flight per writer
@@ -68,9 +69,9 @@ def write_profile(path: str | os.PathLike) -> Path:
 
 
 def default_profile_path() -> Path:
-    """Where `semmap ros2` keeps its copy: the per-user runtime directory (XDG_RUNTIME_DIR, else the temp dir)."""
-    base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
-    return Path(base) / f"semmap-{os.getuid()}" / "fastdds_one_host.xml"
+    """Where `semmap ros2` keeps its copy: the per-user runtime directory ($XDG_RUNTIME_DIR/semmap, else
+    <temp dir>/semmap-<uid>), beside the records of the runs."""
+    return runtime_dir() / "fastdds_one_host.xml"
 
 
 def use_profile(environ: dict | None = None) -> str:
