@@ -1,7 +1,7 @@
 """`semmap ros2`: a ROS 2 node that feeds a running semmap from a camera + SLAM and publishes the map back in ROS 2.
 
-    semmap run external --out out/robot &          # the pipeline, waiting for a SLAM (Zenoh on 127.0.0.1:7447)
-    semmap ros2 --ros-args -r /odom:=/rtabmap/odom -p pose_to_optical:=ros
+    semmap run external --out out/robot &          # the pipeline, waiting for a SLAM (it records its endpoint)
+    semmap ros2 --run out/robot --ros-args -r /odom:=/rtabmap/odom -p pose_to_optical:=ros
 
 In (defaults: the RealSense ROS 2 wrapper's names; remap any with `--ros-args -r FROM:=TO`):
   /camera/camera/color/image_raw                   sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)
@@ -21,7 +21,8 @@ Out:
   /semmap/dynamic                 visualization_msgs/MarkerArray per detected frame: a box per dynamic object
                                   (people, animals, things seen moving), a colour per track, a text label, a short
                                   lifetime (`dynamic_lifetime_s`) so that stale boxes vanish
-  /semmap/bridge_status           std_msgs/String (JSON): counters of matched, skipped and sent messages
+  /semmap/bridge_status           std_msgs/String (JSON): counters of matched, skipped and sent messages, and
+                                  `lost`: every frame lost between the camera and semmap, by reason
 
 Frames go to semmap through its Zenoh keys exactly as an external SLAM sends them (semmap.runtime.client), one frame per
 matched colour/depth/pose triple (semmap.services.ros2.sync). Parameters (`-p name:=value`) are listed in PARAMETERS.
@@ -307,6 +308,8 @@ class SemmapLink:
             self._cv.notify_all()
         self._thread.join(timeout if self.lockstep else 5.0)
         with self._cv:
+            self.counters["dropped_at_stop"] += len(self._queue)  # lockstep: not sent within `timeout`
+            self._queue.clear()
             self._end_locked("the bridge stops")
 
     def status(self) -> dict:
