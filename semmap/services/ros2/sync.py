@@ -261,8 +261,8 @@ class FrameSync:
 
     def flush(self) -> list[MatchedFrame]:
         """No more input for now (the end of a recording, or the inputs went quiet): every colour image held
-        for a closer depth image or a newer pose is matched with what there is, or counted and dropped if it
-        cannot be (no depth or pose within the tolerances). Depth images left unmatched are counted too."""
+        for a closer depth image or a newer pose is matched with what there is. Nothing is dropped here: an image
+        with no depth or pose at all keeps waiting (its pose may be late), and `finish()` counts what is left."""
         self._final = True
         try:
             out = self._match()
@@ -297,7 +297,7 @@ class FrameSync:
         tol = self.tolerance_s
         while self._colours:
             colour = self._colours[0]
-            stale = self._final or exceeds(self._newest - colour.stamp, self.max_wait_s)
+            stale = exceeds(self._newest - colour.stamp, self.max_wait_s)
             if self.intrinsics is None:
                 if stale:
                     self._drop("no_camera_info")
@@ -315,6 +315,7 @@ class FrameSync:
                 and self._depths[-1].stamp < colour.stamp
                 and self._newest <= colour.stamp + tol
                 and not stale
+                and not self._final
             ):
                 break  # a depth image closer in time may still come
             pose = pose_at(self._pose_stamps, self._poses, colour.stamp, self.pose_max_gap_s)
