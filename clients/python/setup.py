@@ -24,6 +24,7 @@ MODULES = (
     "runtime/bus",
     "runtime/map_query",
     "runtime/map_store",
+    "runtime/run_registry",  # SemmapClient.attach: the run's recorded endpoint
 )
 
 

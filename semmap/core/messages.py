@@ -995,17 +995,27 @@ class Control(Message):
     last_frame_id: int = 0
     frames: int = 0
     sent_at: float = 0.0
+    # end_of_stream from an external source (the ROS 2 bridge): what it counted on its side, e.g. frames lost
+    # before semmap by reason; the run keeps them in stats.json ("source"). Optional: absent when empty.
+    counters: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"robot": self.robot, "command": self.command, "last_frame_id": self.last_frame_id,
-                "frames": self.frames, "sent_at": self.sent_at}
+        d = {"robot": self.robot, "command": self.command, "last_frame_id": self.last_frame_id,
+             "frames": self.frames, "sent_at": self.sent_at}
+        if self.counters:
+            d["counters"] = dict(self.counters)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> Control:
         command = _get(d, "command", str)
         if command not in cls.COMMANDS:
             raise MessageError(f"unknown control command {command!r}; known: {', '.join(cls.COMMANDS)}")
-        return cls(_robot(d), command, _get(d, "last_frame_id", int), _get(d, "frames", int), _get(d, "sent_at", float))
+        counters = _get(d, "counters", dict, optional=True) or {}
+        if not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) for k, v in counters.items()):
+            raise MessageError("counters must map names to integers")
+        return cls(_robot(d), command, _get(d, "last_frame_id", int), _get(d, "frames", int), _get(d, "sent_at", float),
+                   counters)
 
 
 @dataclass

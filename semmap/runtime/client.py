@@ -83,6 +83,17 @@ class SemmapClient:
         self.bus.subscribe(self.bus.keys.landmark_tags, TagDetections, lambda m: self._emit("tags", m))
         self.bus.subscribe(self.bus.keys.dynamic, DynamicObjects, lambda m: self._emit("dynamic", m))
 
+    @classmethod
+    def attach(cls, robot: str | None = None, run_dir: str | None = None, mode: str | None = None,
+               keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> SemmapClient:
+        """A client of the run a `semmap run external` on this host recorded (semmap.runtime.run_registry): the
+        one whose out dir is `run_dir`, else the only live run of `robot` (of any robot when None). Raises
+        RunNotFound when there is none or more than one."""
+        from semmap.runtime.run_registry import find_run
+
+        info = find_run(run_dir, None if run_dir else robot)
+        return cls(info.robot, info.endpoint, mode, keyframe_every)
+
     # -- inbound ----------------------------------------------------------------------------------------------
     def _emit(self, kind: str, message: object) -> None:
         for callback in list(self._callbacks[kind]):
@@ -190,10 +201,18 @@ class SemmapClient:
                     raise SemmapTimeout(f"frame {frame_id} not done after {timeout:g} s by {', '.join(late)}")
                 self._cv.wait(min(left, 0.1))
 
-    def end_of_stream(self, last_frame_id: int, frames: int | None = None) -> None:
-        """No more frames: services write their outputs (map.json, trajectories)."""
+    def frames_done(self, services: Iterable[str] = PIPELINE_SERVICES) -> int:
+        """How many frames (ids 0..n-1) every one of `services` has finished, from their progress messages."""
+        with self._cv:
+            return min((self._progress.get(s, -1) for s in services), default=-1) + 1
+
+    def end_of_stream(self, last_frame_id: int, frames: int | None = None,
+                      counters: dict[str, int] | None = None) -> None:
+        """No more frames: services write their outputs (map.json, trajectories). `frames`: how many this client
+        sent (default last_frame_id + 1); `counters`: what it counted on its side (e.g. frames it lost, by
+        reason), kept in the run's stats.json as "source"."""
         self._control.put(Control(self.robot, "end_of_stream", last_frame_id,
-                                  last_frame_id + 1 if frames is None else frames))
+                                  last_frame_id + 1 if frames is None else frames, counters=dict(counters or {})))
 
     def query_map(self, query: MapQuery | None = None, timeout: float = 3.0) -> list[Landmark]:
         query = query or MapQuery()

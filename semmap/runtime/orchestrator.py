@@ -30,6 +30,7 @@ from statistics import fmean
 from semmap.core.messages import Control, Progress, ServiceStatus
 from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
 from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
+from semmap.runtime.run_registry import RunInfo, register, unregister
 from semmap.runtime.service import ENV_PARENT_PID, exit_backstop
 
 log = logging.getLogger("semmap.run")
@@ -161,6 +162,7 @@ class Orchestrator:
         self._moved_at = time.monotonic()
         self._last_motion: tuple = ()
         self._bus_rejected: dict[str, int] = {}
+        self.source: dict = {}  # external runs: the source's end_of_stream report (frames sent, its counters)
 
     # -- bus --------------------------------------------------------------------------------------------------
     def _open_bus(self) -> tuple[Bus, list[str]]:
@@ -209,6 +211,12 @@ class Orchestrator:
             if s.instance not in self.cpu_at_first_frame and any(
                     st.counters.get("frames_published", 0) > 0 for st in self.statuses.values()):
                 self.cpu_at_first_frame[s.instance] = s.cpu_s
+
+    def _on_control(self, c: Control) -> None:
+        if c.command == "end_of_stream":
+            with self.lock:
+                self.source = {"frames_sent": int(c.frames), "last_frame_id": int(c.last_frame_id),
+                               "counters": dict(c.counters)}
 
     def _on_progress(self, p: Progress) -> None:
         with self.lock:
@@ -439,6 +447,11 @@ class Orchestrator:
                                   "rss_early_mb": round(fmean(series[quarter:2 * quarter] or series), 1),
                                   "rss_late_mb": round(fmean(series[-quarter:]), 1)}
         published = sum(s.counters.get("frames_published", 0) for s in statuses.values())
+        with self.lock:
+            source = dict(self.source)
+        if self.plan.data == EXTERNAL:  # no player: the frames the client / bridge says it sent (at least those
+            # processed, when the source never said: a client that stopped without end of stream)
+            published = max(published, int(source.get("frames_sent", 0)), self._frames_done(default=0))
         detected = sum(s.counters.get("frames_detected", 0) for s in statuses.values())
         # frames the detectors could not keep up with (real time); queue drops elsewhere stay per service
         dropped = sum(s.counters.get("frames_dropped", 0) for s in statuses.values())
@@ -470,6 +483,8 @@ class Orchestrator:
                  "services": services}
         if self.plan.budget is not None:
             stats["detector_budget"] = self._budget_achieved(services, processed, detected, wall_s)
+        if source:
+            stats["source"] = source
         path = self.plan.out_dir / "stats.json"
         atomic_write_text(path, json.dumps(stats, indent=2))
         return path
@@ -518,16 +533,23 @@ class Orchestrator:
         last_line = 0.0
         bus: Bus | None = None
         control_pub = None
+        run_info: RunInfo | None = None
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         try:
             plan.out_dir.mkdir(parents=True, exist_ok=True)
             bus, child_args = self._open_bus()
+            endpoint = self.endpoint or plan.connect
+            if endpoint:  # clients (the ROS 2 bridge) find this run here instead of guessing a port
+                run_info = RunInfo(plan.robot, self.run_id, endpoint, str(plan.out_dir.resolve()), os.getpid())
+                register(run_info)
             if self.endpoint:
                 log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,
                          self.run_id, self.endpoint)
             bus.subscribe(bus.keys.status_all, ServiceStatus, self._on_status)
             bus.subscribe(bus.keys.progress_all, Progress, self._on_progress)
+            if plan.data == EXTERNAL:  # what the external source says it sent (and lost) at its end of stream
+                bus.subscribe(bus.keys.control, Control, self._on_control)
             control_pub = bus.publisher(bus.keys.control)
             self._start(child_args)
             while True:
@@ -569,6 +591,8 @@ class Orchestrator:
                 code = code or 1
             if bus is not None:
                 bus.close()
+            if run_info is not None:
+                unregister(run_info)
             for sig in (signal.SIGINT, signal.SIGTERM):  # from here on a signal just ends the process
                 signal.signal(sig, signal.SIG_DFL)
         if code in (0, 130) and stats is not None:  # what was mapped and where it is, also after Ctrl-C

@@ -66,6 +66,11 @@ def run_summary(out_dir: Path, stats: dict) -> str:
             f"{p['expected_detections_per_s']:.1f}/s; achieved {a['detections_per_s']:.1f}/s of video"
             + (f", detector {a['detect_ms_p50']:.0f} ms p50 in the run" if a.get("detect_ms_p50") else "")
         )
+    lost = stats.get("source", {}).get("counters", {})
+    if lost:  # an external source's own count of frames it lost before semmap (the ROS 2 bridge: by reason)
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(lost.items()) if k != "total" and v)
+        total = lost.get("total", 0)
+        lines.append(f"  source      {total} frames lost before semmap" + (f": {reasons}" if reasons else ""))
     landmarks = _landmarks(out_dir)
     if landmarks is None:
         lines.append("  landmarks   none (no map.json: the associator did not run)")

@@ -51,9 +51,12 @@ COVERAGE: list[tuple[str, list[str], list[str]]] = [
         ['"mcap"', '"--odometry", "gt"'],
     ),
     (
-        r"^semmap ros2 --connect \S+$",
-        ["tests/ros2/test_bridge.py::test_bridge_maps_like_the_folder_and_skips_bad_messages"],
-        ['"ros2"', '"--connect"'],
+        r"^semmap ros2 --run \S+$",
+        [
+            "tests/ros2/test_bridge_live.py::test_lockstep_with_the_documented_settings_processes_every_frame_the_camera_sent",
+            "tests/ros2/test_bridge_live.py::test_real_time_at_30_hz_best_effort_maps_and_counts_every_lost_frame",
+        ],
+        ['"ros2"', '"--run"'],
     ),
     (
         r"^semmap diff \S+ \S+$",

@@ -2,21 +2,29 @@
 
     python tests/ros2/ros_nodes.py publish DATASET FRAMES [--bad]   # a camera + SLAM: 7-Scenes frames as ROS 2
     python tests/ros2/ros_nodes.py listen OUT.json FRAMES            # records /semmap/* until the bridge is done
+    python tests/ros2/ros_nodes.py camera DATASET FRAMES OUT.json [--rate 30] [--reliable] [--start N]
+                                                                     # a camera as a robot's: on a clock, no waits
+    python tests/ros2/ros_nodes.py count OUT.json [--idle 3]          # counts camera messages (a do-nothing node)
 
 `publish` sends, per frame, a colour image (rgb8), the aligned depth (16UC1), the camera info and the camera pose
 (nav_msgs/Odometry on /slam/odom, the frame's ground truth in the optical frame), stamped with the frame's stamp,
 reliably, after every input of the bridge is matched. `--bad` then sends one of each kind of bad message (a
 wrong encoding, a colour image of another size than the camera info, a NaN pose) after the frames, at stamps of
 their own.
+`camera` builds every message first, waits until the bridge's four subscriptions are matched, then publishes frame
+i at t0 + i / rate whatever happens downstream (best effort by default, as a RealSense node): what a live camera
+does. It writes what it sent (and how late it was) to OUT.json.
 Depth goes out in millimetres whatever the dataset's unit (TUM folders: 1/5000 m).
 `listen` keeps the last MarkerArray, the last Path, the bridge status and every MarkerArray on /semmap/dynamic; it
-writes them as JSON once the bridge reports FRAMES frames done and its stream ended (or after its timeout).
+writes them as JSON once the bridge reports FRAMES frames done (FRAMES 0: every frame it sent) and its stream ended
+(or after its timeout).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -217,7 +225,8 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
         if not ready.exists() and dynamic.get_publisher_count() > 0:
             ready.write_text("matched")  # the bridge's volatile topic reaches us: frames may start (see test)
         status = state["status"] or {}
-        if done_at is None and status.get("frames_done", 0) >= frames and status.get("ended"):
+        want = frames or max(status.get("frames_sent", 0), 1)  # 0: every frame the bridge sent
+        if done_at is None and status.get("ended") and status.get("frames_done", 0) >= want:
             done_at = time.monotonic()
         if done_at is not None and time.monotonic() - done_at > 3.0:  # the last map update and path
             break
@@ -227,7 +236,114 @@ def listen(out: Path, frames: int, timeout_s: float = 600.0) -> int:
     return 0 if done_at is not None else 1
 
 
+def camera(dataset: str, frames: int, out: Path, rate_hz: float, reliable: bool, start: int) -> int:
+    """A live camera: `frames` frames from `start` on, frame i at t0 + i / rate_hz, never waiting for anyone."""
+    rclpy.init()
+    node = rclpy.create_node("semmap_test_live_camera")
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
+    pubs = {
+        "colour": node.create_publisher(Image, COLOUR, qos),
+        "depth": node.create_publisher(Image, DEPTH, qos),
+        "info": node.create_publisher(CameraInfo, INFO, qos),
+        "pose": node.create_publisher(Odometry, POSE, qos),
+    }
+    data = open_dataset(dataset)
+    messages = []
+    for i in range(start, start + frames):
+        f = data[i]
+        messages.append(
+            (
+                _info(f.stamp, f.intrinsics),
+                _image(f.stamp, "rgb8", f.rgb),
+                _image(f.stamp, "16UC1", _millimetres(f)),
+                _odometry(f.stamp, f.gt_pose),
+            )
+        )
+    deadline = time.monotonic() + 60
+    while any(p.get_subscription_count() == 0 for p in pubs.values()):
+        if time.monotonic() > deadline:
+            print("no bridge subscribed within 60 s", file=sys.stderr)
+            return 1
+        rclpy.spin_once(node, timeout_sec=0.1)
+    time.sleep(1.0)  # both sides have matched (discovery is symmetric but not simultaneous)
+    period = 1.0 / rate_hz
+    late = 0
+    t0 = time.monotonic()
+    for i, (info, colour, depth, pose) in enumerate(messages):
+        wait = t0 + i * period - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        elif wait < -period:
+            late += 1
+        pubs["info"].publish(info)
+        pubs["colour"].publish(colour)
+        pubs["depth"].publish(depth)
+        pubs["pose"].publish(pose)
+    elapsed = time.monotonic() - t0
+    time.sleep(0.5)
+    out.write_text(
+        json.dumps(
+            {
+                "sent": frames,
+                "rate_hz": rate_hz,
+                "elapsed_s": elapsed,
+                "late_frames": late,
+                "first_stamp": messages[0][1].header.stamp.sec + messages[0][1].header.stamp.nanosec * 1e-9,
+                "profile": os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE", ""),
+            }
+        )
+    )
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0
+
+
+def count(out: Path, idle_s: float = 3.0, timeout_s: float = 120.0) -> int:
+    """A subscriber that does nothing but count the camera's messages (best effort, depth 10)."""
+    rclpy.init()
+    node = rclpy.create_node("semmap_test_counter")
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    counts = {"colour": 0, "depth": 0, "info": 0, "pose": 0}
+    last = [None]
+
+    def counter(name: str):  # noqa: ANN202
+        def cb(_msg) -> None:  # noqa: ANN001
+            counts[name] += 1
+            last[0] = time.monotonic()
+
+        return cb
+
+    node.create_subscription(Image, COLOUR, counter("colour"), qos)
+    node.create_subscription(Image, DEPTH, counter("depth"), qos)
+    node.create_subscription(CameraInfo, INFO, counter("info"), qos)
+    node.create_subscription(Odometry, POSE, counter("pose"), qos)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and (last[0] is None or time.monotonic() - last[0] < idle_s):
+        rclpy.spin_once(node, timeout_sec=0.1)
+    out.write_text(json.dumps(counts))
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0
+
+
+def _option(name: str, default: str) -> str:
+    return sys.argv[sys.argv.index(name) + 1] if name in sys.argv else default
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "camera":
+        sys.exit(
+            camera(
+                sys.argv[2],
+                int(sys.argv[3]),
+                Path(sys.argv[4]),
+                float(_option("--rate", "30")),
+                "--reliable" in sys.argv,
+                int(_option("--start", "0")),
+            )
+        )
+    if sys.argv[1] == "count":
+        sys.exit(count(Path(sys.argv[2]), float(_option("--idle", "3"))))
     if sys.argv[1] == "publish":
         sys.exit(publish(sys.argv[2], int(sys.argv[3]), "--bad" in sys.argv))
     sys.exit(listen(Path(sys.argv[2]), int(sys.argv[3])))

@@ -18,7 +18,7 @@ from semmap.datasets.ros_convert import (
     parse_pose_to_optical,
     quaternion_matrix,
 )
-from semmap.services.ros2.sync import FrameSync
+from semmap.services.ros2.sync import CameraFrames, FrameSync, StampGaps, missing_at_ends
 
 W, H = 8, 6
 
@@ -127,3 +127,70 @@ def test_conversions() -> None:
     assert np.allclose(parse_pose_to_optical("0 0 0.1 0 0 0 1")[:3, 3], [0, 0, 0.1])
     with pytest.raises(ValueError):
         parse_pose_to_optical("sideways")
+
+
+def test_stamp_gaps_count_the_messages_missing_from_a_stream() -> None:
+    """30 Hz stamps with 1, then 3 messages missing: two gaps, four messages; repeated stamps apart."""
+    gaps = StampGaps()
+    stamps = [i / 30 for i in range(40) if i not in (20, 30, 31, 32)]
+    assert sum(gaps.add(t) for t in stamps) == 4
+    assert gaps.gaps == 2 and gaps.missing == 4 and gaps.as_dict()["period_s"] == pytest.approx(1 / 30, abs=1e-6)
+    gaps.add(stamps[-1])
+    assert gaps.out_of_order == 1 and gaps.missing == 4
+
+
+def test_the_last_frame_is_sent_by_flush_and_what_cannot_match_is_counted_at_the_end() -> None:
+    """The last colour image of a recording, whose depth is a little older and whose pose is the last one, is held
+    for a closer depth or a newer pose; flush() sends it. finish() counts colour images without depth."""
+    sync = FrameSync(tolerance_s=0.02)
+    sync.add_camera_info(info())
+    out = []
+    for i in range(5):
+        t = i / 30
+        out += sync.add_pose(pose(t), ODOM)
+        out += sync.add_depth(depth(t - 0.005))
+        out += sync.add_colour(colour(t))
+    assert len(out) == 4 and sync.pending() == 1  # the last one waits for a closer depth image
+    last = sync.flush()
+    assert len(last) == 1 and last[0].stamp == pytest.approx(4 / 30)
+    sync.add_colour(colour(10.0))  # no depth ever comes for it
+    assert sync.finish() == []
+    assert sync.counters["colour_unmatched_at_end"] + sync.counters["colour_without_depth"] == 1
+    assert sync.pending() == 0
+
+
+def test_colour_images_lost_at_the_ends_are_counted_from_the_depth_stream() -> None:
+    """No gap shows the first two and the last three colour images lost; the depth stream (same rate) does."""
+    colour, depth_stream, odom = StampGaps(), StampGaps(), StampGaps()
+    for i in range(40):
+        depth_stream.add(i / 30)
+        odom.add(i / 100)  # another rate: says nothing about the camera's frames
+        if 2 <= i < 37:
+            colour.add(i / 30)
+    assert missing_at_ends(colour.as_dict(), [depth_stream.as_dict(), odom.as_dict()]) == 5
+
+
+def test_camera_frames_count_colour_images_lost_even_when_most_are() -> None:
+    """150 frames at 30 Hz, camera info for all but two, colour for one in five (the median colour step is then
+    the loss pattern's, not the camera's): the colour images missing are 150 - 30, also for the frames whose camera
+    info was lost too, and stamps far behind the newest are only counted."""
+    frames = CameraFrames(horizon_s=1.0)
+    for i in range(150):
+        t = 100 + i / 30
+        if i not in (50, 51):
+            frames.add(t, colour=False)
+        if i % 5 == 0:
+            frames.add(t, colour=True)
+    assert frames.frames() == 150 and frames.colour_missing() == 120
+
+
+def test_stamp_gaps_find_the_period_when_most_messages_are_lost() -> None:
+    """30 % of a 30 Hz stream arrives, at random: the period is still the camera's, and every message missing
+    between the first and the last received is counted, those before the period was known included."""
+    rng = np.random.default_rng(7)
+    kept = [i for i in range(300) if rng.random() < 0.3]
+    gaps = StampGaps()
+    for i in kept:
+        gaps.add(5 + i / 30)
+    assert gaps.period == pytest.approx(1 / 30, abs=1e-6)
+    assert gaps.missing == (kept[-1] - kept[0] + 1) - len(kept)

@@ -1,7 +1,7 @@
 """`semmap ros2`: a ROS 2 node that feeds a running semmap from a camera + SLAM and publishes the map back in ROS 2.
 
-    semmap run external --out out/robot &          # the pipeline, waiting for a SLAM (Zenoh on 127.0.0.1:7447)
-    semmap ros2 --ros-args -r /odom:=/rtabmap/odom -p pose_to_optical:=ros
+    semmap run external --out out/robot &          # the pipeline, waiting for a SLAM (it records its endpoint)
+    semmap ros2 --run out/robot --ros-args -r /odom:=/rtabmap/odom -p pose_to_optical:=ros
 
 In (defaults: the RealSense ROS 2 wrapper's names; remap any with `--ros-args -r FROM:=TO`):
   /camera/camera/color/image_raw                   sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)
@@ -21,7 +21,8 @@ Out:
   /semmap/dynamic                 visualization_msgs/MarkerArray per detected frame: a box per dynamic object
                                   (people, animals, things seen moving), a colour per track, a text label, a short
                                   lifetime (`dynamic_lifetime_s`) so that stale boxes vanish
-  /semmap/bridge_status           std_msgs/String (JSON): counters of matched, skipped and sent messages
+  /semmap/bridge_status           std_msgs/String (JSON): counters of matched, skipped and sent messages, and
+                                  `lost`: every frame lost between the camera and semmap, by reason
 
 Frames go to semmap through its Zenoh keys exactly as an external SLAM sends them (semmap.runtime.client), one frame per
 matched colour/depth/pose triple (semmap.services.ros2.sync). Parameters (`-p name:=value`) are listed in PARAMETERS.
@@ -47,7 +48,8 @@ import numpy as np
 
 from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Landmark, MapUpdate, Observations
 from semmap.datasets.ros_convert import matrix_quaternion, parse_pose_to_optical
-from semmap.services.ros2.sync import FrameSync, MatchedFrame
+from semmap.services.ros2.sync import FrameSync, MatchedFrame, missing_at_ends
+from semmap.services.ros2.transport import use_profile, write_profile
 
 log = logging.getLogger("semmap.services.ros2")
 
@@ -80,7 +82,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
         "wait until semmap has processed each frame before sending the next (no drops; for "
         "bags and tests); false: real time, the oldest waiting frame is dropped when semmap is busy",
     ),
-    "queue_size": (2, "real time: frames waiting for semmap before the oldest is dropped"),
+    "queue_size": (2, "real time: frames waiting for semmap before the oldest is dropped (counted)"),
     "map_frame": ("", "frame of the outputs (\"\" = the pose messages' header.frame_id, else 'map')"),
     "corrected_frame": ("semmap_map", "parent frame of /semmap/correction (the corrected world)"),
     "output_period_s": (1.0, "publish the map and the trajectory at most this often (the latest state)"),
@@ -96,13 +98,28 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
         "subscribe to the inputs with reliable QoS (default best effort: matches any "
         "publisher, never blocks the camera)",
     ),
-    "input_depth": (10, "input QoS history depth"),
+    "input_depth": (
+        0,
+        "input QoS history depth; 0 = sized for you: reliable input keeps all (nothing is dropped by the bridge's "
+        "reader; a reliable camera is slowed instead), best effort keeps camera_rate_hz x input_latency_s",
+    ),
+    "camera_rate_hz": (30.0, "the camera's frame rate (sizes the best-effort input history)"),
+    "input_latency_s": (
+        1.0,
+        "longest the bridge's ROS thread may fall behind its inputs before a best-effort reader drops messages",
+    ),
+    "flush_after_s": (
+        0.5,
+        "when no input arrived for this long (wall time), frames held for a closer depth image or a newer pose "
+        "are matched with what there is (the last frame of a recording is sent)",
+    ),
     "dynamic_lifetime_s": (
         0.5,
         "lifetime of a dynamic-object box in RViz: it vanishes unless a newer detected frame renews it",
     ),
 }
-LOCKSTEP_QUEUE = 300  # frames held while semmap catches up in lockstep (~1.5 MB each at 640x480)
+LOCKSTEP_QUEUE = 300  # frames held while semmap catches up in lockstep (~1.5 MB each at 640x480); then the ROS
+# thread waits (the readers' histories fill, a reliable camera is slowed): nothing is dropped in lockstep
 SENT_KEPT = 9000  # frames sent whose pose is kept for the outputs (5 min at 30 Hz; ~0.3 KB each, no images)
 DYNAMIC_MIN_DEPTH_M = 0.05  # a dynamic box is at least this deep along the view (a one-surface depth range)
 
@@ -167,6 +184,9 @@ class SemmapLink:
         self.sigmas = sigmas
         self.end_after_idle_s = float(end_after_idle_s)
         self.counters = counters
+        # the frames lost before semmap, by reason (set by the node): sent with end-of-stream, so that the run's
+        # stats.json and summary show them
+        self.report: Any = dict
         self.sent: OrderedDict[int, SentFrame] = OrderedDict()  # frame_id -> its pose etc. (the last SENT_KEPT)
         self.ready = False
         self.ended = False
@@ -182,14 +202,19 @@ class SemmapLink:
         self._thread.start()
 
     def submit(self, frame: MatchedFrame) -> None:
+        """Queue a frame for semmap. Real time: a full queue drops its oldest frame (`dropped_busy`). Lockstep:
+        a full queue makes the caller (the ROS thread) wait: back-pressure, nothing dropped."""
         with self._cv:
             if self.ended:
                 self.counters["after_end_of_stream"] += 1
                 return
+            while self.lockstep and len(self._queue) >= self.queue_size and not self._stopping:
+                self._cv.wait(0.1)
             if len(self._queue) >= self.queue_size:
                 self._queue.popleft()
                 self.counters["dropped_busy"] += 1
             self._queue.append(frame)
+            self.counters["frames_queued"] += 1
             self._cv.notify_all()
 
     def _wait_ready(self) -> bool:
@@ -224,8 +249,11 @@ class SemmapLink:
                     self._end_locked(f"no frame for {self.end_after_idle_s:.1f} s")
                     continue
                 if not self._queue or (self._stopping and not self.lockstep):
+                    self.counters["dropped_at_stop"] += len(self._queue)
+                    self._queue.clear()
                     return
                 frame = self._queue.popleft()
+                self._cv.notify_all()  # a lockstep submit may be waiting for room
                 frame_id = self.last_id + 1
             fx, fy, cx, cy, _, _ = frame.intrinsics
             self.client.publish_frame(frame_id, frame.stamp, frame.rgb, frame.depth_mm, 0.001, (fx, fy, cx, cy))
@@ -264,7 +292,12 @@ class SemmapLink:
 
     def _end_locked(self, why: str) -> None:
         if not self.ended and self.last_id >= 0:
-            self.client.end_of_stream(self.last_id)
+            try:
+                counters = self.report()
+            except Exception:  # noqa: BLE001 (a report must never keep the stream from ending)
+                log.exception("counting the frames lost")
+                counters = {}
+            self.client.end_of_stream(self.last_id, self.last_id + 1, counters)
             log.info("end of stream after frame %d (%s)", self.last_id, why)
         self.ended = True
 
@@ -275,17 +308,56 @@ class SemmapLink:
             self._cv.notify_all()
         self._thread.join(timeout if self.lockstep else 5.0)
         with self._cv:
+            self.counters["dropped_at_stop"] += len(self._queue)  # lockstep: not sent within `timeout`
+            self._queue.clear()
             self._end_locked("the bridge stops")
 
     def status(self) -> dict:
+        processed = self.client.frames_done()  # what every pipeline service has finished (its Progress)
         with self._cv:
             return {
                 "semmap_ready": self.ready,
                 "frames_sent": self.last_id + 1,
-                "frames_done": self.done_id + 1,
+                "frames_done": min(processed, self.last_id + 1),
                 "queued": len(self._queue),
                 "ended": self.ended,
             }
+
+
+LOSS_REASONS = (  # sync counters that are a colour image (a frame) lost, in the order a frame meets them
+    "bad_colour",
+    "no_camera_info",
+    "colour_without_depth",
+    "colour_without_pose",
+    "size_mismatch",
+    "colour_unmatched_at_end",
+)
+
+
+def lost_frames(sync: Counter, link: Counter, gaps: dict, status: dict, camera_missing: int = 0) -> dict:
+    """Every frame lost between the camera and semmap, by reason: `before_bridge` (colour images missing: frames
+    whose camera info arrived without them, holes in the joint colour + camera-info stamps, holes in the colour
+    stamps, images before / after the colour stream where depth and camera info went on; the largest of these
+    estimates: lost in transport or by a full reader history), each sync reason (colour images that did
+    not become a frame), the link's drops (`dropped_busy`: real time, semmap busy; `dropped_at_stop`,
+    `after_end_of_stream`); `not_processed`: sent to semmap, not (yet) finished by every service. `total`: their
+    sum, the frames the camera sent (as far as stamps tell) that did not reach the map."""
+    colour = gaps.get("colour", {})
+    at_ends = missing_at_ends(colour, [gaps.get("depth", {}), gaps.get("camera_info", {})])
+    lost = {"before_bridge": max(int(colour.get("missing", 0)) + at_ends, int(camera_missing))}
+    for reason in LOSS_REASONS:
+        lost[reason] = int(sync.get(reason, 0))
+    for reason in ("dropped_busy", "dropped_at_stop", "after_end_of_stream"):
+        lost[reason] = int(link.get(reason, 0))
+    lost["not_processed"] = max(0, int(status.get("frames_sent", 0)) - int(status.get("frames_done", 0)))
+    lost = {k: v for k, v in lost.items() if v}
+    lost["total"] = sum(lost.values())
+    return lost
+
+
+def auto_input_depth(rate_hz: float, latency_s: float) -> int:
+    """Best-effort input history: what the camera sends while the bridge's ROS thread is `latency_s` behind."""
+    return max(10, int(math.ceil(max(rate_hz, 1.0) * max(latency_s, 0.1))))
 
 
 def _declare(node: Any) -> dict[str, Any]:
@@ -297,9 +369,15 @@ def _declare(node: Any) -> dict[str, Any]:
     return values
 
 
-def run_bridge(robot: str, connect: str | None, zenoh_mode: str | None, ros_args: list[str]) -> int:
+def run_bridge(
+    robot: str, connect: str, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True
+) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
+    # shared memory + large loopback buffers, unless the user set a profile of their own; it confines DDS to
+    # this host, so not when the user asked for discovery beyond it (a camera on another computer)
+    if fastdds_profile and os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST":
+        log.info("Fast DDS profile: %s", use_profile())
     try:
         import rclpy
         from rclpy.executors import ExternalShutdownException
@@ -314,7 +392,7 @@ def run_bridge(robot: str, connect: str | None, zenoh_mode: str | None, ros_args
     client = None
     node = None
     try:
-        client = SemmapClient(robot, connect or "tcp/127.0.0.1:7447", zenoh_mode)
+        client = SemmapClient(robot, connect, zenoh_mode)
         node = node_class(client)
         node.start()
         rclpy.spin(node)
@@ -349,7 +427,7 @@ def _make_node_class() -> type:
     )
     from nav_msgs.msg import Odometry, Path
     from rclpy.node import Node
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from scipy.spatial.transform import Rotation
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image
     from std_msgs.msg import ColorRGBA, String
@@ -360,6 +438,20 @@ def _make_node_class() -> type:
         "pose": ("geometry_msgs/msg/PoseStamped", PoseStamped),
         "pose_with_covariance": ("geometry_msgs/msg/PoseWithCovarianceStamped", PoseWithCovarianceStamped),
     }
+
+    def input_qos(p: dict) -> QoSProfile:
+        """The inputs' QoS (see `input_depth`): reliable input keeps all by default (the bridge's reader never
+        drops; lockstep's back-pressure reaches the camera), best effort keeps rate x latency messages."""
+        reliable = bool(p["reliable_input"])
+        reliability = ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
+        depth = int(p["input_depth"])
+        if depth > 0:
+            return QoSProfile(depth=depth, reliability=reliability)
+        if reliable:
+            return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=reliability)
+        return QoSProfile(
+            depth=auto_input_depth(float(p["camera_rate_hz"]), float(p["input_latency_s"])), reliability=reliability
+        )
 
     def ros_time(t: float) -> Time:
         sec = math.floor(t)
@@ -397,12 +489,11 @@ def _make_node_class() -> type:
                 float(p["end_after_idle_s"]),
                 self.counters,
             )
+            self.link.report = self._lost_before_semmap
             self.lock = threading.Lock()  # the map and trajectory state is updated from Zenoh threads
             self.landmarks: dict[int, Landmark] = {}
-            qos = QoSProfile(
-                depth=int(p["input_depth"]),
-                reliability=ReliabilityPolicy.RELIABLE if p["reliable_input"] else ReliabilityPolicy.BEST_EFFORT,
-            )
+            qos = input_qos(p)
+            self.input_history = "keep all" if qos.history == HistoryPolicy.KEEP_ALL else f"keep last {qos.depth}"
             pose_name, pose_class = pose_types[p["pose_type"]]
             self.inputs = {
                 "colour": (self.create_subscription(Image, COLOUR_TOPIC, self._on_colour, qos), "sensor_msgs/Image"),
@@ -430,7 +521,10 @@ def _make_node_class() -> type:
             self.dynamic_pub = self.create_publisher(MarkerArray, DYNAMIC_TOPIC, 10)
             self.status_pub = self.create_publisher(String, STATUS_TOPIC, 10)
             self.started = time.monotonic()
+            self.last_input = time.monotonic()
+            self.quiet_seen = False
             self.create_timer(1.0, self._tick)
+            self.create_timer(0.1, self._flush_if_quiet)
             self.deleted: set[int] = set()
             self.map_dirty = False
             # the optimised trajectory, kept by applying each `poses/corrected` delta (semmap.corrected_poses/2)
@@ -460,13 +554,31 @@ def _make_node_class() -> type:
         def stop(self) -> None:
             """After rclpy's shutdown (SIGINT / SIGTERM): nothing can be published any more; the counters go to
             the log."""
+            self._forward(self.sync.finish())  # the last frame of a recording is sent, the rest counted
             self.link.stop()
             log.info("stopped: %s", json.dumps(self._status()))
 
         # -- inputs ------------------------------------------------------------------------------------------
         def _forward(self, frames: list[MatchedFrame]) -> None:
             for frame in frames:
-                self.link.submit(frame)
+                self.link.submit(frame)  # lockstep: may wait for room
+            self.last_input = time.monotonic()
+            self.quiet_seen = False
+
+        def _flush_if_quiet(self) -> None:
+            """No input for `flush_after_s`: frames held for a closer depth image or a newer pose go with what
+            there is (the last frame of a recording), or are counted. Quiet must be seen by two ticks in a row
+            with no input between them: after a stall of the ROS thread the executor runs a due timer before the
+            messages that waited, which must not be mistaken for the end."""
+            quiet = time.monotonic() - self.last_input > float(self.params["flush_after_s"])
+            if not (quiet and self.sync.pending()):
+                self.quiet_seen = False
+                return
+            if not self.quiet_seen:
+                self.quiet_seen = True
+                return
+            self.quiet_seen = False
+            self._forward(self.sync.flush())
 
         def _on_colour(self, msg: Image) -> None:
             self.arrivals["colour"] += 1
@@ -504,13 +616,28 @@ def _make_node_class() -> type:
 
         def _status(self) -> dict:
             missing = [self.inputs[r][0].topic_name for r in self.inputs if self.arrivals[r] == 0]
+            gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
+            link = self.link.status()
             return {
                 "received": dict(self.arrivals),
                 "sync": dict(self.sync.counters),
                 "link": dict(self.counters),
-                **self.link.status(),
+                "gaps": gaps,
+                **link,
+                "lost": lost_frames(
+                    self.sync.counters, self.counters, gaps, link, self.sync.camera_frames.colour_missing()
+                ),
+                "camera_frames": self.sync.camera_frames.frames(),
+                "input_history": self.input_history,
                 "missing_topics": missing,
             }
+
+        def _lost_before_semmap(self) -> dict[str, int]:
+            """What end-of-stream reports to the run: frames lost between the camera and semmap, by reason."""
+            gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
+            lost = lost_frames(self.sync.counters, self.counters, gaps, {}, self.sync.camera_frames.colour_missing())
+            lost.pop("total", None)
+            return {**lost, "total": sum(lost.values())}
 
         # -- outputs -----------------------------------------------------------------------------------------
         def _frame_id(self) -> str:
@@ -725,14 +852,37 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", default="robot1", help="semmap robot name (key space semmap/v1/<robot>)")
+    parser.add_argument(
+        "--robot",
+        default=None,
+        help="semmap robot name (key space semmap/v1/<robot>); without --connect, the live run of this robot is "
+        "served (default: the only live run on this host, whatever its robot)",
+    )
+    parser.add_argument(
+        "--run",
+        metavar="OUT_DIR",
+        default=None,
+        help="serve the run whose out dir this is (its run.json: endpoint, robot, run id)",
+    )
     parser.add_argument(
         "--connect",
         default=None,
-        help="semmap's Zenoh endpoint (default tcp/127.0.0.1:7447, where "
-        "`semmap run external` listens); env SEMMAP_ZENOH_CONNECT",
+        help="semmap's Zenoh endpoint, e.g. tcp/HOST:7447 (env SEMMAP_ZENOH_CONNECT); default: found from the "
+        "run's own record (--run, else the only live run of --robot on this host)",
     )
     parser.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
+    parser.add_argument(
+        "--no-fastdds-profile",
+        action="store_true",
+        help="do not load semmap's Fast DDS profile (shared memory + large loopback buffers; loaded by default "
+        "unless FASTDDS_DEFAULT_PROFILES_FILE is set)",
+    )
+    parser.add_argument(
+        "--write-fastdds-profile",
+        metavar="PATH",
+        default=None,
+        help="write that profile to PATH and exit: export FASTDDS_DEFAULT_PROFILES_FILE=PATH for your camera node",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -740,7 +890,32 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
-    return run_bridge(args.robot, args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT"), args.zenoh_mode, ros_args)
+    if args.write_fastdds_profile:
+        print(write_profile(args.write_fastdds_profile))
+        return 0
+    from semmap.runtime.run_registry import RunNotFound, find_run
+
+    connect = args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT")
+    robot = args.robot
+    if args.run or not connect:
+        try:
+            info = find_run(args.run, None if args.run else robot)
+        except (RunNotFound, OSError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if robot and info.robot != robot:
+            print(f"error: the run in {args.run} maps robot {info.robot!r}, not {robot!r}", file=sys.stderr)
+            return 2
+        connect = connect if args.connect else info.endpoint
+        robot = info.robot
+        log.info("serving run %s (robot %s, %s, out %s)", info.run_id, info.robot, connect, info.out_dir)
+    return run_bridge(
+        robot or "robot1",
+        connect,
+        args.zenoh_mode,
+        ros_args,
+        not args.no_fastdds_profile,
+    )
 
 
 if __name__ == "__main__":
