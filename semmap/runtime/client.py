@@ -88,11 +88,12 @@ class SemmapClient:
                keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> SemmapClient:
         """A client of the run a `semmap run external` on this host recorded (semmap.runtime.run_registry): the
         one whose out dir is `run_dir`, else the only live run of `robot` (of any robot when None). Raises
-        RunNotFound when there is none or more than one."""
+        RunNotFound when there is none or more than one. A run started with `--check-slam` gets the poses on the
+        `slam` key (checked), as its run file says."""
         from semmap.runtime.run_registry import find_run
 
         info = find_run(run_dir, None if run_dir else robot)
-        return cls(info.robot, info.endpoint, mode, keyframe_every)
+        return cls(info.robot, info.endpoint, mode, keyframe_every, check_slam=info.check_slam)
 
     # -- inbound ----------------------------------------------------------------------------------------------
     def _emit(self, kind: str, message: object) -> None:

@@ -541,7 +541,8 @@ class Orchestrator:
             bus, child_args = self._open_bus()
             endpoint = self.endpoint or plan.connect
             if endpoint:  # clients (the ROS 2 bridge) find this run here instead of guessing a port
-                run_info = RunInfo(plan.robot, self.run_id, endpoint, str(plan.out_dir.resolve()), os.getpid())
+                run_info = RunInfo(plan.robot, self.run_id, endpoint, str(plan.out_dir.resolve()), os.getpid(),
+                                   check_slam=plan.data == EXTERNAL and plan.odometry == "external")
                 register(run_info)
             if self.endpoint:
                 log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,

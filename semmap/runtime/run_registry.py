@@ -34,6 +34,7 @@ class RunInfo:
     out_dir: str
     pid: int
     schema: str = SCHEMA
+    check_slam: bool = False  # the run checks the SLAM's poses: publish them on the `slam` key (--check-slam)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -43,7 +44,8 @@ class RunInfo:
         d = json.loads(path.read_text())
         if d.get("schema") != SCHEMA:
             raise ValueError(f"{path}: not a semmap run file (schema {d.get('schema')!r})")
-        return cls(str(d["robot"]), str(d["run_id"]), str(d["endpoint"]), str(d["out_dir"]), int(d["pid"]))
+        return cls(str(d["robot"]), str(d["run_id"]), str(d["endpoint"]), str(d["out_dir"]), int(d["pid"]),
+                   check_slam=bool(d.get("check_slam", False)))
 
 
 def runtime_dir() -> Path:

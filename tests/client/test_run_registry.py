@@ -66,3 +66,16 @@ def test_the_bridge_says_when_it_finds_no_run(tmp_path: Path) -> None:
     )
     assert result.returncode == 2
     assert "no running semmap for robot 'nobody'" in result.stderr and "--run OUT_DIR" in result.stderr
+
+
+def test_a_run_that_checks_the_slam_says_so(tmp_path: Path) -> None:
+    """`semmap run external --check-slam` records it, so a client or bridge that finds the run sends its poses to
+    the `slam` key without a flag of its own to keep in step (an older run file reads as unchecked)."""
+    a = _info(tmp_path, "robot1", "cccc", 7449)
+    checked = RunInfo(a.robot, a.run_id, a.endpoint, a.out_dir, a.pid, check_slam=True)
+    register(checked)
+    assert find_run(run_dir=a.out_dir).check_slam is True
+    unregister(checked)
+    register(a)
+    assert find_run(robot="robot1").check_slam is False
+    unregister(a)

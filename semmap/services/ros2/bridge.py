@@ -370,7 +370,8 @@ def _declare(node: Any) -> dict[str, Any]:
 
 
 def run_bridge(
-    robot: str, connect: str, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True
+    robot: str, connect: str, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True,
+    check_slam: bool = False,
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
@@ -392,7 +393,7 @@ def run_bridge(
     client = None
     node = None
     try:
-        client = SemmapClient(robot, connect, zenoh_mode)
+        client = SemmapClient(robot, connect, zenoh_mode, check_slam=check_slam)
         node = node_class(client)
         node.start()
         rclpy.spin(node)
@@ -883,6 +884,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="write that profile to PATH and exit: export FASTDDS_DEFAULT_PROFILES_FILE=PATH for your camera node",
     )
+    parser.add_argument(
+        "--check-slam",
+        action="store_true",
+        help="send the SLAM's poses to be checked against semmap's own registration (a run started with "
+        "`semmap run external --check-slam`; found by --run / --robot, this follows the run by itself)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -897,6 +904,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
 
     connect = args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT")
     robot = args.robot
+    check_slam = bool(args.check_slam)
     if args.run or not connect:
         try:
             info = find_run(args.run, None if args.run else robot)
@@ -908,6 +916,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
             return 2
         connect = connect if args.connect else info.endpoint
         robot = info.robot
+        check_slam = check_slam or info.check_slam  # (the run says whether it checks the SLAM's poses)
         log.info("serving run %s (robot %s, %s, out %s)", info.run_id, info.robot, connect, info.out_dir)
     return run_bridge(
         robot or "robot1",
@@ -915,6 +924,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
         args.zenoh_mode,
         ros_args,
         not args.no_fastdds_profile,
+        check_slam,
     )
 
 
