@@ -243,9 +243,8 @@ def _run(args: argparse.Namespace) -> int:
         if dataset is not None and hasattr(dataset, "close"):  # (bags hold their file open)
             dataset.close()
     plan.lock_fd = lock.fd
-    # the odometry is said even with --quiet (a simulated one above all); the camera unless quiet
-    banner = start_banner(plan, dataset_camera, odometry_line)
-    for line in banner if not args.quiet else banner[:1]:
+    # the odometry (a simulated one above all) and the camera are said even with --quiet: two lines
+    for line in start_banner(plan, dataset_camera, odometry_line):
         print(f"semmap: {line}", file=sys.stderr, flush=True)
     try:
         return Orchestrator(plan).run()
@@ -328,7 +327,7 @@ def check_detector_classes(config: Config, data: str, mode: str) -> None:
     listing the known ones): 'unicorn' would otherwise give an empty map without a word."""
     from semmap.algorithms.detector import check_classes, needs_model, resolve_kind
     from semmap.core.config import ConfigError
-    from semmap.runtime.model_store import packaged_model, resolve_precision
+    from semmap.runtime.model_store import packaged_model
 
     cfg = config.detector
     if not cfg.classes and not cfg.exclude:
@@ -336,7 +335,8 @@ def check_detector_classes(config: Config, data: str, mode: str) -> None:
     kind = resolve_kind(cfg.kind, synthetic=data == "synthetic" or data.startswith("synthetic:"))
     model = None
     if needs_model(kind):
-        model = Path(cfg.model or packaged_model(resolve_precision(cfg.precision, realtime=mode == "realtime")))
+        # (the classes a model knows do not depend on its precision: the fp32 copy answers for both)
+        model = Path(cfg.model or packaged_model("fp32" if cfg.precision == "auto" else cfg.precision))
     try:
         check_classes(kind, cfg, model)
     except ConfigError:

@@ -325,11 +325,22 @@ def test_real_depth_gate_on_cup(yolo, kitchen_dir):
     assert 0.3 < kept["cup"] < 3.0  # a mug on the table, seen from standing height
 
 
+def _skip_without_vnni() -> None:
+    """int8 detections are checked where int8 can be chosen: a CPU with VNNI (or ARM dot products). Without them
+    onnxruntime's 8-bit kernels saturate (AVX2-only EPYC: the cup of frame 750 is lost, F1 0.84-0.88 against fp32), and
+    `detector.precision: auto` does not take int8 there (semmap.runtime.detector_choice, `semmap models doctor`)."""
+    from semmap.runtime.detector_choice import hardware_key, has_vnni
+
+    if not has_vnni(hardware_key()):
+        pytest.skip("this CPU has no VNNI: int8 is not chosen here (semmap models doctor), its agreement not required")
+
+
 @pytest.mark.needs_model
 @pytest.mark.needs_data
 def test_int8_copy_keeps_detections(model_path, kitchen_dir, tmp_path):
     from semmap.runtime.model_store import quantize_int8
 
+    _skip_without_vnni()
     scene = kitchen_dir
     calib = [scene / f"frame-{i:06d}.color.jpg" for i in (100, 300, 450, 600, 850, 950)]
     q = quantize_int8(model_path, calib, tmp_path / "int8.onnx")
@@ -356,6 +367,7 @@ def test_int8_copy_calibrated_on_the_synthetic_scene(model_path, kitchen_dir, tm
     made = subprocess.run([*cmd, "--synthetic", "--max-images", "8"], capture_output=True, text=True, timeout=300)
     assert made.returncode == 0, made.stderr
     assert made.stdout.strip() == str(out) and "calibrating on 8 images" in made.stderr
+    _skip_without_vnni()  # (the copy is made everywhere; whether it finds what fp32 finds depends on the CPU)
     det = OnnxDetector(out, threads=2)
     for frame in (0, 750):
         found = {b.class_name for b in det.detect(read_rgb(kitchen_dir / f"frame-{frame:06d}.color.jpg"))}

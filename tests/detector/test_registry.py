@@ -56,8 +56,8 @@ def test_a_new_detector_back_end_joins_by_registering() -> None:
 
 
 def test_the_odometry_front_ends_are_registered(tmp_path) -> None:  # noqa: ANN001
-    assert set(odometry.available()) == {"gt", "gt+drift", "rgbd", "file:PATH"}
-    section = load_config(None, ["odometry.seed=4"]).odometry
+    assert set(odometry.available()) == {"auto", "orbslam3", "gt", "gt+drift", "rgbd", "file:PATH", "external"}
+    section = load_config(None, ["odometry.seed=4", "odometry.repair=false"]).odometry
     drift = odometry.create_frontend("gt+drift", section)
     assert isinstance(drift, DriftingOdometry) and odometry.check_mode("gt+drift")[0].needs_groundtruth
     (tmp_path / "t.tum").write_text("0.0 1 2 3 0 0 0 1\n")

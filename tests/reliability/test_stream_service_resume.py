@@ -55,20 +55,22 @@ def _run(router, robot: str, service: str, frames: list, kill_after: int | None,
     feeder = LockstepFeeder(router.endpoint, robot, service, [keys.detections if service == "tracker"
                                                               else keys.frames])
     outputs = _Outputs(router.endpoint, robot, key, kind)
+    # the odometry case continues a seeded drift (a service started by hand would otherwise take `auto`)
+    extra = ("--set", "odometry.mode=gt+drift") if service == "odometry" else ()
     procs = []
     try:
         if kill_after is None:
-            procs.append(start_service(service, router.endpoint, robot, out))
+            procs.append(start_service(service, router.endpoint, robot, out, *extra))
             feeder.feed(frames)
         elif not resend_last:
-            run_killed_and_resumed(feeder, service, router.endpoint, robot, out, frames, kill_after, procs)
+            run_killed_and_resumed(feeder, service, router.endpoint, robot, out, frames, kill_after, procs, *extra)
         else:
-            procs.append(start_service(service, router.endpoint, robot, out))
+            procs.append(start_service(service, router.endpoint, robot, out, *extra))
             feeder.feed(frames[:kill_after])
             procs[-1].send_signal(signal.SIGKILL)
             procs[-1].wait(timeout=10)
             feeder.restart()
-            procs.append(start_service(service, router.endpoint, robot, out, "--resume"))
+            procs.append(start_service(service, router.endpoint, robot, out, "--resume", *extra))
             feeder.feed(frames[kill_after - 1:])  # the last journalled frame again: its answer was "lost"
         feeder.finish(procs[-1], out / f"{service}.log", len(frames))
     finally:
