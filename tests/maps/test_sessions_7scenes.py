@@ -27,7 +27,9 @@ from semmap.runtime.map_store import read_map_json
 
 pytestmark = [pytest.mark.slow, pytest.mark.needs_data, pytest.mark.needs_model]
 OFFSET = [2.0, -1.5, 0.4, 4.0, -6.0, 35.0]
-COMMON = ["--no-viz", "--set", "detector.precision=int8"]
+# fp32 (lockstep's default): int8 agrees with fp32 only on CPUs with VNNI (issue 31); on an AVX2-only CPU its
+# detections lose objects and the two sessions' maps no longer register by their objects
+COMMON = ["--no-viz"]
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +38,7 @@ def sessions(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
     from tests.conftest import _semmap_run
 
     try:
-        packaged_model("int8")
+        packaged_model("fp32")
     except ModelMissingError as exc:
         pytest.skip(str(exc))
     root = tmp_path_factory.mktemp("kitchen_sessions")
