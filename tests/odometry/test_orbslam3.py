@@ -104,9 +104,9 @@ def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn_dir: Path, vocab
     assert result.returncode == 0, result.stderr[-3000:]
     assert "odometry: orbslam3 (ORB-SLAM3 RGB-D" in result.stderr
     report = json.loads((out / "odometry_repair.json").read_text())
-    assert report["counters"]["repair_steps"] == 477
+    assert report["counters"]["repair_steps"] == 476  # (477 associated rgb/depth pairs)
     assert report["counters"]["repair_overruled"] > 0 and report["overruled_spans"]
-    assert "semmap overruled" in result.stderr
+    assert "semmap overruled" in result.stdout  # (the summary)
     ate = json.loads((out / "eval.json").read_text()) if (out / "eval.json").is_file() else None
     if ate is None:
         from semmap.algorithms.evaluation import evaluate_run
