@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.core.messages import Intrinsics
 from semmap.datasets import open_dataset
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.client import SemmapClient
@@ -79,9 +78,7 @@ def test_live_queries_match_map_json_on_7scenes(tmp_path: Path, router, semmap_r
         client.wait_ready(timeout=120)
         for i in range(frames):
             f = dataset[i]
-            k = f.intrinsics
-            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale,
-                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale, f.intrinsics)  # (the one Intrinsics type)
             client.publish_pose(i, f.stamp, f.gt_pose, sigma_translation=2e-4, sigma_rotation=2e-4)
             client.wait_frame_done(i, timeout=120)
         everything = client.query_map()
@@ -138,9 +135,7 @@ def test_a_live_slam_is_checked_and_repaired(tmp_path: Path, router, semmap_run,
         client.wait_ready(timeout=120)
         for i in range(frames):
             f = dataset[i]
-            k = f.intrinsics
-            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale,
-                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale, f.intrinsics)  # (the one Intrinsics type)
             nearest, ok = match_trajectory(stamps, np.array([f.stamp]))
             if ok[0]:
                 client.publish_pose(i, f.stamp, slam[int(nearest[0])][1])
