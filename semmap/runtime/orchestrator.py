@@ -498,8 +498,9 @@ class Orchestrator:
         det = [s for s in services.values() if s.get("service") == "detector"]
         with self.lock:
             start = dict(self.cpu_at_first_frame)
-        others_cpu = sum(s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
-                         if s.get("service") not in ("detector", None))
+        others_by_service = {name: s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
+                             if s.get("service") not in ("detector", None)}
+        others_cpu = sum(others_by_service.values())
         detect = det[0].get("timings_ms", {}).get("detect_ms", {}) if len(det) == 1 else {}
         budget["achieved"] = {
             "detected_frames": detected, "video_s": round(video_s, 2),
@@ -507,6 +508,8 @@ class Orchestrator:
             "detect_ms_p50": detect.get("p50"), "detect_ms_p95": detect.get("p95"),
             "detector_cpu_s": round(sum(s.get("cpu_s", 0.0) for s in det), 2),
             "others_cpu_ms_per_frame": round(1e3 * others_cpu / processed, 1) if processed else None,
+            "cpu_ms_per_frame_by_service": {name: round(1e3 * cpu / processed, 1) for name, cpu
+                                            in sorted(others_by_service.items())} if processed else {},
             "wall_s": round(wall_s, 2),
         }
         per_frame = budget["achieved"]["others_cpu_ms_per_frame"]
