@@ -111,7 +111,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from semmap.core.config import ConfigError, load_config
-    from semmap.core.outputs import OutputError, OutputLock, check_writable, prepare_output_dir
 
     overrides = list(args.overrides)
     if args.odometry:
@@ -171,20 +170,10 @@ def _run(args: argparse.Namespace) -> int:
     dataset = None
     dataset_camera = ""  # the camera line of the banner (calibration checked in preflight_dataset)
     if not special:  # opened once for every check before the run (a bag's missing topic fails here, listing them)
-        from semmap.datasets import DatasetError, open_dataset, reader_options
-        from semmap.datasets.calibration import check_dataset_camera
-
-        try:
-            dataset = open_dataset(args.data, **reader_options(args.data, config))
-            if len(dataset) > 0:  # the camera, stated and checked against the frames before anything starts
-                dataset_camera, warnings = check_dataset_camera(dataset)
-                for warning in warnings:
-                    print(f"semmap: warning: {warning}", file=sys.stderr)
-        except DatasetError as exc:
-            if dataset is not None and hasattr(dataset, "close"):
-                dataset.close()
-            print(f"error: {exc}", file=sys.stderr)
+        opened = _open_dataset(args.data, config)
+        if opened is None:
             return 2
+        dataset, dataset_camera = opened
     if args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
         return 2
@@ -203,7 +192,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.zenoh_config and not Path(args.zenoh_config).exists():
         print(f"error: --zenoh-config {args.zenoh_config} does not exist", file=sys.stderr)
         return 2
-    from semmap.runtime.orchestrator import Orchestrator, RunPlan
+    from semmap.runtime.orchestrator import RunPlan
 
     realtime = (args.mode or config.run.mode) == "realtime"
     with_detector = "detector" in (only or PIPELINE)
@@ -224,6 +213,39 @@ def _run(args: argparse.Namespace) -> int:
     if args.data != "external":
         plan.simulated_odometry = simulated_odometry(mode)
         plan.camera = dataset_camera
+    return _start(plan, args, config, dataset, dataset_camera, odometry_line)
+
+
+def _open_dataset(data: str, config: Config) -> tuple[Dataset, str] | None:
+    """The dataset, opened once for every check before the run (a bag's missing topic fails here, listing them),
+    and the banner's camera line (the camera stated and checked against the frames before anything starts);
+    None, said on stderr, when it cannot be read."""
+    from semmap.datasets import DatasetError, open_dataset, reader_options
+    from semmap.datasets.calibration import check_dataset_camera
+
+    dataset = None
+    try:
+        dataset = open_dataset(data, **reader_options(data, config))
+        camera = ""
+        if len(dataset) > 0:
+            camera, warnings = check_dataset_camera(dataset)
+            for warning in warnings:
+                print(f"semmap: warning: {warning}", file=sys.stderr)
+    except DatasetError as exc:
+        if dataset is not None and hasattr(dataset, "close"):
+            dataset.close()
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    return dataset, camera
+
+
+def _start(plan: RunPlan, args: argparse.Namespace, config: Config, dataset: Dataset | None, dataset_camera: str,
+           odometry_line: str) -> int:
+    """Take the output directory (locked, prepared, writable, the dataset's first frame read), say the odometry
+    and the camera, then run the services until the run ends."""
+    from semmap.core.outputs import OutputError, OutputLock, check_writable, prepare_output_dir
+    from semmap.runtime.orchestrator import Orchestrator
+
     lock = OutputLock(plan.out_dir)
     try:  # before any process starts: the output directory is ours, empty (or meant to be reused), writable
         try:
@@ -232,7 +254,7 @@ def _run(args: argparse.Namespace) -> int:
             raise OutputError(f"cannot create --out {plan.out_dir}: {exc.strerror or exc}") from None
         lock.acquire()
         prepare_output_dir(plan.out_dir, args.resume, args.overwrite)
-        check_writable(plan.out_dir, run.min_free_mb)
+        check_writable(plan.out_dir, config.run.min_free_mb)
         if dataset is not None:
             preflight_dataset(dataset, args.data, config)
     except OutputError as exc:

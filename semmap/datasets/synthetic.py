@@ -267,17 +267,37 @@ def _change(objects: list[_Object], config: SyntheticConfig) -> None:
 
 
 def _build_scene(config: SyntheticConfig) -> list[_Object]:
-    """Room, table, things on and around it, people; small placements and colours depend on the seed."""
+    """Room, table, things on and around it, people; small placements and colours depend on the seed (drawn in a
+    fixed order, piece by piece: the scene of a seed never changes)."""
     rng = np.random.default_rng([config.seed, 7])
-    lx, ly, lz = config.room_size
+    lx, ly, _ = config.room_size
+    objects: list[_Object] = [_room(config.room_size)]
 
-    def jitter(color: tuple[float, float, float]) -> tuple[float, float, float]:
-        return _rgb(np.clip(np.asarray(color) * rng.uniform(0.85, 1.15, 3), 0.0, 1.0))
+    def add(class_name: str, parts: list[_Part]) -> None:
+        objects.append(_Object(len(objects), class_name, parts))
 
-    def near(x: float, y: float) -> tuple[float, float]:
-        return x + float(rng.uniform(-0.03, 0.03)), y + float(rng.uniform(-0.03, 0.03))
+    _add_table_and_things_on_it(add, rng)
+    _add_chairs(add, rng)
+    _add_furniture_by_the_walls(add, rng, lx, ly)
+    _change(objects, config)
+    _add_persons(objects, config, rng)
+    return objects
 
-    room = _Object(
+
+def _jitter(rng: np.random.Generator, color: tuple[float, float, float]) -> tuple[float, float, float]:
+    """A seeded variation of a colour (each channel within 15 %)."""
+    return _rgb(np.clip(np.asarray(color) * rng.uniform(0.85, 1.15, 3), 0.0, 1.0))
+
+
+def _near(rng: np.random.Generator, x: float, y: float) -> tuple[float, float]:
+    """A seeded placement within 3 cm of (x, y)."""
+    return x + float(rng.uniform(-0.03, 0.03)), y + float(rng.uniform(-0.03, 0.03))
+
+
+def _room(size: tuple[float, float, float]) -> _Object:
+    """Floor, ceiling and four walls."""
+    lx, ly, lz = size
+    return _Object(
         0,
         "room",
         [
@@ -290,13 +310,12 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
             _Part(box_mesh((0.0, ly / 2 + 0.05, lz / 2), (lx + 0.2, 0.1, lz + 0.2)), (0.7, 0.74, 0.8), 0.2, 0.25),
         ],
     )
-    objects: list[_Object] = [room]
 
-    def add(class_name: str, parts: list[_Part]) -> None:
-        objects.append(_Object(len(objects), class_name, parts))
 
+def _add_table_and_things_on_it(add: Callable[[str, list[_Part]], None], rng: np.random.Generator) -> None:
+    """The dining table and the cups, bottles, bowl, laptop and book on it."""
     top = 0.77  # table-top height
-    wood = jitter((0.55, 0.34, 0.18))
+    wood = _jitter(rng, (0.55, 0.34, 0.18))
     table = [_Part(box_mesh((0.0, 0.0, 0.745), (1.6, 0.9, 0.05)), wood, 0.05, 0.3)]
     table += [
         _Part(box_mesh((sx * 0.74, sy * 0.39, 0.36), (0.06, 0.06, 0.72)), wood, 0.05, 0.3)
@@ -306,11 +325,11 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
     add("dining table", table)
 
     for x, y in ((0.05, -0.25), (0.35, -0.08), (-0.15, 0.25)):
-        color = jitter([(0.92, 0.92, 0.9), (0.8, 0.15, 0.12), (0.15, 0.3, 0.75)][int(rng.integers(3))])
-        add("cup", [_Part(cylinder_mesh((*near(x, y), top), 0.04, 0.045, 0.1), color, 0.02, 0.3)])
+        color = _jitter(rng, [(0.92, 0.92, 0.9), (0.8, 0.15, 0.12), (0.15, 0.3, 0.75)][int(rng.integers(3))])
+        add("cup", [_Part(cylinder_mesh((*_near(rng, x, y), top), 0.04, 0.045, 0.1), color, 0.02, 0.3)])
     for x, y in ((0.15, 0.15), (-0.65, -0.25)):
-        glass = jitter((0.12, 0.45, 0.18))
-        bx, by = near(x, y)
+        glass = _jitter(rng, (0.12, 0.45, 0.18))
+        bx, by = _near(rng, x, y)
         add(
             "bottle",
             [
@@ -319,9 +338,10 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
                 _Part(cylinder_mesh((bx, by, top + 0.24), 0.014, 0.014, 0.05), glass, 0.02, 0.3),
             ],
         )
-    add("bowl", [_Part(cylinder_mesh((*near(0.6, -0.2), top), 0.05, 0.085, 0.07), jitter((0.9, 0.82, 0.6)), 0.02, 0.3)])
-    lx0, ly0 = near(-0.45, 0.1)
-    grey = jitter((0.32, 0.33, 0.36))
+    bowl_at = _near(rng, 0.6, -0.2)
+    add("bowl", [_Part(cylinder_mesh((*bowl_at, top), 0.05, 0.085, 0.07), _jitter(rng, (0.9, 0.82, 0.6)), 0.02, 0.3)])
+    lx0, ly0 = _near(rng, -0.45, 0.1)
+    grey = _jitter(rng, (0.32, 0.33, 0.36))
     add(
         "laptop",
         [
@@ -329,13 +349,17 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
             _Part(box_mesh((lx0, ly0 + 0.12, top + 0.13), (0.33, 0.012, 0.22)), (0.12, 0.14, 0.2), 0.02, 0.4),
         ],
     )
-    add("book", [_Part(box_mesh((*near(0.55, 0.2), top + 0.015), (0.21, 0.15, 0.03), float(rng.uniform(-0.5, 0.5))),
-                       jitter((0.7, 0.12, 0.12)), 0.02, 0.35)])  # fmt: skip
+    book_at = _near(rng, 0.55, 0.2)
+    book_box = box_mesh((*book_at, top + 0.015), (0.21, 0.15, 0.03), float(rng.uniform(-0.5, 0.5)))
+    add("book", [_Part(book_box, _jitter(rng, (0.7, 0.12, 0.12)), 0.02, 0.35)])
 
+
+def _add_chairs(add: Callable[[str, list[_Part]], None], rng: np.random.Generator) -> None:
+    """Four chairs round the table."""
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = sx * 0.45, sy * 0.62
-            color = jitter((0.42, 0.26, 0.14))
+            color = _jitter(rng, (0.42, 0.26, 0.14))
             parts = [_Part(box_mesh((cx, cy, 0.46), (0.44, 0.44, 0.04)), color, 0.04, 0.3)]
             parts.append(_Part(box_mesh((cx, cy + sy * 0.2, 0.715), (0.44, 0.04, 0.47)), color, 0.04, 0.3))
             parts += [
@@ -345,31 +369,39 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
             ]
             add("chair", parts)
 
+
+def _add_furniture_by_the_walls(add: Callable[[str, list[_Part]], None], rng: np.random.Generator, lx: float,
+                                ly: float) -> None:
+    """The tv, refrigerator, potted plant and clock."""
     add(
         "tv",
         [
             _Part(box_mesh((-lx / 2 + 0.025, 0.0, 1.35), (0.05, 1.1, 0.65)), (0.06, 0.06, 0.07), 0.03, 0.3),
-            _Part(box_mesh((-lx / 2 + 0.055, 0.0, 1.36), (0.012, 1.0, 0.57)), jitter((0.15, 0.25, 0.5)), 0.05, 0.6),
+            _Part(box_mesh((-lx / 2 + 0.055, 0.0, 1.36), (0.012, 1.0, 0.57)), _jitter(rng, (0.15, 0.25, 0.5)), 0.05,
+                  0.6),
         ],
     )
     add(
         "refrigerator",
-        [_Part(box_mesh((-lx / 2 + 0.4, ly / 2 - 0.4, 0.9), (0.7, 0.7, 1.8)), jitter((0.88, 0.88, 0.9)), 0.1, 0.2)],
+        [_Part(box_mesh((-lx / 2 + 0.4, ly / 2 - 0.4, 0.9), (0.7, 0.7, 1.8)), _jitter(rng, (0.88, 0.88, 0.9)), 0.1,
+               0.2)],
     )
     px, py = lx / 2 - 0.5, ly / 2 - 0.5
     add(
         "potted plant",
         [
-            _Part(cylinder_mesh((px, py, 0.0), 0.12, 0.16, 0.32), jitter((0.7, 0.36, 0.2)), 0.04, 0.3),
-            _Part(sphere_mesh((px, py, 0.62), 0.32), jitter((0.2, 0.5, 0.18)), 0.03, 0.5),
+            _Part(cylinder_mesh((px, py, 0.0), 0.12, 0.16, 0.32), _jitter(rng, (0.7, 0.36, 0.2)), 0.04, 0.3),
+            _Part(sphere_mesh((px, py, 0.62), 0.32), _jitter(rng, (0.2, 0.5, 0.18)), 0.03, 0.5),
         ],
     )
     face_v, face_f = cylinder_mesh((0.0, 0.0, 0.0), 0.16, 0.16, 0.04)
     face_v = _rotate_x(face_v, math.pi / 2) + np.array([0.9, ly / 2, 2.0])
-    add("clock", [_Part((face_v, face_f), jitter((0.95, 0.95, 0.9)), 0.03, 0.5)])
+    add("clock", [_Part((face_v, face_f), _jitter(rng, (0.95, 0.95, 0.9)), 0.03, 0.5)])
 
-    _change(objects, config)
 
+def _add_persons(objects: list[_Object], config: SyntheticConfig, rng: np.random.Generator) -> None:
+    """The people who walk through the room (`config.persons`: 0, 1 or 2)."""
+    lx, ly, _ = config.room_size
     if config.persons >= 1:
         # Walks round the table between the chairs and the camera's circle, keeping roughly to the far side
         # of the table from the camera (swinging +-30 degrees about it), so it crosses the view behind the
@@ -399,7 +431,6 @@ def _build_scene(config: SyntheticConfig) -> list[_Object]:
             return _yaw_matrix(heading), np.array([x_line, y, 0.0])
 
         objects.append(_Object(len(objects), "person", _person_parts(rng), pace))
-    return objects
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -1,10 +1,13 @@
 """The in-process driver: the pipeline's stages (semmap/runtime/pipeline.py) in one process, without a bus.
 
     python -m semmap.runtime.inprocess DATA [--odometry gt+drift] [--seed N] [--frames N] [--set sec.key=val]...
-        [--refresh-cache] [--cache-dir DIR] [--json-out FILE] [--out DIR] [-v]
+        [--map PRIOR] [--refresh-cache] [--cache-dir DIR] [--json-out FILE] [--out DIR] [-v]
 
 DATA is a dataset folder (e.g. ../shared/data/7scenes-redkitchen) or `synthetic[:frames=N,seed=S]`;
 `--set run.start_frame=N` plays it from frame N on, renumbered from 0, as `semmap run --start-frame N` does.
+`--map PRIOR` (a run directory or its map.sqlite, as `semmap run --map`) starts from a saved map: the session
+relocalises against it and then maps in its frame (docs/MAPS.md). `--out` writes map.sqlite too, so a run of this
+driver can be the prior map of the next.
 (`benchmarks/closed_loop.py` is the same command.)
 
 It runs, frame by frame, the same stage objects as the services, in the order of a lockstep `semmap run`:
@@ -51,11 +54,11 @@ from semmap.algorithms.evaluation import ate_rmse
 from semmap.algorithms.odometry.frontends import OdometryInput, make_frontend
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core.config import Config, load_config
-from semmap.core.messages import Detection, Detections, Frame, Observations, OdometryPose
+from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
 from semmap.datasets import open_dataset
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.map_store import write_map_json
+from semmap.runtime.map_store import MapStore, write_map_json
 from semmap.runtime.pipeline import (
     AssociatorStage,
     BackendStage,
@@ -287,6 +290,7 @@ class LoopResult:
     odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
     frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
     ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
+    associator: AssociatorStage | None = None  # the map with its prior landmarks' statuses, its saved state
 
     @property
     def improvement_pct(self) -> float:
@@ -313,12 +317,32 @@ class LoopResult:
         }
 
     def write_outputs(self, out: Path) -> None:
-        """map.json and trajectory_optimized.tum, as the associator and backend services write them."""
+        """map.json, map.sqlite, relocalization.json (after a prior map's relocalisation) and
+        trajectory_optimized.tum, as the associator and backend services write them."""
         out.mkdir(parents=True, exist_ok=True)
         assert self.mapper is not None
-        write_map_json(out / "map.json", self.mapper.landmarks())
+        landmarks = self.associator.landmarks() if self.associator is not None else self.mapper.landmarks()
+        write_map_json(out / "map.json", landmarks)
+        if self.associator is not None:  # (a later session's prior map)
+            MapStore(out / "map.sqlite").save(self.associator.to_state())
+            record = self.associator.relocalisation_record()
+            if record is not None:
+                (out / "relocalization.json").write_text(json.dumps(record, indent=1))
         write_tum(out / "trajectory_optimized.tum", self.optimized)
         write_tum(out / "trajectory_odometry.tum", self.odometry)
+
+
+def prior_stages(config: Config, prior_map: Path | None) -> tuple[AssociatorStage, BackendStage]:
+    """The associator and backend stages of a lockstep run, from the sections their services read; with a prior
+    map (a map.sqlite) the associator relocalises against it and the backend registers keyframes to its run's."""
+    associator = AssociatorStage(config.associator, config.associator.refine_every_n_frames, await_backend=True)
+    backend = BackendStage(config.backend, config.loop_closure, config.corrections,
+                           expect_alignment=prior_map is not None)
+    if prior_map is not None:
+        associator.load_prior(prior_map, config.associator.prior())
+        if backend.closer.params.enabled:
+            backend.load_prior_keyframes(prior_map)
+    return associator, backend
 
 
 def run_loop(
@@ -328,18 +352,18 @@ def run_loop(
     odometry_poses: list[np.ndarray] | None = None,
     verbose: bool = False,
     depth_frames=None,
+    prior_map: Path | None = None,
 ) -> LoopResult:  # noqa: ANN001 - a semmap Dataset
     """The pipeline's stages in lockstep order (see module docstring) over a recording. `depth_frames` (the
-    dataset) feeds the backend's loop closer with keyframe depth, as the frames key does in the services."""
+    dataset) feeds the backend's loop closer with keyframe depth, as the frames key does in the services;
+    `prior_map` (a map.sqlite) is the map the session starts from."""
     t_start = time.perf_counter()
     front = make_frontend(odometry, config.odometry)  # with cached poses only for what it declares
     sigma_t, sigma_r = front.sigmas
     keyframe_every = config.odometry.keyframe_every
     # the sections each service reads (semmap/services/*/service.py)
     tracker = TrackerStage(config.tracker, dynamic_classes=config.associator.dynamic_classes)
-    associator = AssociatorStage(config.associator, config.associator.refine_every_n_frames, await_backend=True)
-    backend = BackendStage(config.backend, config.loop_closure, config.corrections)
-    mapper = associator.mapper
+    associator, backend = prior_stages(config, prior_map)
     n_obs = n_merges = 0
     odo_traj = []
     mapper_ms, backend_ms = [], []
@@ -373,14 +397,16 @@ def run_loop(
         )
         odo_traj.append((stamp, pose.copy()))
         associator.odometry(i, odo.pose)
-        # associator
+        # associator (with the prior map's relocalisation and statuses, when there is one)
+        associator.saw_stamp(stamp)
         t0 = time.perf_counter()
-        step = associator.process(i, stamp, out.candidates, out.ended, None if det.skipped else out.boxes)
+        boxes = None if det.skipped else out.boxes
+        step = associator.process(i, stamp, out.candidates, out.ended, boxes)
         mapper_ms.append((time.perf_counter() - t0) * 1e3)
-        merges = associator.take_merges(step)
+        step = associator.prior_step(i, stamp, boxes, step).step
+        obs_msg = associator.observations(ROBOT, i, stamp, step)
         n_obs += len(step.observations)
-        n_merges += len(merges)
-        obs_msg = Observations(ROBOT, i, stamp, step.observations, merges, retired=list(step.moved))
+        n_merges += len(obs_msg.merges)
         associator.hold(det, step)
         # backend
         cloud = None
@@ -399,10 +425,11 @@ def run_loop(
         mapper_ms[-1] += (time.perf_counter() - t0) * 1e3
         if verbose and (i + 1) % 100 == 0:
             print(
-                f"  frame {i + 1}: {len(mapper.landmarks())} landmarks, {n_obs} observations "
+                f"  frame {i + 1}: {len(associator.mapper.landmarks())} landmarks, {n_obs} observations "
                 f"({time.perf_counter() - t_start:.0f} s)",
                 file=sys.stderr,
             )
+    mapper = associator.mapper
     graph = backend.graph
     ids, stamps, corrected = graph.corrected_poses()
     optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
@@ -431,6 +458,7 @@ def run_loop(
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,
+        associator=associator,
     )
 
 
@@ -443,8 +471,10 @@ def closed_loop(
     cache_dir: Path = CACHE_DIR,
     refresh: bool = False,
     verbose: bool = False,
+    prior_map: Path | None = None,
 ) -> tuple[LoopResult, Recording]:
-    """Load config (defaults + overrides, as `semmap run`), detections (cached) and run the loop."""
+    """Load config (defaults + overrides, as `semmap run`), detections (cached) and run the loop (from the prior
+    map `prior_map`, a map.sqlite, if given)."""
     over = [*(overrides or []), f"odometry.mode={odometry}", f"odometry.seed={seed}"]
     config = load_config(None, over)
     rec = detect_recording(data, frames, config, cache_dir, refresh, verbose)
@@ -452,7 +482,8 @@ def closed_loop(
     # the associator (moving tracklets) and are estimated in the loop, frame by frame, as the services do
     cached = odometry == "rgbd" and not make_frontend(odometry, config.odometry).uses_dynamic
     odo_poses = rgbd_poses(data, frames, config, cache_dir, refresh, verbose) if cached else None
-    return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=_open(data, config.run.start_frame)), rec
+    depth_frames = _open(data, config.run.start_frame)
+    return run_loop(rec, config, odometry, odo_poses, verbose, depth_frames=depth_frames, prior_map=prior_map), rec
 
 
 # ------------------------------------------------------------------------------------------------ tracker + mapper
@@ -565,25 +596,40 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="write map.json and trajectory_optimized.tum here (a subfolder per seed with --seeds)",
     )
+    ap.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        metavar="PRIOR",
+        help="start from a saved map (a run directory or its map.sqlite): relocalise against it (docs/MAPS.md)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
 
+    prior_map = None if args.map is None else args.map / "map.sqlite" if args.map.is_dir() else args.map
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else [args.seed]
     rows = []
     for seed in seeds:
-        res, rec = closed_loop(
-            args.data,
-            args.odometry,
-            seed,
-            args.frames,
-            args.overrides,
-            args.cache_dir,
-            args.refresh_cache,
-            args.verbose,
-        )
+        try:
+            res, rec = closed_loop(
+                args.data,
+                args.odometry,
+                seed,
+                args.frames,
+                args.overrides,
+                args.cache_dir,
+                args.refresh_cache,
+                args.verbose,
+                prior_map,
+            )
+        except (ValueError, MessageError) as exc:  # (MessageError: a prior map of another version)
+            print(f"error: --map {args.map}: {exc}", file=sys.stderr)
+            return 2
         if args.out is not None:
             res.write_outputs(args.out / f"seed{seed}" if args.seeds else args.out)
         row = {"data": args.data, "odometry": args.odometry, "seed": seed, **res.summary()}
+        if res.associator is not None and res.associator.prior is not None:
+            row["relocalised_at_frame"] = res.associator.prior.aligned_at
         if rec.objects:
             score = score_map(res.mapper.landmarks(), rec.objects)
             row.update(

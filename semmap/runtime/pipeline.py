@@ -17,17 +17,20 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 from semmap.algorithms.associator.pose_book import PoseBook
+from semmap.algorithms.associator.prior_map import PriorParams, PriorSession
 from semmap.algorithms.backend.corrections import CorrectionDelta, CorrectionPublisher, CorrectionsParams
 from semmap.algorithms.backend.loop_closure import KeyframeCloud, LoopCloser, LoopClosure, LoopClosureParams
 from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
 from semmap.algorithms.backend.prior_alignment import PriorAlignment
 from semmap.algorithms.detector.onnx_detector import DetectedBox, depth_gate
+from semmap.algorithms.relocalize import RelocResult
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput, TrackerParams, depth_range
 from semmap.core.messages import (
     CorrectedPoses,
@@ -37,11 +40,15 @@ from semmap.core.messages import (
     DynamicBox,
     Frame,
     GroundTruthInstance,
+    Landmark,
+    MapAlignment,
     MessageError,
     Observations,
     OdometryPose,
 )
 from semmap.datasets.base import FrameData
+from semmap.runtime.map_store import MapStore
+from semmap.runtime.prior_keyframes import PriorKeyframes, load_prior_keyframes
 
 
 def combined(a: MapperStep, b: MapperStep) -> MapperStep:
@@ -183,6 +190,11 @@ class AssociatorStage:
     - With `await_backend` (lockstep) a frame is held (`hold`) until the backend's corrected poses for it come
       (`corrected` hands it back), and only then refined (`complete`), so a replay gives the same map.
     - Refinement runs every `refine_every_n_frames` frames once there are landmarks.
+    - A session started from a prior map (`load_prior`, docs/MAPS.md) maps in a provisional frame (its own
+      odometry) until `prior_step` relocalises it against the prior's landmarks; from then on it maps in the
+      prior's frame, the prior landmarks join the map, each with a status (seen again, missing), and the
+      alignment goes to the backend with that frame's observations. Here, not in the service, so that the
+      in-process driver runs prior maps as the services do.
     """
 
     def __init__(
@@ -199,6 +211,80 @@ class AssociatorStage:
         self.await_backend = await_backend
         self.pending_merges: list[tuple[int, int]] = []  # found by a refine after the frame's observations left
         self.awaiting: tuple[object, MapperStep] | None = None  # (the frame's input, its step) held for the backend
+        self.prior: PriorSession | None = None  # the prior map this session relocalises against (`load_prior`)
+        self.session_start: float | None = None  # the earliest stamp of this session (prior landmarks age from it)
+        self.alignment: MapAlignment | None = None  # to go out with the current frame's observations
+
+    # -- a prior map
+    def load_prior(self, path: Path, params: PriorParams | None = None) -> PriorSession:
+        """Start from the map saved in `path` (a map.sqlite): its landmarks join the map once this session has
+        relocalised against them; this session's new landmarks get ids after the prior's. ValueError when the
+        file holds no map, MessageError (MapVersionError) when it holds one of another version."""
+        state = MapStore.open_existing(path).load()
+        if state is None:
+            raise ValueError(f"the prior map {path} holds no map")
+        prior = LandmarkMapper.from_state(state, self.mapper.params).map
+        self.prior = PriorSession(prior, params)
+        self.mapper.map.next_id = max(self.mapper.map.next_id, prior.next_id)
+        return self.prior
+
+    def saw_stamp(self, stamp: float) -> None:
+        """A frame of this session arrived: the session starts at the earliest stamp seen."""
+        if self.session_start is None or stamp < self.session_start:
+            self.session_start = stamp
+
+    def prior_step(self, frame_id: int, stamp: float, boxes: list | None, step: MapperStep) -> PriorFrame:
+        """After `process`: relocalise against the prior map when due, then update the statuses of the prior
+        landmarks (seen again, missing; `boxes` None: a skipped frame, no absence evidence). Without a prior map
+        the step is returned as it is."""
+        if self.prior is None:
+            return PriorFrame(step)
+        seen = [lm.id for lm in step.updated]
+        frame = PriorFrame(step)
+        if self.prior.due(frame_id):
+            t0 = time.perf_counter()
+            fit = self.prior.try_relocalize(self.mapper)
+            frame.relocalize_ms = (time.perf_counter() - t0) * 1e3
+            if fit is not None:
+                self.poses.align(fit.transform, frame_id)
+                adopted, self.alignment = self.prior.adopt(self.mapper, fit, frame_id,
+                                                           self.session_start or stamp, self.poses)
+                frame.step, frame.relocalised = combined(frame.step, adopted), fit
+        changed = self.prior.update(self.mapper, frame_id, self.poses(frame_id), boxes, self.mapper._intrinsics,
+                                    seen)
+        if changed:
+            ids = set(changed)
+            frame.step.updated = [m for m in frame.step.updated if m.id not in ids] + [
+                self.mapper.map[i].to_message() for i in sorted(ids) if i in self.mapper.map]
+            frame.statuses_changed = True
+        return frame
+
+    def prior_counters(self) -> dict[str, int]:
+        """The prior map's counters for stats.json (none without one)."""
+        if self.prior is None:
+            return {}
+        status = self.prior.status.values()
+        return {"prior_landmarks": len(self.prior.prior), "relocalize_attempts": self.prior.attempts,
+                "prior_missing": sum(v == "missing" for v in status),
+                "prior_seen_again": sum(v == "present" for v in status)}
+
+    def relocalisation_record(self) -> dict[str, Any] | None:
+        """The relocalisation's fit, for relocalization.json (None before it, or after a restart: the fit itself
+        is not part of the saved state, only its transform)."""
+        if self.prior is None or self.prior.fit is None:
+            return None
+        fit = self.prior.fit
+        return {"frame_id": self.prior.aligned_at, "inliers": fit.inliers, "runner_up": fit.runner_up,
+                "rms_m": fit.rms_m, "rotation_sigma_deg": fit.rotation_sigma_deg, "refined_on_clouds": fit.refined,
+                "matches": [list(m) for m in fit.matches],
+                "transform": [float(v) for v in fit.transform.reshape(16)], "attempts": self.prior.attempts}
+
+    def landmarks(self) -> list[Landmark]:
+        """The map as published and saved: with each prior landmark's status when a prior map is loaded."""
+        return self.with_status(self.mapper.landmarks())
+
+    def with_status(self, landmarks: list[Landmark]) -> list[Landmark]:
+        return landmarks if self.prior is None else self.prior.with_status(landmarks)
 
     # -- inputs
     def odometry(self, frame_id: int, pose: np.ndarray) -> None:
@@ -223,6 +309,14 @@ class AssociatorStage:
         merges = self.pending_merges + list(step.merges)
         self.pending_merges = []
         return merges
+
+    def observations(self, robot: str, frame_id: int, stamp: float, step: MapperStep) -> Observations:
+        """What goes to the backend for this frame: its landmark observations, the merges (carried-over ones
+        first), the landmarks retired as moved and, on the frame that relocalised, the prior-map alignment."""
+        message = Observations(robot, frame_id, stamp, step.observations, self.take_merges(step),
+                               alignment=self.alignment, retired=list(step.moved))
+        self.alignment = None
+        return message
 
     def hold(self, frame: object, step: MapperStep) -> bool:
         """After the observations left: hold the frame for the backend's answer (True) or complete it now."""
@@ -263,20 +357,36 @@ class AssociatorStage:
         none is held): the mapper, the pose book and the merges a refine found that still have to go out with
         the next frame's observations (lost, the backend would never join the two landmarks)."""
         return {**self.mapper.to_state(), "poses": self.poses.to_state(),
-                "pending_merges": [[int(a), int(b)] for a, b in self.pending_merges]}
+                "pending_merges": [[int(a), int(b)] for a, b in self.pending_merges],
+                "session_start": self.session_start, "prior": None if self.prior is None else self.prior.to_state()}
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Continue from `to_state()` output (read back from the map store)."""
+        """Continue from `to_state()` output (read back from the map store; a prior map, if any, is loaded
+        first: its relocalisation and statuses are restored here)."""
         self.mapper = LandmarkMapper.from_state(state, self.mapper.params)
         self.poses = PoseBook.from_state(state.get("poses"))
         self.pending_merges = [(int(a), int(b)) for a, b in state.get("pending_merges") or []]
         self.awaiting = None
+        if state.get("session_start") is not None:
+            self.session_start = float(state["session_start"])
+        if self.prior is not None:
+            self.prior.restore(state.get("prior"))
 
     def refine_only(self) -> MapperStep:
         """Real time: a refine on a correction, outside any frame."""
         refined = self.mapper.refine(self.poses)
         self.pending_merges += list(refined.merges)
         return refined
+
+
+@dataclass
+class PriorFrame:
+    """What `AssociatorStage.prior_step` did to one frame's step."""
+
+    step: MapperStep
+    relocalize_ms: float | None = None  # None: no relocalisation was due
+    relocalised: RelocResult | None = None  # the fit, on the frame that relocalised
+    statuses_changed: bool = False  # a prior landmark was seen again or went missing
 
 
 # ------------------------------------------------------------------------------------------------ backend
@@ -325,6 +435,13 @@ class BackendStage:
 
     def wants_cloud(self, frame_id: int) -> bool:
         return self.closer.wants(frame_id)
+
+    def load_prior_keyframes(self, map_db: Path) -> PriorKeyframes:
+        """The keyframes of the prior map's run (beside `map_db`), for this session's keyframes to register to
+        once it has relocalised; returns what was read (and skipped) for the caller to report."""
+        prior = load_prior_keyframes(map_db, self.closer.params.max_keyframes)
+        self.closer.set_prior(prior.keyframes)
+        return prior
 
     def add(self, pose: OdometryPose, obs: Observations) -> bool:
         """One frame into the graph (no update); True when its alignment moved the graph into the prior's frame."""

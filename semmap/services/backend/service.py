@@ -27,26 +27,31 @@ from semmap.algorithms.backend.loop_closure import (
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
 from semmap.algorithms.backend.prior_alignment import FinalAlignment
-from semmap.core.journal import FrameJournal
 from semmap.core.messages import Control, Frame, MessageError, Observations, OdometryPose
 from semmap.core.outputs import atomic_write_text
-from semmap.core.reorder import FrameReorderBuffer
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
-from semmap.runtime.prior_keyframes import load_prior_keyframes
-from semmap.runtime.service import Service, service_main
+from semmap.runtime.service import service_main
+from semmap.runtime.stage_service import StageService
 
 REALTIME_MAX_PENDING = 8
 REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
 MAX_PENDING_CLOUDS = 64  # keyframe clouds waiting for their odometry and observations (~80 KB each)
 
 
-class BackendService(Service):
+class BackendService(StageService):
     """Optimises the trajectory with landmark constraints (see module docstring)."""
 
     name = "backend"
+    # per frame, once complete: its odometry and observations (and, as its extra, a keyframe's cloud and closure)
+    journal_file = "backend.sqlite"
+    # the frame inputs re-ordered are the odometry's; real time: a pose of a dropped frame never comes, so a frame
+    # is given up after a few later ones
+    realtime_max_pending = REALTIME_MAX_PENDING
+    duplicates_counter = "odometry_duplicates"
+    gaps_counter = "frames_without_odometry"
 
-    def setup(self) -> None:
+    def setup_stage(self) -> None:
         # the per-frame policy (graph update, loop closure, corrections) is the stage's (semmap/runtime/pipeline.py)
         prior_map = getattr(self.args, "prior_map", None)
         self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections,
@@ -56,30 +61,22 @@ class BackendService(Service):
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
         self.pub = self.publisher(self.bus.keys.corrected_poses)
-        # real time: odometry of a dropped frame never comes; give up on it after a few later ones
-        self.odometry: FrameReorderBuffer[OdometryPose] = FrameReorderBuffer(
-            max_pending=100_000 if self.lockstep else REALTIME_MAX_PENDING)
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
         self.seq = 0
         # `semmap run external`: no odometry service writes the SLAM's input, so the backend does
         self.write_odometry = bool(getattr(self.args, "write_odometry", False))
         self.input_trajectory: list[tuple[float, object]] = []  # only then: it grows with every frame
-        self.journal = FrameJournal(self.out_dir / "backend.sqlite") if self.out_dir is not None else None
-        if self.journal is not None:
-            if self.resume:
-                self._restore()
-            else:
-                self.journal.clear()
-        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
+
+    def subscribe(self) -> None:
+        self.listen(self.bus.keys.odometry, OdometryPose, self.receive)
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
         if self.closer.params.enabled:
             self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
 
     def _load_prior_keyframes(self, map_db: Path) -> None:
         """The prior run's keyframes, to register this session's to once it has relocalised."""
-        prior = load_prior_keyframes(map_db, self.closer.params.max_keyframes)
-        self.closer.set_prior(prior.keyframes)
+        prior = self.stage.load_prior_keyframes(map_db)
         self.metrics.counters["prior_keyframes"] = len(self.closer.prior)
         if prior.unreadable or prior.without_pose:
             self.metrics.counters["prior_keyframes_skipped"] = prior.unreadable + prior.without_pose
@@ -120,11 +117,9 @@ class BackendService(Service):
             self.metrics.count("keyframe_clouds_dropped")
         self._drain()
 
-    def on_odometry(self, pose: OdometryPose) -> None:
-        if not self.odometry.push(pose.frame_id, pose):
-            self.metrics.count("odometry_duplicates")
-            return
-        self._release()
+    def on_resent(self, pose: OdometryPose) -> None:
+        """A pose of a frame handled or waiting already: counted only (the backend answers a resent frame when
+        its observations come again, the input that follows the pose)."""
 
     def on_observations(self, obs: Observations) -> None:
         if obs.frame_id <= self.last_frame_id:
@@ -135,19 +130,13 @@ class BackendService(Service):
         self._drain()
 
     def on_frame_unreadable(self, frame_id: int) -> None:
-        self.odometry.skip(frame_id)
         self.observations.pop(frame_id, None)
         self.clouds.pop(frame_id, None)
-        self._release()
+        super().on_frame_unreadable(frame_id)
 
-    def _release(self) -> None:
-        self._take(self.odometry.pop_ready())
-
-    def _take(self, poses: list[OdometryPose]) -> None:
-        """Poses released in order; then handle what is ready."""
-        self.ready_odometry.extend(poses)
-        if self.odometry.gaps:  # real time: frames whose odometry never came (dropped upstream), given up
-            self.metrics.counters["frames_without_odometry"] = self.odometry.gaps
+    def handle(self, pose: OdometryPose) -> None:
+        """A pose released in order; then handle what is ready."""
+        self.ready_odometry.append(pose)
         self._drain()
 
     def _drain(self) -> None:
@@ -169,20 +158,17 @@ class BackendService(Service):
             self.metrics.time_ms("update_ms", step.update_ms)
             if cloud is not None:
                 self._loop_closed(cloud, step.closure, step.loop_closure_ms or 0.0)
-            if self.journal is not None:
-                # after the frame's closure (journalled as its extra): a frame journalled is a frame complete, so
-                # a crash in between loses no closure; one before it means the frame is handled again
-                self.journal.append(pose.frame_id, pose.encode(), obs.encode())
             self.metrics.time_ms("publish_ms", step.timing_ms["publish"])
             self.seq += 1
             message = step.message(self.robot, self.seq, pose.frame_id)
-            self.emit(self.pub, message, pose.frame_id)
             self.metrics.count("corrected_poses_sent", len(step.delta.frame_ids))
             self.metrics.count("frames")
             self.metrics.count("observations", len(obs.observations))
-            self.report_progress(pose.frame_id)
+            # journalled after the frame's closure (its extra): a frame journalled is a frame complete, so a crash
+            # in between loses no closure; one before it means the frame is handled again
+            self.complete_frame(pose.frame_id, [(self.pub, message)], (pose.encode(), obs.encode()))
         # observations for frames before our first odometry can never be joined
-        first = self.odometry.next_id
+        first = self.inputs.next_id
         for stale in [f for f in self.observations if first is not None and f < first - 1]:
             del self.observations[stale]
             self.metrics.count("observations_unjoined")
@@ -221,8 +207,9 @@ class BackendService(Service):
         self.metrics.counters["loop_kept_keyframes"] = len(self.closer.keyframes)
         self.metrics.counters["loop_kept_kb"] = self.closer.nbytes // 1024
 
-    def _restore(self) -> None:
+    def restore(self) -> None:
         """Rebuild the graph from the journal of handled frames (after a crash), without publishing."""
+        assert self.journal is not None
         n = 0
         for frame_id, odometry, observations, keyframe in self.journal.frames():
             pose = OdometryPose.decode(odometry)
@@ -232,8 +219,7 @@ class BackendService(Service):
             step = self.stage.restore(pose, obs, None if keyframe is None else decode_keyframe(keyframe))
             if step.realigned:
                 self._log_realigned(obs)
-            self.odometry.mark_done(frame_id)
-            self.last_frame_id = frame_id
+            self.resume_after(frame_id)
             n += 1
         self.seq = n  # one correction went out per frame
         if n:
@@ -254,9 +240,9 @@ class BackendService(Service):
         REALTIME_MAX_PENDING later frames never release it and the run waits at its end until it fails. A last
         frame whose odometry never comes releases nothing: that is a stall, and the run's watchdog says so."""
         eos = self.end_of_stream
-        if self.lockstep or eos is None or self.finished or eos.last_frame_id not in self.odometry.pending:
+        if self.lockstep or eos is None or self.finished or eos.last_frame_id not in self.inputs.pending:
             return
-        self._take(self.odometry.give_up_before(eos.last_frame_id))
+        self.release(self.inputs.give_up_before(eos.last_frame_id))
 
     def write_outputs(self) -> None:
         if self.out_dir is None or self.graph.num_frames == 0:

@@ -19,21 +19,25 @@ import numpy as np
 
 from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
-from semmap.core.journal import FrameJournal
 from semmap.core.messages import DynamicObjects, Frame, OdometryPose
 from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.service import REPLAY_FRAMES, Service, service_main
+from semmap.runtime.service import service_main
+from semmap.runtime.stage_service import StageService
 
 DYNAMIC_KEPT = 64  # frames of dynamic objects kept (real time: boxes may run ahead of or behind the frames)
 
 
-class OdometryService(Service):
+class OdometryService(StageService):
     """Publishes camera poses for every frame (see module docstring)."""
 
     name = "odometry"
+    journal_file = "odometry.sqlite"  # per frame: its pose and the front end's state after it
+    # frames come in order; in real time the oldest waiting are dropped (a frame never waits for a missing one)
+    reorders = False
+    duplicates_counter = "frames_repeated"
 
-    def setup(self) -> None:
+    def setup_stage(self) -> None:
         cfg = self.config.odometry
         self.mode: str = cfg.mode
         self.frontend: FrontEnd = make_frontend(self.mode, cfg)
@@ -41,25 +45,21 @@ class OdometryService(Service):
         self.keyframe_every = cfg.keyframe_every
         self.trajectory: list[tuple[float, object]] = []
         self.pose_pub = self.publisher(self.bus.keys.odometry)
-        self.journal = FrameJournal(self.out_dir / "odometry.sqlite") if self.out_dir is not None else None
-        if self.journal is not None:
-            if self.resume:
-                self._restore()
-            else:
-                self.journal.clear()
         self.dynamic: dict[int, DynamicObjects] = {}  # recent frames' dynamic objects by frame id
         self.await_dynamic = self.frontend.uses_dynamic and self.lockstep and bool(self.args.await_dynamic)
         self.dynamic_wait_s = cfg.dynamic_wait_s
         self.waiting: tuple[Frame, float] | None = None  # lockstep: a frame waiting for its dynamic objects
-        if self.frontend.uses_dynamic:
-            self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
         # an external SLAM's own poses to check (`external`): lockstep waits for each frame's, as for its boxes
         self.slam: dict[int, OdometryPose] = {}
         self.await_slam = self.frontend.needs_slam and self.lockstep
+
+    def subscribe(self) -> None:
+        if self.frontend.uses_dynamic:
+            self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
         if self.frontend.needs_slam:
             self.listen(self.bus.keys.slam, OdometryPose, self.on_slam)
         # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=4)
+        self.listen(self.bus.keys.frames, Frame, self.receive, realtime_capacity=4)
 
     def on_dynamic(self, message: DynamicObjects) -> None:
         if message.frame_id <= self.last_frame_id:
@@ -88,11 +88,7 @@ class OdometryService(Service):
         if self.waiting is not None and self.waiting[0].frame_id == frame_id and self._ready(frame_id):
             self._estimate(self.waiting[0])
 
-    def on_frame(self, frame: Frame) -> None:
-        if frame.frame_id <= self.last_frame_id:
-            self.metrics.count("frames_repeated")
-            self.replay(frame.frame_id)
-            return
+    def handle(self, frame: Frame) -> None:
         if not self._ready(frame.frame_id):
             if self.waiting is None or self.waiting[0].frame_id != frame.frame_id:  # (not a resent frame)
                 self.waiting = (frame, time.monotonic())
@@ -136,27 +132,25 @@ class OdometryService(Service):
         self.metrics.counters.update(getattr(self.frontend, "counters", {}))  # e.g. rgbd's untrusted pairs
         sigma_t, sigma_r = self.frontend.sigmas
         keyframe = slam.keyframe if slam is not None else frame.frame_id % self.keyframe_every == 0
-        self.emit(self.pose_pub, OdometryPose(self.robot, frame.frame_id, frame.stamp, pose, keyframe=keyframe,
-                                              sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode),
-                  frame.frame_id)
+        message = OdometryPose(self.robot, frame.frame_id, frame.stamp, pose, keyframe=keyframe,
+                               sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode)
         self.trajectory.append((frame.stamp, pose))
-        if self.journal is not None:
-            self.journal.append(frame.frame_id, self._sent[frame.frame_id][0][1].encode(),
-                                msgpack.packb(self.frontend.state()))
         self.metrics.count("poses_published")
-        self.report_progress(frame.frame_id)
+        self.complete_frame(frame.frame_id, [(self.pose_pub, message)],
+                            (message.encode(), msgpack.packb(self.frontend.state())))
 
-    def _restore(self) -> None:
+    def restore(self) -> None:
         """Continue the trajectory after a crash: earlier poses from the journal, the front end's state. The
         newest poses are remembered as sent: the old process may have journalled a frame and died before its pose
         or its progress left, and the player then sends that frame again; it must be answered, not ignored."""
+        assert self.journal is not None
         state = None
         for frame_id, pose_bytes, state_bytes, _ in self.journal.frames():
             pose = OdometryPose.decode(pose_bytes)
             self.trajectory.append((pose.stamp, pose.pose))
-            self.last_frame_id, state = frame_id, state_bytes
-        for frame_id, pose_bytes, _, _ in self.journal.last(REPLAY_FRAMES):
-            self.remember(self.pose_pub, OdometryPose.decode(pose_bytes), frame_id)
+            self.resume_after(frame_id)
+            state = state_bytes
+        self.remember_newest(self.pose_pub, OdometryPose.decode)
         if state is not None:
             self.frontend.restore(msgpack.unpackb(state))
             self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))

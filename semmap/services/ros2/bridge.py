@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import colorsys
+import functools
 import json
 import logging
 import math
@@ -42,6 +43,7 @@ import time
 import zlib
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -414,8 +416,10 @@ def run_bridge(
     return 0
 
 
-def _make_node_class() -> type:
-    """The node class, built here so that rclpy and the message packages are imported only by the bridge."""
+@functools.cache
+def _ros() -> SimpleNamespace:
+    """rclpy, SciPy's rotations and the ROS message classes the node uses, imported on first use: only the bridge
+    needs them (ImportError without the ros2 extra)."""
     from builtin_interfaces.msg import Duration, Time
     from geometry_msgs.msg import (
         Point,
@@ -434,407 +438,470 @@ def _make_node_class() -> type:
     from std_msgs.msg import ColorRGBA, String
     from visualization_msgs.msg import Marker, MarkerArray
 
-    pose_types = {
-        "odometry": ("nav_msgs/msg/Odometry", Odometry),
-        "pose": ("geometry_msgs/msg/PoseStamped", PoseStamped),
-        "pose_with_covariance": ("geometry_msgs/msg/PoseWithCovarianceStamped", PoseWithCovarianceStamped),
-    }
+    return SimpleNamespace(
+        Duration=Duration,
+        Time=Time,
+        Point=Point,
+        Pose=Pose,
+        PoseStamped=PoseStamped,
+        PoseWithCovarianceStamped=PoseWithCovarianceStamped,
+        Quaternion=Quaternion,
+        TransformStamped=TransformStamped,
+        Vector3=Vector3,
+        Odometry=Odometry,
+        Path=Path,
+        Node=Node,
+        DurabilityPolicy=DurabilityPolicy,
+        HistoryPolicy=HistoryPolicy,
+        QoSProfile=QoSProfile,
+        ReliabilityPolicy=ReliabilityPolicy,
+        Rotation=Rotation,
+        CameraInfo=CameraInfo,
+        CompressedImage=CompressedImage,
+        Image=Image,
+        ColorRGBA=ColorRGBA,
+        String=String,
+        Marker=Marker,
+        MarkerArray=MarkerArray,
+    )
 
-    def input_qos(p: dict) -> QoSProfile:
-        """The inputs' QoS (see `input_depth`): reliable input keeps all by default (the bridge's reader never
-        drops; lockstep's back-pressure reaches the camera), best effort keeps rate x latency messages."""
-        reliable = bool(p["reliable_input"])
-        reliability = ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
-        depth = int(p["input_depth"])
-        if depth > 0:
-            return QoSProfile(depth=depth, reliability=reliability)
-        if reliable:
-            return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=reliability)
-        return QoSProfile(
-            depth=auto_input_depth(float(p["camera_rate_hz"]), float(p["input_latency_s"])), reliability=reliability
+
+# pose_type: (the ROS type name, its class's name in `_ros()`)
+POSE_TYPES = {
+    "odometry": ("nav_msgs/msg/Odometry", "Odometry"),
+    "pose": ("geometry_msgs/msg/PoseStamped", "PoseStamped"),
+    "pose_with_covariance": ("geometry_msgs/msg/PoseWithCovarianceStamped", "PoseWithCovarianceStamped"),
+}
+
+
+def input_qos(p: dict) -> Any:
+    """The inputs' QoS (see `input_depth`): reliable input keeps all by default (the bridge's reader never
+    drops; lockstep's back-pressure reaches the camera), best effort keeps rate x latency messages."""
+    ros = _ros()
+    reliable = bool(p["reliable_input"])
+    reliability = ros.ReliabilityPolicy.RELIABLE if reliable else ros.ReliabilityPolicy.BEST_EFFORT
+    depth = int(p["input_depth"])
+    if depth > 0:
+        return ros.QoSProfile(depth=depth, reliability=reliability)
+    if reliable:
+        return ros.QoSProfile(history=ros.HistoryPolicy.KEEP_ALL, reliability=reliability)
+    return ros.QoSProfile(
+        depth=auto_input_depth(float(p["camera_rate_hz"]), float(p["input_latency_s"])), reliability=reliability
+    )
+
+
+def ros_time(t: float) -> Any:
+    """A stamp in seconds as a builtin_interfaces/Time."""
+    ros = _ros()
+    sec = math.floor(t)
+    return ros.Time(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+
+
+def ros_pose(matrix: np.ndarray) -> Any:
+    """A 4x4 rigid transform as a geometry_msgs/Pose."""
+    ros = _ros()
+    x, y, z, w = matrix_quaternion(matrix[:3, :3])
+    t = matrix[:3, 3]
+    return ros.Pose(
+        position=ros.Point(x=float(t[0]), y=float(t[1]), z=float(t[2])), orientation=ros.Quaternion(x=x, y=y, z=z, w=w)
+    )
+
+
+class _BridgeNodeMethods:
+    """The bridge node's methods: subscriptions, matching, the Zenoh link and the outputs (see the module
+    docstring). A plain class, so that rclpy is imported only when the node class is made (`_make_node_class`
+    joins it with rclpy's Node)."""
+
+    def __init__(self, client: Any) -> None:
+        super().__init__("semmap_bridge")  # (rclpy's Node, after this class in the node class's bases)
+        p = _declare(self)
+        if p["pose_type"] not in POSE_TYPES:
+            raise ValueError(f"pose_type must be one of {', '.join(POSE_TYPES)}, got {p['pose_type']!r}")
+        self.params = p
+        self.client = client
+        self.counters: Counter[str] = Counter()
+        self.sync = FrameSync(
+            p["sync_tolerance_s"],
+            p["pose_max_gap_s"],
+            p["max_wait_s"],
+            parse_pose_to_optical(str(p["pose_to_optical"])),
+        )
+        self.link = SemmapLink(
+            client,
+            bool(p["lockstep"]),
+            int(p["queue_size"]),
+            (float(p["sigma_translation_m"]), math.radians(float(p["sigma_rotation_deg"]))),
+            float(p["end_after_idle_s"]),
+            self.counters,
+        )
+        self.link.report = self._lost_before_semmap
+        self.lock = threading.Lock()  # the map and trajectory state is updated from Zenoh threads
+        self.landmarks: dict[int, Landmark] = {}
+        self.arrivals: Counter[str] = Counter()
+        self.warned: dict[str, float] = {}
+        pose_name = self._subscribe_inputs(p)
+        self._declare_outputs()
+        self.started = time.monotonic()
+        self.last_input = time.monotonic()
+        self.quiet_seen = False
+        self.create_timer(1.0, self._tick)
+        self.create_timer(0.1, self._flush_if_quiet)
+        self.deleted: set[int] = set()
+        self.map_dirty = False
+        # the optimised trajectory, kept by applying each `poses/corrected` delta (semmap.corrected_poses/2)
+        self.poses: dict[int, np.ndarray] = {}
+        self.stamps: dict[int, float] = {}
+        self.trajectory_dirty = False
+        self.create_timer(float(p["output_period_s"]), self._publish_outputs)
+        client.on_map_update(self._on_map_update)
+        client.on_corrected_poses(self._on_corrected)
+        client.on_observations(self._on_observations)
+        client.on_dynamic(self._on_dynamic)
+        self.get_logger().info(
+            f"in: {self._topic('colour')}, {self._topic('depth')}, {self._topic('camera_info')}, "
+            f"{self._topic('pose')} ({pose_name}); out: {LANDMARKS_TOPIC}, {TRAJECTORY_TOPIC}, "
+            f"{CORRECTION_TOPIC}, {OBSERVATIONS_TOPIC}, {DYNAMIC_TOPIC}; "
+            f"{'lockstep' if p['lockstep'] else 'real time'}, "
+            f"tolerance {p['sync_tolerance_s']} s, ROS_AUTOMATIC_DISCOVERY_RANGE="
+            f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
         )
 
-    def ros_time(t: float) -> Time:
-        sec = math.floor(t)
-        return Time(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+    def _subscribe_inputs(self, p: dict[str, Any]) -> str:
+        """The camera and pose subscriptions (`self.inputs`, by role, with the type each expects); returns the
+        pose topic's type name."""
+        ros = _ros()
+        qos = input_qos(p)
+        self.input_history = "keep all" if qos.history == ros.HistoryPolicy.KEEP_ALL else f"keep last {qos.depth}"
+        pose_name, pose_class_name = POSE_TYPES[p["pose_type"]]
+        pose_class = getattr(ros, pose_class_name)
+        self.inputs = {
+            "colour": (self.create_subscription(ros.Image, COLOUR_TOPIC, self._on_colour, qos), "sensor_msgs/Image"),
+            "depth": (self.create_subscription(ros.Image, DEPTH_TOPIC, self._on_depth, qos), "sensor_msgs/Image"),
+            "camera_info": (
+                self.create_subscription(ros.CameraInfo, INFO_TOPIC, self._on_info, qos),
+                "sensor_msgs/CameraInfo",
+            ),
+            "pose": (
+                self.create_subscription(pose_class, POSE_TOPIC, lambda m: self._on_pose(m, pose_name), qos),
+                pose_name,
+            ),
+        }
+        # a compressed colour stream is taken too when that is what the camera sends
+        self.create_subscription(ros.CompressedImage, COLOUR_TOPIC + "/compressed", self._on_compressed, qos)
+        return pose_name
 
-    def ros_pose(matrix: np.ndarray) -> Pose:
-        x, y, z, w = matrix_quaternion(matrix[:3, :3])
-        t = matrix[:3, 3]
-        return Pose(
-            position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])), orientation=Quaternion(x=x, y=y, z=z, w=w)
+    def _declare_outputs(self) -> None:
+        """The publishers: the map, trajectory and correction latched (a late RViz gets the latest)."""
+        ros = _ros()
+        latched = ros.QoSProfile(
+            depth=1, reliability=ros.ReliabilityPolicy.RELIABLE, durability=ros.DurabilityPolicy.TRANSIENT_LOCAL
         )
+        self.markers_pub = self.create_publisher(ros.MarkerArray, LANDMARKS_TOPIC, latched)
+        self.path_pub = self.create_publisher(ros.Path, TRAJECTORY_TOPIC, latched)
+        self.correction_pub = self.create_publisher(ros.TransformStamped, CORRECTION_TOPIC, latched)
+        self.observations_pub = self.create_publisher(ros.Odometry, OBSERVATIONS_TOPIC, 100)
+        self.dynamic_pub = self.create_publisher(ros.MarkerArray, DYNAMIC_TOPIC, 10)
+        self.status_pub = self.create_publisher(ros.String, STATUS_TOPIC, 10)
 
-    class _BridgeNode(Node):
-        """Subscriptions, matching, the Zenoh link and the outputs (see the module docstring)."""
+    def _topic(self, role: str) -> str:
+        return self.inputs[role][0].topic_name
 
-        def __init__(self, client: Any) -> None:
-            super().__init__("semmap_bridge")
-            p = _declare(self)
-            if p["pose_type"] not in pose_types:
-                raise ValueError(f"pose_type must be one of {', '.join(pose_types)}, got {p['pose_type']!r}")
-            self.params = p
-            self.client = client
-            self.counters: Counter[str] = Counter()
-            self.sync = FrameSync(
-                p["sync_tolerance_s"],
-                p["pose_max_gap_s"],
-                p["max_wait_s"],
-                parse_pose_to_optical(str(p["pose_to_optical"])),
-            )
-            self.link = SemmapLink(
-                client,
-                bool(p["lockstep"]),
-                int(p["queue_size"]),
-                (float(p["sigma_translation_m"]), math.radians(float(p["sigma_rotation_deg"]))),
-                float(p["end_after_idle_s"]),
-                self.counters,
-            )
-            self.link.report = self._lost_before_semmap
-            self.lock = threading.Lock()  # the map and trajectory state is updated from Zenoh threads
-            self.landmarks: dict[int, Landmark] = {}
-            qos = input_qos(p)
-            self.input_history = "keep all" if qos.history == HistoryPolicy.KEEP_ALL else f"keep last {qos.depth}"
-            pose_name, pose_class = pose_types[p["pose_type"]]
-            self.inputs = {
-                "colour": (self.create_subscription(Image, COLOUR_TOPIC, self._on_colour, qos), "sensor_msgs/Image"),
-                "depth": (self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, qos), "sensor_msgs/Image"),
-                "camera_info": (
-                    self.create_subscription(CameraInfo, INFO_TOPIC, self._on_info, qos),
-                    "sensor_msgs/CameraInfo",
-                ),
-                "pose": (
-                    self.create_subscription(pose_class, POSE_TOPIC, lambda m: self._on_pose(m, pose_name), qos),
-                    pose_name,
-                ),
-            }
-            # a compressed colour stream is taken too when that is what the camera sends
-            self.create_subscription(CompressedImage, COLOUR_TOPIC + "/compressed", self._on_compressed, qos)
-            self.arrivals: Counter[str] = Counter()
-            self.warned: dict[str, float] = {}
-            latched = QoSProfile(
-                depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-            )
-            self.markers_pub = self.create_publisher(MarkerArray, LANDMARKS_TOPIC, latched)
-            self.path_pub = self.create_publisher(Path, TRAJECTORY_TOPIC, latched)
-            self.correction_pub = self.create_publisher(TransformStamped, CORRECTION_TOPIC, latched)
-            self.observations_pub = self.create_publisher(Odometry, OBSERVATIONS_TOPIC, 100)
-            self.dynamic_pub = self.create_publisher(MarkerArray, DYNAMIC_TOPIC, 10)
-            self.status_pub = self.create_publisher(String, STATUS_TOPIC, 10)
-            self.started = time.monotonic()
-            self.last_input = time.monotonic()
+    def start(self) -> None:
+        self.link.start()
+
+    def stop(self) -> None:
+        """After rclpy's shutdown (SIGINT / SIGTERM): nothing can be published any more; the counters go to
+        the log."""
+        self._forward(self.sync.finish())  # the last frame of a recording is sent, the rest counted
+        self.link.stop()
+        log.info("stopped: %s", json.dumps(self._status()))
+
+    # -- inputs ------------------------------------------------------------------------------------------
+    def _forward(self, frames: list[MatchedFrame]) -> None:
+        for frame in frames:
+            self.link.submit(frame)  # lockstep: may wait for room
+        self.last_input = time.monotonic()
+        self.quiet_seen = False
+
+    def _flush_if_quiet(self) -> None:
+        """No input for `flush_after_s`: frames held for a closer depth image or a newer pose go with what
+        there is (the last frame of a recording), or are counted. Quiet must be seen by two ticks in a row
+        with no input between them: after a stall of the ROS thread the executor runs a due timer before the
+        messages that waited, which must not be mistaken for the end."""
+        quiet = time.monotonic() - self.last_input > float(self.params["flush_after_s"])
+        if not (quiet and self.sync.pending()):
             self.quiet_seen = False
-            self.create_timer(1.0, self._tick)
-            self.create_timer(0.1, self._flush_if_quiet)
-            self.deleted: set[int] = set()
-            self.map_dirty = False
-            # the optimised trajectory, kept by applying each `poses/corrected` delta (semmap.corrected_poses/2)
-            self.poses: dict[int, np.ndarray] = {}
-            self.stamps: dict[int, float] = {}
-            self.trajectory_dirty = False
-            self.create_timer(float(p["output_period_s"]), self._publish_outputs)
-            client.on_map_update(self._on_map_update)
-            client.on_corrected_poses(self._on_corrected)
-            client.on_observations(self._on_observations)
-            client.on_dynamic(self._on_dynamic)
-            self.get_logger().info(
-                f"in: {self._topic('colour')}, {self._topic('depth')}, {self._topic('camera_info')}, "
-                f"{self._topic('pose')} ({pose_name}); out: {LANDMARKS_TOPIC}, {TRAJECTORY_TOPIC}, "
-                f"{CORRECTION_TOPIC}, {OBSERVATIONS_TOPIC}, {DYNAMIC_TOPIC}; "
-                f"{'lockstep' if p['lockstep'] else 'real time'}, "
-                f"tolerance {p['sync_tolerance_s']} s, ROS_AUTOMATIC_DISCOVERY_RANGE="
-                f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
+            return
+        if not self.quiet_seen:
+            self.quiet_seen = True
+            return
+        self.quiet_seen = False
+        self._forward(self.sync.flush())
+
+    def _on_colour(self, msg: Any) -> None:
+        self.arrivals["colour"] += 1
+        self._forward(self.sync.add_colour(msg))
+
+    def _on_compressed(self, msg: Any) -> None:
+        self.arrivals["colour"] += 1
+        self._forward(self.sync.add_colour(msg, compressed=True))
+
+    def _on_depth(self, msg: Any) -> None:
+        self.arrivals["depth"] += 1
+        self._forward(self.sync.add_depth(msg))
+
+    def _on_info(self, msg: Any) -> None:
+        self.arrivals["camera_info"] += 1
+        self._forward(self.sync.add_camera_info(msg))
+
+    def _on_pose(self, msg: Any, msgtype: str) -> None:
+        self.arrivals["pose"] += 1
+        self._forward(self.sync.add_pose(msg, msgtype))
+
+    def _tick(self) -> None:
+        """Once a second: report inputs that never arrived, publish the counters."""
+        ros = _ros()
+        now = time.monotonic()
+        timeout = float(self.params["topic_timeout_s"])
+        for role, (sub, kind) in self.inputs.items():
+            quiet = now - self.warned.get(role, -1e9) > 30
+            if self.arrivals[role] == 0 and now - self.started >= timeout and quiet:
+                self.warned[role] = now
+                self.get_logger().warning(
+                    f"no message on {sub.topic_name} ({kind}) after {now - self.started:.0f} s: is it published? "
+                    f"remap with --ros-args -r {sub.topic_name}:=/your/topic"
+                )
+        self.status_pub.publish(ros.String(data=json.dumps(self._status())))
+
+    def _status(self) -> dict:
+        missing = [self.inputs[r][0].topic_name for r in self.inputs if self.arrivals[r] == 0]
+        gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
+        link = self.link.status()
+        return {
+            "received": dict(self.arrivals),
+            "sync": dict(self.sync.counters),
+            "link": dict(self.counters),
+            "gaps": gaps,
+            **link,
+            "lost": lost_frames(
+                self.sync.counters, self.counters, gaps, link, self.sync.camera_frames.colour_missing()
+            ),
+            "camera_frames": self.sync.camera_frames.frames(),
+            "input_history": self.input_history,
+            "missing_topics": missing,
+        }
+
+    def _lost_before_semmap(self) -> dict[str, int]:
+        """What end-of-stream reports to the run: frames lost between the camera and semmap, by reason."""
+        gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
+        lost = lost_frames(self.sync.counters, self.counters, gaps, {}, self.sync.camera_frames.colour_missing())
+        lost.pop("total", None)
+        return {**lost, "total": sum(lost.values())}
+
+    # -- outputs -----------------------------------------------------------------------------------------
+    def _frame_id(self) -> str:
+        return str(self.params["map_frame"]) or self.sync.world_frame or "map"
+
+    def _on_map_update(self, update: MapUpdate) -> None:
+        """(Zenoh thread) Keep the map; the timer publishes it (at most every `output_period_s`)."""
+        with self.lock:
+            before = set(self.landmarks)
+            if update.full:
+                self.landmarks = {lm.id: lm for lm in update.landmarks}
+            else:
+                for lm in update.landmarks:
+                    self.landmarks[lm.id] = lm
+                for gone in [*update.removed, *(absorbed for absorbed, _ in update.merges)]:
+                    self.landmarks.pop(gone, None)
+            self.deleted |= before - set(self.landmarks)
+            self.map_dirty = True
+
+    def _on_corrected(self, corrected: CorrectedPoses) -> None:
+        """(Zenoh thread) Keep the newest estimate; the timer publishes it (a 1000-pose Path takes ~20 ms to
+        build: not for every frame)."""
+        with self.lock:
+            if corrected.full:
+                self.stamps.clear()
+            corrected.apply_to(self.poses)
+            self.stamps.update(
+                zip((int(f) for f in corrected.frame_ids), (float(t) for t in corrected.stamps), strict=True)
             )
+            self.trajectory_dirty = True
 
-        def _topic(self, role: str) -> str:
-            return self.inputs[role][0].topic_name
+    def _publish_outputs(self) -> None:
+        """(ROS timer) The latest map and trajectory, if they changed."""
+        with self.lock:
+            markers = self._markers(sorted(self.deleted)) if self.map_dirty else None
+            self.deleted, self.map_dirty = set(), False
+            trajectory = None
+            if self.trajectory_dirty:
+                ids = sorted(self.poses)
+                trajectory = (ids, [self.stamps[i] for i in ids], np.array([self.poses[i] for i in ids]))
+                self.trajectory_dirty = False
+        if markers is not None:
+            self.markers_pub.publish(markers)
+        if trajectory is not None and trajectory[0]:
+            self._publish_trajectory(*trajectory)
 
-        def start(self) -> None:
-            self.link.start()
-
-        def stop(self) -> None:
-            """After rclpy's shutdown (SIGINT / SIGTERM): nothing can be published any more; the counters go to
-            the log."""
-            self._forward(self.sync.finish())  # the last frame of a recording is sent, the rest counted
-            self.link.stop()
-            log.info("stopped: %s", json.dumps(self._status()))
-
-        # -- inputs ------------------------------------------------------------------------------------------
-        def _forward(self, frames: list[MatchedFrame]) -> None:
-            for frame in frames:
-                self.link.submit(frame)  # lockstep: may wait for room
-            self.last_input = time.monotonic()
-            self.quiet_seen = False
-
-        def _flush_if_quiet(self) -> None:
-            """No input for `flush_after_s`: frames held for a closer depth image or a newer pose go with what
-            there is (the last frame of a recording), or are counted. Quiet must be seen by two ticks in a row
-            with no input between them: after a stall of the ROS thread the executor runs a due timer before the
-            messages that waited, which must not be mistaken for the end."""
-            quiet = time.monotonic() - self.last_input > float(self.params["flush_after_s"])
-            if not (quiet and self.sync.pending()):
-                self.quiet_seen = False
-                return
-            if not self.quiet_seen:
-                self.quiet_seen = True
-                return
-            self.quiet_seen = False
-            self._forward(self.sync.flush())
-
-        def _on_colour(self, msg: Image) -> None:
-            self.arrivals["colour"] += 1
-            self._forward(self.sync.add_colour(msg))
-
-        def _on_compressed(self, msg: CompressedImage) -> None:
-            self.arrivals["colour"] += 1
-            self._forward(self.sync.add_colour(msg, compressed=True))
-
-        def _on_depth(self, msg: Image) -> None:
-            self.arrivals["depth"] += 1
-            self._forward(self.sync.add_depth(msg))
-
-        def _on_info(self, msg: CameraInfo) -> None:
-            self.arrivals["camera_info"] += 1
-            self._forward(self.sync.add_camera_info(msg))
-
-        def _on_pose(self, msg: Any, msgtype: str) -> None:
-            self.arrivals["pose"] += 1
-            self._forward(self.sync.add_pose(msg, msgtype))
-
-        def _tick(self) -> None:
-            """Once a second: report inputs that never arrived, publish the counters."""
-            now = time.monotonic()
-            timeout = float(self.params["topic_timeout_s"])
-            for role, (sub, kind) in self.inputs.items():
-                quiet = now - self.warned.get(role, -1e9) > 30
-                if self.arrivals[role] == 0 and now - self.started >= timeout and quiet:
-                    self.warned[role] = now
-                    self.get_logger().warning(
-                        f"no message on {sub.topic_name} ({kind}) after {now - self.started:.0f} s: is it published? "
-                        f"remap with --ros-args -r {sub.topic_name}:=/your/topic"
-                    )
-            self.status_pub.publish(String(data=json.dumps(self._status())))
-
-        def _status(self) -> dict:
-            missing = [self.inputs[r][0].topic_name for r in self.inputs if self.arrivals[r] == 0]
-            gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
-            link = self.link.status()
-            return {
-                "received": dict(self.arrivals),
-                "sync": dict(self.sync.counters),
-                "link": dict(self.counters),
-                "gaps": gaps,
-                **link,
-                "lost": lost_frames(
-                    self.sync.counters, self.counters, gaps, link, self.sync.camera_frames.colour_missing()
+    def _markers(self, deleted: list[int]) -> Any:
+        ros = _ros()
+        frame = self._frame_id()
+        out = ros.MarkerArray()
+        for lid in deleted:
+            for ns in ("landmarks", "labels"):
+                out.markers.append(ros.Marker(ns=ns, id=lid, action=ros.Marker.DELETE))
+                out.markers[-1].header.frame_id = frame
+        for lm in sorted(self.landmarks.values(), key=lambda x: x.id):
+            r, g, b = class_colour(lm.class_name)
+            pose = ros.Pose(
+                position=ros.Point(x=float(lm.centroid[0]), y=float(lm.centroid[1]), z=float(lm.centroid[2])),
+                orientation=ros.Quaternion(w=1.0),
+            )
+            cube = ros.Marker(
+                ns="landmarks",
+                id=lm.id,
+                type=ros.Marker.CUBE,
+                action=ros.Marker.ADD,
+                pose=pose,
+                scale=ros.Vector3(
+                    x=max(float(lm.extent[0]), 0.02),
+                    y=max(float(lm.extent[1]), 0.02),
+                    z=max(float(lm.extent[2]), 0.02),
                 ),
-                "camera_frames": self.sync.camera_frames.frames(),
-                "input_history": self.input_history,
-                "missing_topics": missing,
-            }
+                color=ros.ColorRGBA(r=r, g=g, b=b, a=0.6),
+            )
+            label = ros.Marker(
+                ns="labels",
+                id=lm.id,
+                type=ros.Marker.TEXT_VIEW_FACING,
+                action=ros.Marker.ADD,
+                pose=pose,
+                scale=ros.Vector3(z=0.08),
+                color=ros.ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
+                text=f"{lm.class_name} #{lm.id}",
+            )
+            for marker in (cube, label):
+                marker.header.frame_id = frame  # stamp 0: RViz draws with the latest transform
+                out.markers.append(marker)
+        return out
 
-        def _lost_before_semmap(self) -> dict[str, int]:
-            """What end-of-stream reports to the run: frames lost between the camera and semmap, by reason."""
-            gaps = {role: g.as_dict() for role, g in self.sync.gaps.items()}
-            lost = lost_frames(self.sync.counters, self.counters, gaps, {}, self.sync.camera_frames.colour_missing())
-            lost.pop("total", None)
-            return {**lost, "total": sum(lost.values())}
+    def _publish_trajectory(self, ids: list[int], stamps: list[float], poses: np.ndarray) -> None:
+        ros = _ros()
+        frame = self._frame_id()
+        path = ros.Path()
+        path.header.frame_id = frame
+        limit = max(2, int(self.params["path_max_poses"]))
+        keep = np.unique(np.linspace(0, len(ids) - 1, min(limit, len(ids))).round().astype(int))  # newest kept
+        quats = ros.Rotation.from_matrix(poses[keep, :3, :3]).as_quat()
+        items = []
+        for k, q in zip(keep, quats, strict=True):
+            pose = poses[k]
+            item = ros.PoseStamped()
+            item.header.frame_id = frame
+            item.header.stamp = ros_time(float(stamps[k]))
+            position, orientation = item.pose.position, item.pose.orientation
+            position.x, position.y, position.z = float(pose[0, 3]), float(pose[1, 3]), float(pose[2, 3])
+            orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
+            items.append(item)
+        path.poses = items
+        path.header.stamp = ros_time(float(stamps[-1]))
+        self.path_pub.publish(path)
+        sent = self.link.sent
+        for fid, pose in zip(ids[::-1], poses[::-1], strict=True):
+            frame_sent = sent.get(int(fid))
+            if frame_sent is not None:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
+                correction = pose @ np.linalg.inv(frame_sent.pose)
+                msg = ros.TransformStamped()
+                msg.header.frame_id = str(self.params["corrected_frame"])
+                msg.header.stamp = ros_time(frame_sent.stamp)
+                msg.child_frame_id = frame
+                q = ros_pose(correction)
+                msg.transform.translation = ros.Vector3(x=q.position.x, y=q.position.y, z=q.position.z)
+                msg.transform.rotation = q.orientation
+                self.correction_pub.publish(msg)
+                break
 
-        # -- outputs -----------------------------------------------------------------------------------------
-        def _frame_id(self) -> str:
-            return str(self.params["map_frame"]) or self.sync.world_frame or "map"
-
-        def _on_map_update(self, update: MapUpdate) -> None:
-            """(Zenoh thread) Keep the map; the timer publishes it (at most every `output_period_s`)."""
+    def _on_dynamic(self, objects: DynamicObjects) -> None:
+        """(Zenoh thread) A detected frame's dynamic objects as boxes in the world, published at once (they are
+        about now; each lives `dynamic_lifetime_s`, so an object that left vanishes). A frame that was not
+        detected repeats older boxes: nothing is published for it, the boxes of the last detected frame live on
+        until their lifetime ends."""
+        ros = _ros()
+        if objects.skipped:
+            return
+        sent = self.link.sent.get(objects.frame_id)
+        if sent is None:
+            self.counters["dynamic_unknown_frame"] += 1
+            return
+        frame = self._frame_id()
+        stamp = ros_time(objects.stamp)
+        lifetime = max(float(self.params["dynamic_lifetime_s"]), 0.0)
+        life = ros.Duration(sec=int(lifetime), nanosec=int(round((lifetime % 1.0) * 1e9)))
+        out = ros.MarkerArray()
+        for box in objects.boxes:
+            placed = dynamic_box_in_world(box, sent.intrinsics, sent.pose)
+            if placed is None:
+                self.counters["dynamic_without_depth"] += 1
+                continue
+            centre, rotation, size = placed
+            x, y, z, w = matrix_quaternion(rotation)
+            r, g, b = track_colour(box.track_id)
+            position = ros.Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
+            cube = ros.Marker(
+                ns="dynamic",
+                id=box.track_id,
+                type=ros.Marker.CUBE,
+                action=ros.Marker.ADD,
+                pose=ros.Pose(position=position, orientation=ros.Quaternion(x=x, y=y, z=z, w=w)),
+                scale=ros.Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
+                color=ros.ColorRGBA(r=r, g=g, b=b, a=0.5),
+                lifetime=life,
+            )
+            why = " moving" if box.reason == "moving" else ""
+            label = ros.Marker(
+                ns="dynamic_labels",
+                id=box.track_id,
+                type=ros.Marker.TEXT_VIEW_FACING,
+                action=ros.Marker.ADD,
+                pose=ros.Pose(position=ros.Point(x=position.x, y=position.y, z=position.z),
+                              orientation=ros.Quaternion(w=1.0)),
+                scale=ros.Vector3(z=0.1),
+                color=ros.ColorRGBA(r=r, g=g, b=b, a=1.0),
+                text=f"{box.class_name}{why} (track {box.track_id})",
+                lifetime=life,
+            )
+            for marker in (cube, label):
+                marker.header.frame_id = frame
+                marker.header.stamp = stamp
+                out.markers.append(marker)
+        if out.markers:
+            self.counters["dynamic_boxes"] += len(out.markers) // 2
             with self.lock:
-                before = set(self.landmarks)
-                if update.full:
-                    self.landmarks = {lm.id: lm for lm in update.landmarks}
-                else:
-                    for lm in update.landmarks:
-                        self.landmarks[lm.id] = lm
-                    for gone in [*update.removed, *(absorbed for absorbed, _ in update.merges)]:
-                        self.landmarks.pop(gone, None)
-                self.deleted |= before - set(self.landmarks)
-                self.map_dirty = True
+                self.dynamic_pub.publish(out)
 
-        def _on_corrected(self, corrected: CorrectedPoses) -> None:
-            """(Zenoh thread) Keep the newest estimate; the timer publishes it (a 1000-pose Path takes ~20 ms to
-            build: not for every frame)."""
+    def _on_observations(self, observations: Observations) -> None:
+        ros = _ros()
+        sent = self.link.sent.get(observations.frame_id)
+        camera_frame = sent.camera_frame if sent is not None else "camera_color_optical_frame"
+        for obs in observations.observations:
+            msg = ros.Odometry(child_frame_id=f"semmap_landmark_{obs.landmark_id}")
+            msg.header.frame_id = camera_frame
+            msg.header.stamp = ros_time(observations.stamp)
+            msg.pose.pose.position = ros.Point(
+                x=float(obs.point_camera[0]), y=float(obs.point_camera[1]), z=float(obs.point_camera[2])
+            )
+            msg.pose.pose.orientation = ros.Quaternion(w=1.0)
+            # position: the observation's isotropic sigma; orientation: unconstrained (an object centroid)
+            msg.pose.covariance = [float(v) for v in np.diag([obs.sigma**2] * 3 + [1e6] * 3).reshape(36)]
+            msg.twist.covariance[0] = -1.0  # no twist (the REP 145 "unknown" marker)
             with self.lock:
-                if corrected.full:
-                    self.stamps.clear()
-                corrected.apply_to(self.poses)
-                self.stamps.update(
-                    zip((int(f) for f in corrected.frame_ids), (float(t) for t in corrected.stamps), strict=True)
-                )
-                self.trajectory_dirty = True
+                self.observations_pub.publish(msg)
 
-        def _publish_outputs(self) -> None:
-            """(ROS timer) The latest map and trajectory, if they changed."""
-            with self.lock:
-                markers = self._markers(sorted(self.deleted)) if self.map_dirty else None
-                self.deleted, self.map_dirty = set(), False
-                trajectory = None
-                if self.trajectory_dirty:
-                    ids = sorted(self.poses)
-                    trajectory = (ids, [self.stamps[i] for i in ids], np.array([self.poses[i] for i in ids]))
-                    self.trajectory_dirty = False
-            if markers is not None:
-                self.markers_pub.publish(markers)
-            if trajectory is not None and trajectory[0]:
-                self._publish_trajectory(*trajectory)
 
-        def _markers(self, deleted: list[int]) -> MarkerArray:
-            frame = self._frame_id()
-            out = MarkerArray()
-            for lid in deleted:
-                for ns in ("landmarks", "labels"):
-                    out.markers.append(Marker(ns=ns, id=lid, action=Marker.DELETE))
-                    out.markers[-1].header.frame_id = frame
-            for lm in sorted(self.landmarks.values(), key=lambda x: x.id):
-                r, g, b = class_colour(lm.class_name)
-                pose = Pose(
-                    position=Point(x=float(lm.centroid[0]), y=float(lm.centroid[1]), z=float(lm.centroid[2])),
-                    orientation=Quaternion(w=1.0),
-                )
-                cube = Marker(
-                    ns="landmarks",
-                    id=lm.id,
-                    type=Marker.CUBE,
-                    action=Marker.ADD,
-                    pose=pose,
-                    scale=Vector3(
-                        x=max(float(lm.extent[0]), 0.02),
-                        y=max(float(lm.extent[1]), 0.02),
-                        z=max(float(lm.extent[2]), 0.02),
-                    ),
-                    color=ColorRGBA(r=r, g=g, b=b, a=0.6),
-                )
-                label = Marker(
-                    ns="labels",
-                    id=lm.id,
-                    type=Marker.TEXT_VIEW_FACING,
-                    action=Marker.ADD,
-                    pose=pose,
-                    scale=Vector3(z=0.08),
-                    color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
-                    text=f"{lm.class_name} #{lm.id}",
-                )
-                for marker in (cube, label):
-                    marker.header.frame_id = frame  # stamp 0: RViz draws with the latest transform
-                    out.markers.append(marker)
-            return out
-
-        def _publish_trajectory(self, ids: list[int], stamps: list[float], poses: np.ndarray) -> None:
-            frame = self._frame_id()
-            path = Path()
-            path.header.frame_id = frame
-            limit = max(2, int(self.params["path_max_poses"]))
-            keep = np.unique(np.linspace(0, len(ids) - 1, min(limit, len(ids))).round().astype(int))  # newest kept
-            quats = Rotation.from_matrix(poses[keep, :3, :3]).as_quat()
-            items = []
-            for k, q in zip(keep, quats, strict=True):
-                pose = poses[k]
-                item = PoseStamped()
-                item.header.frame_id = frame
-                item.header.stamp = ros_time(float(stamps[k]))
-                position, orientation = item.pose.position, item.pose.orientation
-                position.x, position.y, position.z = float(pose[0, 3]), float(pose[1, 3]), float(pose[2, 3])
-                orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
-                items.append(item)
-            path.poses = items
-            path.header.stamp = ros_time(float(stamps[-1]))
-            self.path_pub.publish(path)
-            sent = self.link.sent
-            for fid, pose in zip(ids[::-1], poses[::-1], strict=True):
-                frame_sent = sent.get(int(fid))
-                if frame_sent is not None:  # corrected <- SLAM world: T = P_corrected @ inv(P_slam)
-                    correction = pose @ np.linalg.inv(frame_sent.pose)
-                    msg = TransformStamped()
-                    msg.header.frame_id = str(self.params["corrected_frame"])
-                    msg.header.stamp = ros_time(frame_sent.stamp)
-                    msg.child_frame_id = frame
-                    q = ros_pose(correction)
-                    msg.transform.translation = Vector3(x=q.position.x, y=q.position.y, z=q.position.z)
-                    msg.transform.rotation = q.orientation
-                    self.correction_pub.publish(msg)
-                    break
-
-        def _on_dynamic(self, objects: DynamicObjects) -> None:
-            """(Zenoh thread) A detected frame's dynamic objects as boxes in the world, published at once (they are
-            about now; each lives `dynamic_lifetime_s`, so an object that left vanishes). A frame that was not
-            detected repeats older boxes: nothing is published for it, the boxes of the last detected frame live on
-            until their lifetime ends."""
-            if objects.skipped:
-                return
-            sent = self.link.sent.get(objects.frame_id)
-            if sent is None:
-                self.counters["dynamic_unknown_frame"] += 1
-                return
-            frame = self._frame_id()
-            stamp = ros_time(objects.stamp)
-            lifetime = max(float(self.params["dynamic_lifetime_s"]), 0.0)
-            life = Duration(sec=int(lifetime), nanosec=int(round((lifetime % 1.0) * 1e9)))
-            out = MarkerArray()
-            for box in objects.boxes:
-                placed = dynamic_box_in_world(box, sent.intrinsics, sent.pose)
-                if placed is None:
-                    self.counters["dynamic_without_depth"] += 1
-                    continue
-                centre, rotation, size = placed
-                x, y, z, w = matrix_quaternion(rotation)
-                r, g, b = track_colour(box.track_id)
-                position = Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
-                cube = Marker(
-                    ns="dynamic",
-                    id=box.track_id,
-                    type=Marker.CUBE,
-                    action=Marker.ADD,
-                    pose=Pose(position=position, orientation=Quaternion(x=x, y=y, z=z, w=w)),
-                    scale=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
-                    color=ColorRGBA(r=r, g=g, b=b, a=0.5),
-                    lifetime=life,
-                )
-                why = " moving" if box.reason == "moving" else ""
-                label = Marker(
-                    ns="dynamic_labels",
-                    id=box.track_id,
-                    type=Marker.TEXT_VIEW_FACING,
-                    action=Marker.ADD,
-                    pose=Pose(position=Point(x=position.x, y=position.y, z=position.z), orientation=Quaternion(w=1.0)),
-                    scale=Vector3(z=0.1),
-                    color=ColorRGBA(r=r, g=g, b=b, a=1.0),
-                    text=f"{box.class_name}{why} (track {box.track_id})",
-                    lifetime=life,
-                )
-                for marker in (cube, label):
-                    marker.header.frame_id = frame
-                    marker.header.stamp = stamp
-                    out.markers.append(marker)
-            if out.markers:
-                self.counters["dynamic_boxes"] += len(out.markers) // 2
-                with self.lock:
-                    self.dynamic_pub.publish(out)
-
-        def _on_observations(self, observations: Observations) -> None:
-            sent = self.link.sent.get(observations.frame_id)
-            camera_frame = sent.camera_frame if sent is not None else "camera_color_optical_frame"
-            for obs in observations.observations:
-                msg = Odometry(child_frame_id=f"semmap_landmark_{obs.landmark_id}")
-                msg.header.frame_id = camera_frame
-                msg.header.stamp = ros_time(observations.stamp)
-                msg.pose.pose.position = Point(
-                    x=float(obs.point_camera[0]), y=float(obs.point_camera[1]), z=float(obs.point_camera[2])
-                )
-                msg.pose.pose.orientation = Quaternion(w=1.0)
-                # position: the observation's isotropic sigma; orientation: unconstrained (an object centroid)
-                msg.pose.covariance = [float(v) for v in np.diag([obs.sigma**2] * 3 + [1e6] * 3).reshape(36)]
-                msg.twist.covariance[0] = -1.0  # no twist (the REP 145 "unknown" marker)
-                with self.lock:
-                    self.observations_pub.publish(msg)
-
-    return _BridgeNode
+def _make_node_class() -> type:
+    """The node class (rclpy's Node with the bridge's methods), made here so that rclpy and the message packages
+    are imported only by the bridge."""
+    return type("_BridgeNode", (_BridgeNodeMethods, _ros().Node), {})
 
 
 def main(argv: list[str] | None = None) -> int:
