@@ -51,7 +51,7 @@ import numpy as np
 from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 from semmap.algorithms.detector.onnx_detector import DetectedBox
 from semmap.algorithms.evaluation import ate_rmse
-from semmap.algorithms.odometry.frontends import OdometryInput, make_frontend
+from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, make_frontend
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
@@ -361,6 +361,9 @@ def run_loop(
     front = make_frontend(odometry, config.odometry)  # with cached poses only for what it declares
     sigma_t, sigma_r = front.sigmas
     keyframe_every = config.odometry.keyframe_every
+    # a session in a frame of its own (`odometry.frame_offset`), as the odometry service expresses its poses
+    offset = frame_offset(config.odometry.frame_offset)
+    to_session = None if np.array_equal(offset, np.eye(4)) else np.linalg.inv(offset)
     # the sections each service reads (semmap/services/*/service.py)
     tracker = TrackerStage(config.tracker, dynamic_classes=config.associator.dynamic_classes)
     associator, backend = prior_stages(config, prior_map)
@@ -385,6 +388,8 @@ def run_loop(
             if front.uses_dynamic:
                 data.dynamic = dynamic
             pose = front.estimate(data)
+        if to_session is not None:
+            pose = to_session @ pose
         odo = OdometryPose(
             ROBOT,
             i,
