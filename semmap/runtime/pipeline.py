@@ -2,12 +2,14 @@
 
 Each stage holds its algorithm and the per-frame policy around it; two drivers run them:
 - the services (semmap/services/*/service.py): thin bus adapters (decode a message, call the stage, publish what
-  it returns), with what only a bus needs (re-ordering, duplicates, journals, restarts, metrics, logs);
+  it returns), with what only a bus needs (re-ordering, duplicates, journals, restarts: once, in
+  semmap/runtime/stage_service.py; metrics, logs);
 - the in-process driver (semmap/runtime/inprocess.py): the same stages in one process without a bus, in the
   order of a lockstep `semmap run`, so both give the same map and trajectory (tests/pipeline/test_closed_loop.py).
 
 Lockstep order of one frame i: odometry(i) -> `TrackerStage.step` -> `AssociatorStage.process` (against the pose
-book) -> `AssociatorStage.observations` (with the merges held back from the previous refine) ->
+book) -> `AssociatorStage.prior_step` (a prior map's relocalisation and statuses, if any) ->
+`AssociatorStage.observations` (with the merges held back from the previous refine) ->
 `BackendStage.step` (odometry and observations into the graph, one iSAM2 update, a loop closure from a keyframe,
 the corrections delta) -> `AssociatorStage.corrected` -> `AssociatorStage.complete` (refine when due).
 """

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 from semmap.algorithms.backend.loop_closure import (
@@ -135,8 +136,14 @@ class BackendService(StageService):
         super().on_frame_unreadable(frame_id)
 
     def handle(self, pose: OdometryPose) -> None:
-        """A pose released in order; then handle what is ready."""
+        """A pose released in order: it waits for its frame's observations (`release` drains)."""
         self.ready_odometry.append(pose)
+
+    def release(self, ready: Iterable[OdometryPose] | None = None) -> None:
+        """The poses now in order, then the frames that are ready: drained once every released pose is queued,
+        because a drain forgets the observations of frames before the next expected pose (they can never be
+        joined), and poses released together must all be joined first."""
+        super().release(ready)
         self._drain()
 
     def _drain(self) -> None:
