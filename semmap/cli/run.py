@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from semmap.core import dataflow
+
 if TYPE_CHECKING:
     from semmap.core.config import Config
     from semmap.datasets.base import Dataset
@@ -15,40 +17,39 @@ if TYPE_CHECKING:
 
 ORDER = 0  # first in `semmap --help`
 
-# services a run starts, in data-flow order; each is `python -m semmap.services.<name>`
-PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
+# services a run starts, in data-flow order; each is `python -m semmap.services.<name>` (semmap/core/dataflow.py)
+PIPELINE = dataflow.PIPELINE
 
 
 def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: list[str] | None = None,
                    serve: bool = False, prior_map: Path | None = None, check_slam: bool = False) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
     unless disabled. An external run has no odometry service, unless it checks the SLAM's poses (`check_slam`:
-    the odometry service repairs what the SLAM publishes on the `slam` key)."""
+    the odometry service repairs what the SLAM publishes on the `slam` key). The wiring (which stage waits for
+    which, who lockstep playback waits for) is the dataflow's; the flags added here are this run's options."""
     from semmap.algorithms.detector import AUTO, resolve_kind
     from semmap.runtime.orchestrator import ServiceSpec
 
     synthetic = data == "synthetic" or data.startswith("synthetic:")
     chosen = [n for n in PIPELINE if (only is None or n in only)
               and not (data == "external" and n == "odometry" and not check_slam)]
+    if not (viz and config.viz.enabled):
+        chosen = [n for n in chosen if n != "viz"]
     specs = []
     for name in chosen:
-        if name == "viz" and not (viz and config.viz.enabled):
-            continue
-        extra: list[str] = []
+        extra = dataflow.wiring_flags(name, chosen)
         if name == "detector" and config.detector.kind == AUTO:  # (decided here, for this dataset)
-            extra = ["--set", f"detector.kind={resolve_kind(AUTO, synthetic)}"]
-        elif name == "associator":
-            extra = (["--await-backend"] if "backend" in chosen else []) + (
-                ["--prior-map", str(prior_map)] if prior_map is not None else [])
+            extra += ["--set", f"detector.kind={resolve_kind(AUTO, synthetic)}"]
+        elif name == "associator" and prior_map is not None:
+            extra += ["--prior-map", str(prior_map)]
         elif name == "backend":
-            extra = (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
+            extra += (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
-        elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
-            extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
-        elif name == "viz":
-            extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
-        specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
-                                 lockstep=name != "viz"))
+        elif name == "viz" and serve:
+            extra += ["--serve"]
+        node = dataflow.node(name)
+        specs.append(ServiceSpec(name, extra, replicas=detectors if node.replicas == "--detectors" else 1,
+                                 lockstep=node.lockstep))
     return specs
 
 

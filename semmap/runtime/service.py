@@ -27,6 +27,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from semmap.core import dataflow
 from semmap.core.config import Config, ConfigError, load_config
 from semmap.core.keys import EXTERNAL_SENDER, InvalidNameError
 from semmap.core.logs import configure_logging
@@ -247,6 +248,7 @@ class Service:
         capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
         topic = self.bus.keys.topic(key)
+        dataflow.check_input(self.name, topic)  # the wiring is declared once: semmap/core/dataflow.py
 
         def checked(message: M) -> None:
             robot = getattr(message, "robot", self.robot)
@@ -308,6 +310,9 @@ class Service:
         return True
 
     def publisher(self, key: str) -> Publisher:
+        """A publisher on `key`, which this service's node must declare among its outputs (semmap/core/dataflow.py;
+        UndeclaredKeyError otherwise: the access-control list and the signature checks follow that table)."""
+        dataflow.check_output(self.name, self.bus.keys.topic(key))
         return self.bus.publisher(key)
 
     def emit(self, publisher: Publisher, message: Message, frame_id: int) -> None:
