@@ -35,7 +35,6 @@ import colorsys
 import json
 import logging
 import math
-import os
 import sys
 import threading
 import time
@@ -46,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from semmap.core import environment
 from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Landmark, MapUpdate, Observations
 from semmap.datasets.ros_convert import matrix_quaternion, parse_pose_to_optical
 from semmap.services.ros2.sync import FrameSync, MatchedFrame, missing_at_ends
@@ -374,10 +374,10 @@ def run_bridge(
     check_slam: bool = False,
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
+    environment.set_default(environment.ROS_DISCOVERY_RANGE, "LOCALHOST")  # safe default: no multicast off-host
     # shared memory + large loopback buffers, unless the user set a profile of their own; it confines DDS to
     # this host, so not when the user asked for discovery beyond it (a camera on another computer)
-    if fastdds_profile and os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST":
+    if fastdds_profile and environment.read(environment.ROS_DISCOVERY_RANGE) == "LOCALHOST":
         log.info("Fast DDS profile: %s", use_profile())
     try:
         import rclpy
@@ -543,7 +543,7 @@ def _make_node_class() -> type:
                 f"{CORRECTION_TOPIC}, {OBSERVATIONS_TOPIC}, {DYNAMIC_TOPIC}; "
                 f"{'lockstep' if p['lockstep'] else 'real time'}, "
                 f"tolerance {p['sync_tolerance_s']} s, ROS_AUTOMATIC_DISCOVERY_RANGE="
-                f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
+                f"{environment.read(environment.ROS_DISCOVERY_RANGE)}"
             )
 
         def _topic(self, role: str) -> str:
@@ -902,7 +902,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
         return 0
     from semmap.runtime.run_registry import RunNotFound, find_run
 
-    connect = args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT")
+    connect = args.connect or environment.read(environment.ZENOH_CONNECT)
     robot = args.robot
     check_slam = bool(args.check_slam)
     if args.run or not connect:
