@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,6 +12,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # (imported when a command runs, not for `semmap --help`)
     from semmap.core.messages import Landmark
     from semmap.runtime.map_query import MapQuery
+
+from semmap.core import environment
 
 
 def _map_path(arg: str) -> Path:
@@ -25,7 +26,7 @@ def _query_live(query: MapQuery, robot: str, connect: str | None, timeout: float
     from semmap.runtime.map_query import QueryError, ask_live_map
     from semmap.runtime.orchestrator import DEFAULT_PORT
 
-    connect = connect or os.environ.get("SEMMAP_ZENOH_CONNECT") or f"tcp/127.0.0.1:{DEFAULT_PORT}"
+    connect = connect or environment.read(environment.ZENOH_CONNECT) or f"tcp/127.0.0.1:{DEFAULT_PORT}"
     bus = Bus(BusConfig.from_env(connect), robot)
     try:
         selector = bus.keys.map_query + (f"?{query.to_parameters()}" if query.to_parameters() else "")

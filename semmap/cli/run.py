@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from semmap.core import dataflow, environment
 
 if TYPE_CHECKING:
     from semmap.core.config import Config
@@ -15,40 +16,35 @@ if TYPE_CHECKING:
 
 ORDER = 0  # first in `semmap --help`
 
-# services a run starts, in data-flow order; each is `python -m semmap.services.<name>`
-PIPELINE = ("odometry", "detector", "tracker", "associator", "backend", "viz")
+# services a run starts, in data-flow order; each is `python -m semmap.services.<name>` (semmap/core/dataflow.py)
+PIPELINE = dataflow.PIPELINE
 
 
 def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: list[str] | None = None,
                    serve: bool = False, prior_map: Path | None = None, check_slam: bool = False) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
     unless disabled. An external run has no odometry service, unless it checks the SLAM's poses (`check_slam`:
-    the odometry service repairs what the SLAM publishes on the `slam` key)."""
-    from semmap.algorithms.detector import AUTO, resolve_kind
+    the odometry service repairs what the SLAM publishes on the `slam` key). The wiring (which stage waits for
+    which, who lockstep playback waits for) is the dataflow's; the flags added here are this run's options."""
     from semmap.runtime.orchestrator import ServiceSpec
 
-    synthetic = data == "synthetic" or data.startswith("synthetic:")
     chosen = [n for n in PIPELINE if (only is None or n in only)
               and not (data == "external" and n == "odometry" and not check_slam)]
+    if not (viz and config.viz.enabled):
+        chosen = [n for n in chosen if n != "viz"]
     specs = []
     for name in chosen:
-        if name == "viz" and not (viz and config.viz.enabled):
-            continue
-        extra: list[str] = []
-        if name == "detector" and config.detector.kind == AUTO:  # (decided here, for this dataset)
-            extra = ["--set", f"detector.kind={resolve_kind(AUTO, synthetic)}"]
-        elif name == "associator":
-            extra = (["--await-backend"] if "backend" in chosen else []) + (
-                ["--prior-map", str(prior_map)] if prior_map is not None else [])
+        extra = dataflow.wiring_flags(name, chosen)
+        if name == "associator" and prior_map is not None:
+            extra += ["--prior-map", str(prior_map)]
         elif name == "backend":
-            extra = (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
+            extra += (["--write-odometry"] if data == "external" else []) + (  # external: record the SLAM's poses
                 ["--prior-map", str(prior_map)] if prior_map is not None else [])
-        elif name == "odometry" and "tracker" in chosen and "detector" in chosen:
-            extra = ["--await-dynamic"]  # (only a front end that uses dynamic objects waits for them)
-        elif name == "viz":
-            extra = (["--wait-for-map"] if "associator" in chosen else []) + (["--serve"] if serve else [])
-        specs.append(ServiceSpec(name, extra, replicas=detectors if name == "detector" else 1,
-                                 lockstep=name != "viz"))
+        elif name == "viz" and serve:
+            extra += ["--serve"]
+        node = dataflow.node(name)
+        specs.append(ServiceSpec(name, extra, replicas=detectors if node.replicas == "--detectors" else 1,
+                                 lockstep=node.lockstep))
     return specs
 
 
@@ -89,7 +85,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
     p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
-    p.add_argument("--zenoh-config", default=os.environ.get("SEMMAP_ZENOH_CONFIG"), metavar="FILE_OR_DIR",
+    p.add_argument("--zenoh-config", default=environment.read(environment.ZENOH_CONFIG), metavar="FILE_OR_DIR",
                    help="Zenoh configuration (TLS, access control; env SEMMAP_ZENOH_CONFIG): one file for every "
                    "process, or a folder with one <service>.json5 per identity (docs/SECURITY.md)")
     p.add_argument("--deadline", type=float, default=None, metavar="S",
@@ -197,6 +193,11 @@ def _run(args: argparse.Namespace) -> int:
     realtime = (args.mode or config.run.mode) == "realtime"
     with_detector = "detector" in (only or PIPELINE)
     budget = detector_budget(config, dataset, args.data, overrides) if realtime and with_detector else None
+    if config.detector.kind == "auto":  # decided here, for this dataset, once for every process of the run
+        from semmap.algorithms.detector import AUTO, resolve_kind
+
+        synthetic = args.data == "synthetic" or args.data.startswith("synthetic:")
+        overrides.append(f"detector.kind={resolve_kind(AUTO, synthetic)}")
     specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map,
                            args.check_slam)
     run = config.run

@@ -7,6 +7,8 @@ import os
 import sys
 from pathlib import Path
 
+from semmap.core import environment
+
 ORDER = 10
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -70,7 +72,8 @@ def _view(args: argparse.Namespace) -> int:
     # no usage analytics from the Rerun CLI (it turns them on in ~/.config/rerun otherwise)
     env = {**os.environ, "RERUN_ANALYTICS": "0", "CI": "true"}
     if not args.web:
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        display = environment.read(environment.DISPLAY) or environment.read(environment.WAYLAND_DISPLAY)
+        if sys.platform.startswith("linux") and not display:
             print(f"error: no display (neither DISPLAY nor WAYLAND_DISPLAY is set): use --web (semmap view {args.dir} "
                   "--web) and open the URL it prints", file=sys.stderr)
             return 2

@@ -9,26 +9,17 @@ from __future__ import annotations
 
 import re
 
+from semmap.core.dataflow import EXTERNAL_SENDER as EXTERNAL_SENDER  # (re-exported: the role of an open key)
+from semmap.core.dataflow import publishers
+
 KEYSPACE = "semmap/v1"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
-EXTERNAL_SENDER = "external"  # an unsigned publisher on a key a run leaves open (an external SLAM's inputs)
 # Who may publish on each topic (a run's messages are signed with the sender's role; semmap.runtime.bus checks it, and
-# the secure profile's access-control list grants the same puts). `status/<service>/...` and
-# `progress/<service>` belong to `<service>`. A topic not listed here: any member of the run.
-PUBLISHERS: dict[str, tuple[str, ...]] = {
-    "frames": ("player", EXTERNAL_SENDER),
-    "odometry": ("odometry", EXTERNAL_SENDER),
-    "slam": (EXTERNAL_SENDER,),
-    "detections": ("detector",),
-    "tracks": ("tracker",),
-    "dynamic": ("tracker",),
-    "observations": ("associator",),
-    "observations/tags": ("associator",),
-    "map/updates": ("associator",),
-    "poses/corrected": ("backend",),
-    "control": ("orchestrator", "player", EXTERNAL_SENDER),
-}
+# the secure profile's access-control list grants the same puts): the outputs the dataflow declares
+# (semmap/core/dataflow.py). `status/<service>/...` and `progress/<service>` belong to `<service>`. A topic not
+# listed here: any member of the run.
+PUBLISHERS: dict[str, tuple[str, ...]] = publishers()
 
 
 class InvalidNameError(ValueError):

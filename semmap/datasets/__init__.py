@@ -6,12 +6,12 @@ builds the synthetic scene; `open_dataset("tum:path")` forces a reader. New read
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from semmap.core import environment
 from semmap.core.config import Config
 
 from .base import Dataset, DatasetError, FrameData, InstanceBox, Intrinsics, ObjectTruth
@@ -113,7 +113,7 @@ def find_data_root() -> Path | None:
 
     None when the chosen folder does not exist (a set but wrong $SEMMAP_DATA does not fall back silently).
     """
-    env = os.environ.get("SEMMAP_DATA")
+    env = environment.read(environment.DATA)
     if env:
         path = Path(env).expanduser()
         return path if path.is_dir() else None

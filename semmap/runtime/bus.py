@@ -32,19 +32,21 @@ from typing import Any, TypeVar
 import msgpack
 import zenoh
 
+from semmap.core import environment
 from semmap.core.keys import EXTERNAL_SENDER, Keys
 from semmap.core.messages import Control, Message, MessageError, Progress, ServiceStatus
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
-ENV_CONNECT = "SEMMAP_ZENOH_CONNECT"
-ENV_LISTEN = "SEMMAP_ZENOH_LISTEN"
-ENV_MODE = "SEMMAP_ZENOH_MODE"
-ENV_ZENOH_CONFIG = "SEMMAP_ZENOH_CONFIG"
-ENV_RUN_ID = "SEMMAP_RUN_ID"
-ENV_RUN_KEY = "SEMMAP_RUN_KEY"
-ENV_RUN_OPEN_KEYS = "SEMMAP_RUN_OPEN_KEYS"  # topics a run takes unsigned messages on (`semmap run external`)
+# the environment variables of the bus (semmap/core/environment.py says what each means)
+ENV_CONNECT = environment.ZENOH_CONNECT
+ENV_LISTEN = environment.ZENOH_LISTEN
+ENV_MODE = environment.ZENOH_MODE
+ENV_ZENOH_CONFIG = environment.ZENOH_CONFIG
+ENV_RUN_ID = environment.RUN_ID
+ENV_RUN_KEY = environment.RUN_KEY
+ENV_RUN_OPEN_KEYS = environment.RUN_OPEN_KEYS  # topics a run takes unsigned messages on (`semmap run external`)
 MODES = ("peer", "client", "router")
 SMALL_KINDS = (Control, Progress, ServiceStatus)
 SMALL_MESSAGE_BYTES = 64 * 1024  # control, progress, status: anything bigger is not ours
@@ -76,21 +78,21 @@ class BusConfig:
                  config_file: str | None = None, env_connect: bool = True) -> BusConfig:
         """Flags win over environment variables, which win over the Zenoh config file, which wins over the
         embedded default. env_connect=False: ignore SEMMAP_ZENOH_CONNECT (a router is what others dial)."""
-        config_file = config_file or os.environ.get(ENV_ZENOH_CONFIG) or None
+        config_file = config_file or environment.read(ENV_ZENOH_CONFIG) or None
         if config_file and not os.path.isfile(config_file):
             raise BusError(f"Zenoh config file {config_file} does not exist (--zenoh-config / {ENV_ZENOH_CONFIG})")
         explicit = set()
-        mode_given = mode or os.environ.get(ENV_MODE)
+        mode_given = mode or environment.read(ENV_MODE)
         if mode_given:
             explicit.add("mode")
         mode = mode_given or "peer"
         if mode not in MODES:
             raise BusError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
-        connect_spec = connect or (os.environ.get(ENV_CONNECT) if env_connect else None)
+        connect_spec = connect or (environment.read(ENV_CONNECT) if env_connect else None)
         if connect_spec:
             explicit.add("connect")
         connect_list = _split(connect_spec)
-        listen_spec = listen if listen is not None else os.environ.get(ENV_LISTEN)
+        listen_spec = listen if listen is not None else environment.read(ENV_LISTEN)
         if listen_spec is not None:
             explicit.add("listen")
             listen_list = _split(listen_spec)
@@ -160,9 +162,9 @@ class RunTrust:
 
     @classmethod
     def from_env(cls, sender: str) -> RunTrust:
-        run_id = os.environ.get(ENV_RUN_ID, "")
-        open_keys = _split(os.environ.get(ENV_RUN_OPEN_KEYS))
-        key_hex = os.environ.get(ENV_RUN_KEY, "")
+        run_id = environment.read(ENV_RUN_ID) or ""
+        open_keys = _split(environment.read(ENV_RUN_OPEN_KEYS))
+        key_hex = environment.read(ENV_RUN_KEY) or ""
         try:
             key = bytes.fromhex(key_hex)
         except ValueError:

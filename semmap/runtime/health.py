@@ -11,10 +11,12 @@ import os
 import sys
 import time
 
+from semmap.core import environment
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="semmap.runtime.health", description=__doc__)
-    parser.add_argument("file", nargs="?", default=os.environ.get("SEMMAP_HEALTH_FILE", "/tmp/semmap.health"))
+    parser.add_argument("file", nargs="?", default=environment.read(environment.HEALTH_FILE) or "/tmp/semmap.health")
     parser.add_argument("--max-age", type=float, default=10.0, help="seconds (default 10)")
     args = parser.parse_args(argv)
     try:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import subprocess
 import sys
 import tarfile
@@ -25,6 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from semmap.algorithms.detector.yolov5_convert import CONVERTER_ID, DECODE_SCOPE, DEFAULT_IMGSZ, convert_checkpoint
+from semmap.core import environment
 from semmap.core.outputs import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ class ModelFetchError(RuntimeError):
 
 def get_model_dir() -> Path:
     """`$SEMMAP_MODEL_DIR`, else `~/.cache/semmap/models`."""
-    env = os.environ.get("SEMMAP_MODEL_DIR")
+    env = environment.read(environment.MODEL_DIR)
     return Path(env).expanduser() if env else Path.home() / ".cache" / "semmap" / "models"
 
 

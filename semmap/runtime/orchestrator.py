@@ -77,6 +77,9 @@ class RunPlan:
     budget: dict | None = None  # real time: the detector's planned cadence (semmap/cli/run.py detector_budget)
 
 
+SETTINGS_FILE = "config.yaml"  # the run's effective configuration, in the run folder (what every child reads)
+
+
 DEFAULT_PORT = 7447  # the Zenoh default: `semmap query` finds a local run there without flags
 
 
@@ -201,6 +204,7 @@ class Orchestrator:
                ENV_RUN_OPEN_KEYS: ",".join(self.open_keys),
                ENV_PARENT_PID: str(os.getpid())}  # children stop when this process goes (die_with_parent)
         env.pop("SEMMAP_ZENOH_CONFIG", None)  # each child gets its own file by flag
+        env.pop("SEMMAP_ROBOT", None)  # the robot is the settings file's (run.robot)
         return env
 
     def _on_status(self, s: ServiceStatus) -> None:
@@ -227,11 +231,8 @@ class Orchestrator:
         plan = self.plan
         logs = plan.out_dir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
-        common = ["--robot", plan.robot, "--mode", plan.mode, "--out", str(plan.out_dir), *child_bus_args]
-        if plan.config_path:
-            common += ["--config", plan.config_path]
-        for item in plan.overrides:
-            common += ["--set", item]
+        # one way in for settings: every child reads the run's effective configuration from the run folder
+        common = ["--out", str(plan.out_dir), "--config", str(self.write_settings()), *child_bus_args]
         if plan.verbose:
             common.append("--verbose")
         wait_for = ",".join(f"{s.name}:{s.replicas}" for s in plan.services if s.lockstep)
@@ -255,6 +256,18 @@ class Orchestrator:
                 keep = (plan.lock_fd,) if plan.lock_fd is not None else ()
                 self.children.append(_Child(spec.name, instance, argv, logs / f"{instance}.log", env, keep))
                 log.info("started %s (pid %d)", instance, self.children[-1].proc.pid)
+
+    def write_settings(self) -> Path:
+        """The run's effective configuration (the validated tree, with the run's mode and robot) as `config.yaml`
+        in the run folder, the one file every child reads (`--config`, no `--set`s): each process starts with
+        exactly the settings `semmap run` checked, and the folder keeps what the run used."""
+        from semmap.core.config import load_config, render_yaml, run_overrides
+
+        plan = self.plan
+        config = load_config(plan.config_path, [*plan.overrides, *run_overrides(plan.mode, plan.robot)])
+        path = plan.out_dir / SETTINGS_FILE
+        atomic_write_text(path, render_yaml(config))
+        return path
 
     def _resume_frame(self) -> int:
         """`--resume`: the player starts after the frames the interrupted run processed (its stats.json)."""

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
 import sys
 import threading
 
 import zenoh
 
+from semmap.core import environment
 from semmap.runtime.bus import ENV_LISTEN, BusConfig, BusError, open_session
 from semmap.runtime.service import HEALTH_FILE, configure_logging, touch_health
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--listen",
-        default=os.environ.get(ENV_LISTEN),
+        default=environment.read(ENV_LISTEN),
         help=f"endpoints to listen on, comma-separated (env {ENV_LISTEN}; default: the configuration file's, "
         f"else {DEFAULT_LISTEN})",
     )

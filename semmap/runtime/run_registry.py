@@ -16,6 +16,7 @@ import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from semmap.core import environment
 from semmap.core.outputs import atomic_write_text
 
 RUN_FILE = "run.json"
@@ -49,7 +50,7 @@ class RunInfo:
 
 
 def runtime_dir() -> Path:
-    base = os.environ.get("XDG_RUNTIME_DIR")
+    base = environment.read(environment.XDG_RUNTIME_DIR)
     return Path(base) / "semmap" if base else Path(tempfile.gettempdir()) / f"semmap-{os.getuid()}"
 
 

@@ -5,8 +5,9 @@ TLS; `scripts/make-dev-certs.sh` makes a development CA and one certificate per 
 only certificates from the CA and applies the access-control list below by the certificate's common name:
 default deny; each identity may put on the keys it owns (`semmap.core.keys.PUBLISHERS`: only the player puts
 `frames`, only the orchestrator and the player `control`, only the backend `poses/corrected`, each service its
-own `status/<service>/**` and `progress/<service>`) and receive what it listens to. A peer without a
-certificate cannot connect; one with an unknown name can neither read nor put anything.
+own `status/<service>/**` and `progress/<service>`) and receive what it listens to: all of it as the dataflow
+declares it (semmap/core/dataflow.py), so the list cannot grant a key no node uses nor miss one a node needs. A
+peer without a certificate cannot connect; one with an unknown name can neither read nor put anything.
 
     python -m semmap.runtime.secure_profile CERT_DIR OUT_DIR [--router tls/HOST:7447] [--listen tls/0.0.0.0:7447]
 
@@ -21,37 +22,24 @@ import json
 import sys
 from pathlib import Path
 
-from semmap.core.keys import KEYSPACE, PUBLISHERS
+from semmap.core import dataflow
+from semmap.core.keys import KEYSPACE
 
 ROBOTS = f"{KEYSPACE}/*"  # every robot of the deployment
-SERVICES = ("player", "odometry", "detector", "tracker", "associator", "backend", "viz")
-CLIENTS = ("orchestrator", "slam", "query")  # `semmap run` itself, an external SLAM, a read-only map user
+# the identities: one per node of the dataflow (semmap/core/dataflow.py), each with a certificate of its name
+SERVICES = dataflow.SERVICES
+CLIENTS = dataflow.CLIENTS  # `semmap run` itself, an external SLAM, a read-only map user
 IDENTITIES = (*SERVICES, *CLIENTS)
 
 # what each identity listens to (topics under semmap/v1/<robot>/), besides `control` for every service
-SUBSCRIBES: dict[str, tuple[str, ...]] = {
-    "player": ("progress/*", "status/**"),
-    "odometry": ("frames", "dynamic", "slam"),
-    "detector": ("frames",),
-    "tracker": ("detections", "map/updates"),
-    "associator": ("tracks", "odometry", "poses/corrected"),
-    "backend": ("frames", "odometry", "observations"),
-    "viz": ("frames", "odometry", "detections", "tracks", "map/updates", "poses/corrected", "observations",
-            "dynamic"),
-    "orchestrator": ("status/**", "progress/*"),
-    "slam": ("poses/corrected", "observations", "observations/tags", "map/updates", "dynamic", "progress/*",
-             "status/**"),
-    "query": ("map/updates",),
-}
+SUBSCRIBES: dict[str, tuple[str, ...]] = {n.name: n.inputs for n in dataflow.NODES if n.inputs}
 
 
 def puts_of(identity: str) -> list[str]:
-    """The topics `identity` may put on: those PUBLISHERS gives it (an external SLAM puts what `external` may),
-    and a service its own status and progress."""
-    role = "external" if identity == "slam" else identity
-    topics = [topic for topic, owners in PUBLISHERS.items() if role in owners]
+    """The topics `identity` may put on: its node's outputs, and a service its own status and progress."""
+    topics = list(dataflow.node(identity).outputs)
     if identity in SERVICES:
-        topics += [f"status/{identity}/**", f"progress/{identity}"]
+        topics += list(dataflow.service_reports(identity))
     return topics
 
 
@@ -80,27 +68,27 @@ def access_control() -> dict:
             # semmap waits for one before the first put); listeners of every status / progress use wildcards
             wildcards = ["status/**", "progress/*"] if identity in SERVICES else []
             mine.append(rule(f"{identity}-matching", ["declare_subscriber"], ["egress"], puts + wildcards))
-        listens = list(SUBSCRIBES.get(identity, ()))
-        if identity in SERVICES:
-            listens.append("control")
+        listens = list(dataflow.node(identity).reads())
         if listens:
             mine.append(rule(f"{identity}-sub", ["declare_subscriber"], ["ingress"], listens))
             mine.append(rule(f"{identity}-receive", ["put"], ["egress"], listens))
-        if identity == "detector":  # replicas share the frames by their liveliness tokens
+        node = dataflow.node(identity)
+        if node.liveliness:  # detector replicas share the frames by their liveliness tokens
             mine.append(
                 rule(
-                    "detector-replicas",
+                    f"{identity}-replicas",
                     ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
                     ["ingress", "egress"],
-                    ["detector/replicas/**"],
+                    list(node.liveliness),
                 )
             )
-        if identity == "associator":  # it answers map queries
-            mine.append(rule("associator-queryable", ["declare_queryable", "reply"], ["ingress"], ["map/query"]))
-            mine.append(rule("associator-queries", ["query"], ["egress"], ["map/query"]))
-        if identity in ("slam", "query", "orchestrator"):  # they may ask the map
-            mine.append(rule(f"{identity}-query", ["query"], ["ingress"], ["map/query"]))
-            mine.append(rule(f"{identity}-replies", ["reply"], ["egress"], ["map/query"]))
+        if node.answers:  # the associator answers map queries
+            answers = list(node.answers)
+            mine.append(rule(f"{identity}-queryable", ["declare_queryable", "reply"], ["ingress"], answers))
+            mine.append(rule(f"{identity}-queries", ["query"], ["egress"], answers))
+        if node.asks:  # they may ask the map
+            mine.append(rule(f"{identity}-query", ["query"], ["ingress"], list(node.asks)))
+            mine.append(rule(f"{identity}-replies", ["reply"], ["egress"], list(node.asks)))
         policies.append({"id": f"{identity}-policy", "rules": mine, "subjects": [identity]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 

@@ -27,7 +27,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from semmap.core.config import Config, ConfigError, load_config
+from semmap.core import dataflow, environment
+from semmap.core.config import Config, ConfigError, load_config, run_overrides
 from semmap.core.keys import EXTERNAL_SENDER, InvalidNameError
 from semmap.core.logs import configure_logging
 from semmap.core.messages import Control, Message, MessageError, Progress, ServiceStatus
@@ -39,7 +40,7 @@ STATUS_PERIOD_S = 1.0
 QUEUE_CAPACITY = 100_000  # messages a stream may queue (real time: unless it asks for fewer)
 REPLAY_FRAMES = 8  # how many recent frames' outputs a service can send again
 MAX_ERRORS_IN_A_ROW = 10  # handler failures in a row that make a service give up (a bug, not bad luck)
-HEALTH_FILE = os.environ.get("SEMMAP_HEALTH_FILE", "")  # containers: touched on each status (runtime.health)
+HEALTH_FILE = environment.read(environment.HEALTH_FILE) or ""  # containers: touched on each status (runtime.health)
 EXIT_BACKSTOP_S = 10  # after SIGTERM / SIGINT, or once run() returned: the kernel ends a process still alive then
 # (Zenoh's native threads can keep a finishing interpreter alive; SIGALRM's default action terminates)
 CONTROL_SENDERS = {"stop": ("orchestrator",), "end_of_stream": ("player", EXTERNAL_SENDER),
@@ -47,14 +48,14 @@ CONTROL_SENDERS = {"stop": ("orchestrator",), "end_of_stream": ("player", EXTERN
 
 
 # set by `semmap run` for its children: the pid of the run; a child whose parent is gone stops (see die_with_parent)
-ENV_PARENT_PID = "SEMMAP_PARENT_PID"
+ENV_PARENT_PID = environment.PARENT_PID
 ORPHAN_BACKSTOP_S = 5  # an orphaned service writes what it has, then ends within this many seconds
 PR_SET_PDEATHSIG = 1
 
 
 def parent_gone() -> bool:
     """Started by a `semmap run` that is no longer this process's parent (killed, even with SIGKILL)."""
-    want = os.environ.get(ENV_PARENT_PID, "")
+    want = environment.read(ENV_PARENT_PID) or ""
     return want.isdigit() and os.getppid() != int(want)
 
 
@@ -66,7 +67,7 @@ def die_with_parent(poll_s: float = 0.5) -> None:
     ordinary stop: it writes its outputs and exits; ORPHAN_BACKSTOP_S after the SIGTERM the watch thread
     SIGKILLs its process if it is still there. Nothing happens for a service
     started by hand or by compose (no SEMMAP_PARENT_PID)."""
-    if not os.environ.get(ENV_PARENT_PID, "").isdigit():
+    if not (environment.read(ENV_PARENT_PID) or "").isdigit():
         return
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
@@ -148,7 +149,7 @@ class _Timer:
 
 def common_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags every service takes (the CLI passes them on to each child process)."""
-    parser.add_argument("--robot", default=os.environ.get("SEMMAP_ROBOT"),
+    parser.add_argument("--robot", default=environment.read(environment.ROBOT),
                         help="robot name in the key expressions (env SEMMAP_ROBOT; default from config)")
     parser.add_argument("--config", default=None,
                         help="YAML config file (the layout `semmap config show` prints; any subset)")
@@ -181,10 +182,9 @@ class Service:
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
-        self.config: Config = load_config(args.config, args.overrides)
-        if args.mode:
-            self.config.run.mode = args.mode
-        self.robot: str = args.robot or self.config.run.robot
+        # --mode and --robot are settings like any other: validated with the tree, never changed after
+        self.config: Config = load_config(args.config, [*args.overrides, *run_overrides(args.mode, args.robot)])
+        self.robot: str = self.config.run.robot
         self.instance: str = args.instance or f"{self.name}-{uuid.uuid4().hex[:6]}"
         self.out_dir: Path | None = Path(args.out) if args.out else None
         self.lockstep = self.config.run.mode == "lockstep"
@@ -247,6 +247,7 @@ class Service:
         capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
         topic = self.bus.keys.topic(key)
+        dataflow.check_input(self.name, topic)  # the wiring is declared once: semmap/core/dataflow.py
 
         def checked(message: M) -> None:
             robot = getattr(message, "robot", self.robot)
@@ -308,6 +309,9 @@ class Service:
         return True
 
     def publisher(self, key: str) -> Publisher:
+        """A publisher on `key`, which this service's node must declare among its outputs (semmap/core/dataflow.py;
+        UndeclaredKeyError otherwise: the access-control list and the signature checks follow that table)."""
+        dataflow.check_output(self.name, self.bus.keys.topic(key))
         return self.bus.publisher(key)
 
     def emit(self, publisher: Publisher, message: Message, frame_id: int) -> None:

@@ -1,4 +1,5 @@
-"""compose.yaml, checked without a Docker engine: the Compose Specification schema, and every command exists."""
+"""compose.yaml, checked without a Docker engine: the Compose Specification schema, every command exists, and the
+wiring is the declared dataflow's (semmap/core/dataflow.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from pathlib import Path
 import jsonschema
 import pytest
 import yaml
+
+from semmap.core import dataflow
 
 PROJECT = Path(__file__).resolve().parents[2]
 SCHEMA = PROJECT / ".cache" / "compose_spec.json"
@@ -68,9 +71,8 @@ def test_every_command_names_a_real_service_with_real_flags(compose: dict, name:
     service_module = importlib.import_module(f"{module}.service")
     parser = argparse.ArgumentParser(exit_on_error=False)
     common_arguments(parser)
-    extra = {"player": "_arguments", "viz": "_arguments", "associator": "_arguments"}.get(name)
-    if extra:
-        getattr(service_module, extra)(parser)
+    if hasattr(service_module, "_arguments"):  # the service's own flags
+        service_module._arguments(parser)
     args = [re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", a) for a in command[3:]]  # ${VAR:-default} -> default
     parser.parse_args(args)
 
@@ -114,3 +116,38 @@ def test_secure_override_adds_tls_to_every_service(compose: dict) -> None:
         assert env["SEMMAP_ZENOH_CONNECT"] == "tls/zenoh:7447", name
         config = env["SEMMAP_ZENOH_CONFIG"]
         assert config == f"/secure/{name}.json5" and (PROJECT / "deploy" / "secure" / f"{name}.json5").is_file()
+
+
+def _unexpanded(arg: str) -> str:
+    """`${VAR:-default}` -> `default` (what compose runs with nothing set)."""
+    return re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", arg)
+
+
+def test_compose_runs_every_service_of_the_dataflow(compose: dict) -> None:
+    """One container per service node of the dataflow, none that is not one (the router aside)."""
+    assert set(compose["services"]) - {"zenoh"} == set(dataflow.SERVICES)
+
+
+@pytest.mark.parametrize("name", dataflow.SERVICES)
+def test_compose_passes_the_declared_wiring_flags(compose: dict, name: str) -> None:
+    """Every stage of compose's stack runs, so each node gets every wiring flag the dataflow declares for it, as
+    `semmap run` passes them (e.g. `--await-dynamic`, `--wait-for-map`); and no wiring flag of another node."""
+    command = compose["services"][name]["command"]
+    wanted = dataflow.wiring_flags(name, list(compose["services"]))
+    assert wanted == [f.flag for f in dataflow.node(name).flags]
+    for flag in wanted:
+        assert flag in command, f"{name}: compose leaves out {flag} (semmap/core/dataflow.py)"
+    others = {f.flag for n in dataflow.NODES if n.name != name for f in n.flags}
+    assert not others & set(command), f"{name}: {others & set(command)} belong to other nodes"
+
+
+def test_compose_player_waits_for_the_lockstep_nodes(compose: dict) -> None:
+    """The player's `--wait-for` is the dataflow's lockstep nodes (the detector as many as it is scaled to), and
+    the player starts after each of them is healthy."""
+    player = compose["services"]["player"]
+    command = player["command"]
+    wait_for = command[command.index("--wait-for") + 1]
+    assert wait_for == dataflow.player_wait_for({"detector": "${SEMMAP_DETECTORS:-1}"})
+    lockstep = [n.name for n in dataflow.NODES if n.lockstep]
+    assert set(player["depends_on"]) - {"zenoh"} == set(lockstep)
+    assert [item.partition(":")[0] for item in _unexpanded(wait_for).split(",")] == lockstep

@@ -13,6 +13,7 @@ take their own section (`MapperParams`, `TrackerParams`, `BackendParams`, ...) a
 
 from __future__ import annotations
 
+import json
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,7 @@ __all__ = [
     "VizConfig",
     "load_config",
     "render_yaml",
+    "run_overrides",
 ]
 
 
@@ -92,6 +94,13 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> None:
             _merge(base[key], value)
         else:
             base[key] = value
+
+
+def run_overrides(mode: str | None = None, robot: str | None = None) -> list[str]:
+    """The `--mode` and `--robot` flags as the settings they are (`run.mode`, `run.robot`): overrides validated
+    with the rest of the tree, never a change to a validated configuration. (The robot is quoted: a name of
+    digits stays text.)"""
+    return [f"run.mode={mode}"] * bool(mode) + [f"run.robot={json.dumps(robot)}"] * bool(robot)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:

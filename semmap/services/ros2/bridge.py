@@ -25,7 +25,7 @@ Out:
                                   `lost`: every frame lost between the camera and semmap, by reason
 
 Frames go to semmap through its Zenoh keys exactly as an external SLAM sends them (semmap.runtime.client), one frame per
-matched colour/depth/pose triple (semmap.services.ros2.sync). Parameters (`-p name:=value`) are listed in PARAMETERS.
+matched colour/depth/pose triple (semmap.services.ros2.sync). Parameters (`-p name:=value`): semmap/core/config/ros2.py.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import functools
 import json
 import logging
 import math
-import os
 import sys
 import threading
 import time
@@ -47,7 +46,10 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
+from semmap.core import environment
+from semmap.core.config.ros2 import Ros2BridgeConfig
 from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Landmark, MapUpdate, Observations
 from semmap.datasets.ros_convert import matrix_quaternion, parse_pose_to_optical
 from semmap.services.ros2.sync import FrameSync, MatchedFrame, missing_at_ends
@@ -66,60 +68,7 @@ OBSERVATIONS_TOPIC = "/semmap/landmark_observations"
 DYNAMIC_TOPIC = "/semmap/dynamic"
 STATUS_TOPIC = "/semmap/bridge_status"
 
-# name: (default, description)
-PARAMETERS: dict[str, tuple[Any, str]] = {
-    "pose_type": ("odometry", "type on the pose topic: odometry | pose | pose_with_covariance"),
-    "pose_to_optical": (
-        "identity",
-        "pose frame -> camera optical frame: identity (the pose is the optical "
-        "frame's) | ros (a REP 103 frame at the camera, x forward) | 'x y z qx qy qz qw'",
-    ),
-    "sync_tolerance_s": (0.02, "largest header-stamp difference between colour, depth and pose"),
-    "pose_max_gap_s": (0.5, "longest gap between two poses that a frame's pose is interpolated over"),
-    "max_wait_s": (2.0, "how long an unmatched colour image waits for its depth and pose"),
-    "sigma_translation_m": (0.01, "per-frame 1-sigma motion noise declared to semmap's backend (metres)"),
-    "sigma_rotation_deg": (0.5, "... and rotation (degrees)"),
-    "lockstep": (
-        False,
-        "wait until semmap has processed each frame before sending the next (no drops; for "
-        "bags and tests); false: real time, the oldest waiting frame is dropped when semmap is busy",
-    ),
-    "queue_size": (2, "real time: frames waiting for semmap before the oldest is dropped (counted)"),
-    "map_frame": ("", "frame of the outputs (\"\" = the pose messages' header.frame_id, else 'map')"),
-    "corrected_frame": ("semmap_map", "parent frame of /semmap/correction (the corrected world)"),
-    "output_period_s": (1.0, "publish the map and the trajectory at most this often (the latest state)"),
-    "path_max_poses": (500, "the Path holds at most this many poses, evenly spread, the newest always"),
-    "topic_timeout_s": (5.0, "report an input topic by name when nothing arrived on it for this long"),
-    "end_after_idle_s": (
-        0.0,
-        "send semmap end-of-stream (it writes its files) after this long without a frame; "
-        "0 = only when the bridge stops",
-    ),
-    "reliable_input": (
-        False,
-        "subscribe to the inputs with reliable QoS (default best effort: matches any "
-        "publisher, never blocks the camera)",
-    ),
-    "input_depth": (
-        0,
-        "input QoS history depth; 0 = sized for you: reliable input keeps all (nothing is dropped by the bridge's "
-        "reader; a reliable camera is slowed instead), best effort keeps camera_rate_hz x input_latency_s",
-    ),
-    "camera_rate_hz": (30.0, "the camera's frame rate (sizes the best-effort input history)"),
-    "input_latency_s": (
-        1.0,
-        "longest the bridge's ROS thread may fall behind its inputs before a best-effort reader drops messages",
-    ),
-    "flush_after_s": (
-        0.5,
-        "when no input arrived for this long (wall time), frames held for a closer depth image or a newer pose "
-        "are matched with what there is (the last frame of a recording is sent)",
-    ),
-    "dynamic_lifetime_s": (
-        0.5,
-        "lifetime of a dynamic-object box in RViz: it vanishes unless a newer detected frame renews it",
-    ),
-}
+# its settings, each a ROS parameter (`-p name:=value`), are a configuration section: semmap/core/config/ros2.py
 LOCKSTEP_QUEUE = 300  # frames held while semmap catches up in lockstep (~1.5 MB each at 640x480); then the ROS
 # thread waits (the readers' histories fill, a reliable camera is slowed): nothing is dropped in lockstep
 SENT_KEPT = 9000  # frames sent whose pose is kept for the outputs (5 min at 30 Hz; ~0.3 KB each, no images)
@@ -366,9 +315,13 @@ def _declare(node: Any) -> dict[str, Any]:
     from rcl_interfaces.msg import ParameterDescriptor
 
     values = {}
-    for name, (default, description) in PARAMETERS.items():
-        values[name] = node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
-    return values
+    for name, field in Ros2BridgeConfig.model_fields.items():
+        values[name] = node.declare_parameter(name, field.default,
+                                              ParameterDescriptor(description=field.description or "")).value
+    try:
+        return Ros2BridgeConfig.model_validate(values).model_dump()
+    except ValidationError as exc:
+        raise ValueError(f"bad ROS parameters: {exc}") from None
 
 
 def run_bridge(
@@ -376,10 +329,10 @@ def run_bridge(
     check_slam: bool = False,
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # safe default: no multicast off-host
+    environment.set_default(environment.ROS_DISCOVERY_RANGE, "LOCALHOST")  # safe default: no multicast off-host
     # shared memory + large loopback buffers, unless the user set a profile of their own; it confines DDS to
     # this host, so not when the user asked for discovery beyond it (a camera on another computer)
-    if fastdds_profile and os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST":
+    if fastdds_profile and environment.read(environment.ROS_DISCOVERY_RANGE) == "LOCALHOST":
         log.info("Fast DDS profile: %s", use_profile())
     try:
         import rclpy
@@ -563,7 +516,7 @@ class _BridgeNodeMethods:
             f"{CORRECTION_TOPIC}, {OBSERVATIONS_TOPIC}, {DYNAMIC_TOPIC}; "
             f"{'lockstep' if p['lockstep'] else 'real time'}, "
             f"tolerance {p['sync_tolerance_s']} s, ROS_AUTOMATIC_DISCOVERY_RANGE="
-            f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
+            f"{environment.read(environment.ROS_DISCOVERY_RANGE)}"
         )
 
     def _subscribe_inputs(self, p: dict[str, Any]) -> str:
@@ -969,7 +922,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
         return 0
     from semmap.runtime.run_registry import RunNotFound, find_run
 
-    connect = args.connect or os.environ.get("SEMMAP_ZENOH_CONNECT")
+    connect = args.connect or environment.read(environment.ZENOH_CONNECT)
     robot = args.robot
     check_slam = bool(args.check_slam)
     if args.run or not connect:

@@ -35,7 +35,6 @@ from semmap.core.messages import (
     Landmark,
     MapUpdate,
     OdometryPose,
-    ServiceStatus,
     Tracks,
 )
 from semmap.runtime.service import Service, service_main
@@ -147,7 +146,6 @@ class VizService(Service):
         self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
         self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map)
         self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
-        self.listen(self.bus.keys.status_all, ServiceStatus, self.on_status)
         self._load_current_map()
 
     def _load_current_map(self) -> None:
@@ -298,9 +296,6 @@ class VizService(Service):
                                                      show_labels=True))
         rr.log("world/landmarks/leaders", rr.LineStrips3D(np.stack([centres, anchors], axis=1), colors=colors,
                                                           radii=0.002))
-
-    def on_status(self, status: ServiceStatus) -> None:
-        pass  # statuses are summarised in stats.json by the orchestrator
 
     def on_end_of_stream(self, control) -> None:  # noqa: ANN001 - Control
         frames_done = self.last_frame_id >= control.last_frame_id
