@@ -211,3 +211,36 @@ def test_corrected_poses_are_deltas_applied_onto_a_copy_and_the_old_version_is_r
                               full=False, num_frames=9)
     with pytest.raises(MessageError, match="ascending"):
         CorrectedPoses.decode(unsorted.encode())
+
+
+def test_the_committed_json_schema_is_fresh_and_describes_every_message() -> None:
+    """docs/interface.schema.json is what `python -m semmap.core.messages.schema` writes, and every sample's wire
+    map (bytes as base64, the way the schema says JSON carries msgpack bin) validates against it."""
+    import base64
+    import json
+    from pathlib import Path
+
+    import jsonschema
+
+    from semmap.core.messages.schema import DEFAULT_PATH, render, wire_schema
+
+    assert Path(DEFAULT_PATH).read_text() == render(), "stale: run python -m semmap.core.messages.schema"
+    schema = wire_schema()
+    validator = jsonschema.Draft202012Validator(schema)
+
+    def as_json(value):
+        if isinstance(value, bytes):
+            return base64.b64encode(value).decode()
+        if isinstance(value, dict):
+            return {k: as_json(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [as_json(v) for v in value]
+        return value
+
+    for message in _samples():
+        body = as_json(msgpack.unpackb(message.encode()))
+        validator.validate(body)
+        assert schema["x-semmap-kinds"][message.SCHEMA] == f"#/$defs/{type(message).__name__}"
+        with pytest.raises(jsonschema.ValidationError):
+            validator.validate({**body, "schema": "semmap.other/1"})
+    json.dumps(schema)  # plain JSON throughout

@@ -32,6 +32,7 @@ _ALLOWED_DTYPES = {"uint8", "uint16", "int32", "int64", "float32", "float64"}
 FLAT_MATRIX_SHAPES = ((4, 4), (6, 6))
 
 M = TypeVar("M", bound="Message")
+P = TypeVar("P", bound="Part")
 _CHECK_ERRORS = (KeyError, IndexError, AttributeError, OverflowError, TypeError, ValueError)
 
 
@@ -98,11 +99,11 @@ def array_map(dtype: str, ndim: int, meaning: str) -> Any:
 def flat_matrix(n: int, meaning: str) -> Any:
     """An nxn float64 ndarray field that travels as n*n numbers, row-major."""
     schema = {"type": "array", "items": {"type": "number"}, "minItems": n * n, "maxItems": n * n,
-              "description": f"{meaning}: {n}x{n}, row-major"}
+              "description": f"{meaning}, {n * n} numbers row-major"}
     return Annotated[np.ndarray, msgspec.Meta(extra_json_schema=schema)]
 
 
-Pose = flat_matrix(4, "4x4 rigid transform (rotation orthonormal, det +1, last row 0 0 0 1)")
+Pose = flat_matrix(4, "4x4 rigid transform (rotation orthonormal with det +1, last row 0 0 0 1)")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -300,7 +301,7 @@ class Part(msgspec.Struct):
         return msgspec.to_builtins(self, enc_hook=_enc_hook, builtin_types=(bytes,))
 
     @classmethod
-    def from_dict(cls: type[M], d: Any) -> M:
+    def from_dict(cls: type[P], d: Any) -> P:
         if not isinstance(d, dict):
             raise MessageError(f"a {cls.__name__} must be a map, got {type(d).__name__}")
         try:
@@ -332,6 +333,13 @@ class Message(Part, kw_only=True, dict=True, tag_field="schema"):
     SCHEMA: ClassVar[str] = _SchemaOfClass()  # type: ignore[assignment]
     sender = ""  # not a field: never encoded
     run: RunId = ""
+
+    def to_dict(self) -> dict:
+        """The message's fields as the wire map holds them, without `schema` and `run` (as before msgspec)."""
+        body = super().to_dict()
+        body.pop("schema", None)
+        body.pop("run", None)
+        return body
 
     def encode(self) -> bytes:
         return _ENCODER.encode(self)

@@ -4,7 +4,7 @@ Why an image codec seam: a frame carries its colour image as JPEG (and may carry
 core must not depend on OpenCV: the light client, the bus and every tool that only routes or stores frames never
 touch pixels. `Frame.rgb()`, `depth()`, `from_arrays()` and `depth_as_png()` ask `image_codec()`, which is the
 codec installed with `use_image_codec()` or, the first time pixels are needed, the default one that
-`DEFAULT_IMAGE_CODEC` names (`semmap.image_codec`: OpenCV, a leaf module above core). Looking the default up by
+`DEFAULT_IMAGE_CODEC` names (`semmap.imaging.opencv`, in the layer just above core). Looking the default up by
 name keeps `frame.rgb()` working in every process without each one remembering to install a codec, and keeps
 OpenCV out of every process that never decodes an image.
 """
@@ -36,7 +36,7 @@ from .base import (
     validate_pose,
 )
 
-DEFAULT_IMAGE_CODEC = "semmap.image_codec"
+DEFAULT_IMAGE_CODEC = "semmap.imaging.opencv"
 
 
 class ImageCodec(Protocol):
