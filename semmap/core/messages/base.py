@@ -110,31 +110,42 @@ Pose = flat_matrix(4, "4x4 rigid transform (rotation orthonormal with det +1, la
 # arrays on the wire
 
 
+_LITTLE_ENDIAN = sys.byteorder == "little"
+# the native dtype of each wire dtype name and back (dtype.name is slow: numpy builds it in Python each time)
+_NATIVE = {name: np.dtype(name) for name in _ALLOWED_DTYPES}
+_WIRE_NAME = {dtype: name for name, dtype in _NATIVE.items()}
+
+
 def encode_array(array: np.ndarray) -> dict:
-    array = np.ascontiguousarray(array)
-    if array.dtype.name not in _ALLOWED_DTYPES:
-        raise MessageError(f"dtype {array.dtype} cannot travel")
-    data = array.astype(array.dtype.newbyteorder("<")).tobytes()
-    return {"dtype": array.dtype.name, "shape": list(array.shape), "data": data}
+    array = np.asarray(array)
+    name = _WIRE_NAME.get(array.dtype)
+    if name is None:  # a foreign byte order of an allowed dtype travels as its native twin
+        name = _WIRE_NAME.get(array.dtype.newbyteorder("="))
+        if name is None:
+            raise MessageError(f"dtype {array.dtype} cannot travel")
+        array = array.astype(_NATIVE[name])
+    data = array.tobytes() if _LITTLE_ENDIAN else array.astype(_NATIVE[name].newbyteorder("<")).tobytes()
+    return {"dtype": name, "shape": list(array.shape), "data": data}
 
 
 def _array_from_map(d: dict) -> np.ndarray:
     kind, shape, data = d.get("dtype"), d.get("shape"), d.get("data")
-    if kind not in _ALLOWED_DTYPES:
+    native = _NATIVE.get(kind) if isinstance(kind, str) else None
+    if native is None:
         raise MessageError(f"has dtype {kind!r}, expected one of {sorted(_ALLOWED_DTYPES)}")
     if not isinstance(shape, list) or not isinstance(data, bytes):
         raise MessageError("an array map needs 'shape' (list) and 'data' (bytes)")
-    if not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 1 << 20 for s in shape):
+    if not all(type(s) is int and 0 <= s < 1 << 20 for s in shape):
         raise MessageError(f"has an invalid shape {shape}")
-    dt = np.dtype(kind).newbyteorder("<")
-    if math.prod(shape) * dt.itemsize != len(data):
+    if math.prod(shape) * native.itemsize != len(data):
         raise MessageError(f"{len(data)} bytes do not fit shape {shape} of {kind}")
-    array = np.frombuffer(data, dtype=dt).reshape(shape)
-    if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+    if _LITTLE_ENDIAN:  # a native dtype: some libraries (Open3D) refuse an explicit '<' byte order
+        array = np.frombuffer(data, dtype=native).reshape(shape)
+    else:
+        array = np.frombuffer(data, dtype=native.newbyteorder("<")).reshape(shape).astype(native)
+    if native.kind == "f" and not np.isfinite(array).all():
         raise MessageError("holds non-finite numbers")
-    if sys.byteorder == "little":  # a native dtype: some libraries (Open3D) refuse an explicit '<' byte order
-        return array.view(np.dtype(kind))
-    return array.astype(np.dtype(kind))
+    return array
 
 
 def _array_from_list(values: list) -> np.ndarray:
