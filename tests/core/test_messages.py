@@ -143,6 +143,8 @@ def test_wrong_version_is_rejected_clearly() -> None:
         (1, {"pose": [2.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}, "orthonormal"),
         (1, {"pose": [1.0] * 15}, "16 numbers"),
         (1, {"frame_id": -1}, ">= 0"),
+        (1, {"stamp": float("inf")}, "'stamp' must be a finite number"),
+        (9, {"sent_at": float("nan")}, "'sent_at' must be a finite number"),
         (1, {"frame_id": "7"}, "must be"),
         (1, {"robot": "a/b"}, "field 'robot' must be `str` matching regex"),
         (1, {"robot": "**"}, "field 'robot' must be `str` matching regex"),

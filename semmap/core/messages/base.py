@@ -287,6 +287,8 @@ _MISSING = re.compile(r"^Object missing required field `(?P<field>.+)`(?: - at `
 def explain(exc: msgspec.ValidationError) -> str:
     """msgspec's validation message as the field it is about (`field 'frame_id' must be ...`)."""
     text = str(exc)
+    for bound in (f"`float` >= {-_FLOAT_MAX!r}", f"`float` <= {_FLOAT_MAX!r}"):  # the Finite type's bounds
+        text = text.replace(bound, "a finite number")
     if m := _MISSING.match(text):
         where = f"{m['path']}." if m["path"] else ""
         return f"missing field '{where}{m['field']}'"
