@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import msgspec
 import numpy as np
 
@@ -9,7 +11,6 @@ from .base import (
     Box,
     Finite,
     Message,
-    MessageError,
     NonNegativeInt,
     Part,
     RobotName,
@@ -28,13 +29,11 @@ class DepthPatch(Part):
 
     x0: int
     y0: int
-    stride: int
+    stride: Annotated[int, msgspec.Meta(ge=1, le=64)]
     depth: array_map("uint16", 2, "the depth under the box, every stride-th pixel")
 
     def __post_init__(self) -> None:
         if decoding():
-            if not 1 <= self.stride <= 64:
-                raise MessageError("depth patch stride must be in 1..64")
             expect_array(self.depth, "depth_patch", 2, "uint16")
 
     @classmethod
@@ -51,7 +50,7 @@ class DepthPatch(Part):
 class Detection(Part):
     box: Box
     class_name: str = msgspec.field(name="class")
-    score: Finite
+    score: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
     depth_m: Finite  # median depth inside the box
     depth_patch: DepthPatch | None = None
 
@@ -59,8 +58,6 @@ class Detection(Part):
         self.box = as_box(self.box)
         if decoding():
             check_box(self.box)
-            if not 0.0 <= self.score <= 1.0:
-                raise MessageError("detection score must be in [0, 1]")
 
 
 class Detections(Message, tag="semmap.detections/1"):

@@ -37,6 +37,8 @@ from .base import (
 )
 
 DEFAULT_IMAGE_CODEC = "semmap.imaging.opencv"
+ImageSide = Annotated[int, msgspec.Meta(gt=0, le=16384, description="pixels")]
+DepthScale = Annotated[float, msgspec.Meta(gt=0.0, lt=1.0, description="metres per depth unit")]
 
 
 class ImageCodec(Protocol):
@@ -77,12 +79,8 @@ class Intrinsics(Part):
     fy: Positive
     cx: Finite
     cy: Finite
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        if decoding() and not (0 < self.width <= 16384 and 0 < self.height <= 16384):
-            raise MessageError("intrinsics must have positive focal lengths and image size")
+    width: ImageSide
+    height: ImageSide
 
     @property
     def matrix(self) -> np.ndarray:
@@ -128,7 +126,7 @@ class Frame(Message, tag="semmap.frame/1"):
     stamp: Finite
     rgb_jpeg: bytes
     depth_raw: DepthField = msgspec.field(name="depth")  # uint16 HxW array, or 16-bit PNG bytes
-    depth_scale: Finite
+    depth_scale: DepthScale
     intrinsics: Intrinsics
     gt_pose: Pose | None = None
     instances: list[GroundTruthInstance] = msgspec.field(default_factory=list)
@@ -154,8 +152,6 @@ class Frame(Message, tag="semmap.frame/1"):
             if self.depth_raw.shape != (k.height, k.width):
                 raise MessageError(f"depth shape {self.depth_raw.shape} does not match intrinsics "
                                    f"{k.height}x{k.width}")
-        if not 0.0 < self.depth_scale < 1.0:
-            raise MessageError("depth_scale must be in (0, 1) metres per unit")
         if self.gt_pose is not None:
             self.gt_pose = validate_pose(self.gt_pose, "gt_pose")
 
