@@ -161,6 +161,8 @@ def test_wrong_version_is_rejected_clearly() -> None:
         (4, {"merges": [[1]]}, "merge"),
         (8, {"command": "reboot"}, "'command': unknown value 'reboot'"),
         (10, {"state": "confused"}, "'state': unknown value 'confused'"),
+        (11, {"boxes": [{"track_id": 1, "class": "person", "box": [1, 2, 3, 4], "depth_min_m": 2.0,
+                         "depth_max_m": 1.0, "reason": "class"}]}, "depth_min_m <= depth_max_m"),
     ],
 )
 def test_malformed_fields_are_rejected(index: int, changes: dict, reason: str) -> None:

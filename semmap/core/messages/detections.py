@@ -55,9 +55,10 @@ class Detection(Part):
     depth_patch: DepthPatch | None = None
 
     def __post_init__(self) -> None:
-        self.box = as_box(self.box)
-        if decoding():
+        if decoding():  # msgspec made it a tuple of floats
             check_box(self.box)
+        else:
+            self.box = as_box(self.box)
 
 
 class Detections(Message, tag="semmap.detections/1"):

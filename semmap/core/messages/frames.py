@@ -97,9 +97,10 @@ class GroundTruthInstance(Part):
     moving: bool
 
     def __post_init__(self) -> None:
-        self.box = as_box(self.box)
-        if decoding():
+        if decoding():  # msgspec made it a tuple of floats
             check_box(self.box)
+        else:
+            self.box = as_box(self.box)
 
 
 DEPTH_SCHEMA = {

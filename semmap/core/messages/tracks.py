@@ -58,9 +58,10 @@ class TrackedBox(Part):
     candidate: bool
 
     def __post_init__(self) -> None:
-        self.box = as_box(self.box)
-        if decoding():
+        if decoding():  # msgspec made it a tuple of floats
             check_box(self.box)
+        else:
+            self.box = as_box(self.box)
 
 
 class Tracks(Message, tag="semmap.tracks/1"):
@@ -95,11 +96,12 @@ class DynamicBox(Part):
     reason: Literal["class", "moving"]
 
     def __post_init__(self) -> None:
-        self.box = as_box(self.box)
-        if decoding():
+        if decoding():  # msgspec made it a tuple of floats
             check_box(self.box)
             if self.depth_min_m > self.depth_max_m:
                 raise MessageError("a dynamic box needs 0 <= depth_min_m <= depth_max_m")
+        else:
+            self.box = as_box(self.box)
 
 
 class DynamicObjects(Message, tag="semmap.dynamic/1"):
