@@ -19,7 +19,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
-from typing import Annotated, Any, ClassVar, Literal, TypeVar
+from typing import Annotated, Any, ClassVar, TypeVar
 
 import msgspec
 import numpy as np
@@ -75,7 +75,6 @@ Vector3 = tuple[Finite, Finite, Finite]
 Box = Annotated[tuple[Finite, Finite, Finite, Finite], msgspec.Meta(description="[x1, y1, x2, y2] pixels")]
 Timings = dict[str, Finite]
 Merge = tuple[Id, Id]
-LandmarkStatus = Literal["present", "prior", "missing"]
 
 
 def _array_map_schema(dtype: str, ndim: int, meaning: str) -> dict:
@@ -151,12 +150,12 @@ def _array_from_map(d: dict) -> np.ndarray:
 def _array_from_list(values: list) -> np.ndarray:
     if len(values) > 64:
         raise MessageError("a flat matrix holds at most 64 numbers")
-    for v in values:
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise MessageError("a flat matrix must hold numbers")
-        if not math.isfinite(v):
-            raise MessageError("holds a non-finite number")
-    return np.array(values, dtype=np.float64)
+    if not all(type(v) is float or type(v) is int for v in values):  # (bool is not a number here)
+        raise MessageError("a flat matrix must hold numbers")
+    array = np.array(values, dtype=np.float64)
+    if not np.isfinite(array).all():
+        raise MessageError("holds a non-finite number")
+    return array
 
 
 def decode_array(d: Any, name: str, ndim: int | None = None, dtype: str | None = None) -> np.ndarray:
@@ -171,7 +170,7 @@ def decode_array(d: Any, name: str, ndim: int | None = None, dtype: str | None =
 
 
 def expect_array(array: np.ndarray, name: str, ndim: int | None = None, dtype: str | None = None) -> np.ndarray:
-    if dtype is not None and array.dtype.name != dtype:
+    if dtype is not None and array.dtype != _NATIVE[dtype]:
         raise MessageError(f"field '{name}' has dtype {array.dtype.name!r}, expected {dtype}")
     if ndim is not None and array.ndim != ndim:
         raise MessageError(f"field '{name}' must have {ndim} dimensions, got {array.ndim}")

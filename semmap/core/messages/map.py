@@ -4,13 +4,14 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import msgspec
 import numpy as np
 
 from .base import (
     Finite,
     Id,
-    LandmarkStatus,
     Merge,
     Message,
     MessageError,
@@ -29,6 +30,8 @@ from .base import (
 )
 
 LANDMARK_STATUSES = ("present", "prior", "missing")
+# a str checked by Landmark (not a Literal): map files are edited by hand, and their error should list the choices
+LandmarkStatus = Annotated[str, msgspec.Meta(extra_json_schema={"enum": list(LANDMARK_STATUSES)})]
 
 
 class Landmark(Part):
@@ -47,8 +50,13 @@ class Landmark(Part):
     status: LandmarkStatus = "present"
 
     def __post_init__(self) -> None:
-        self.centroid = as_vector3(self.centroid)
-        self.extent = as_vector3(self.extent)
+        if decoding():
+            if self.status not in LANDMARK_STATUSES:
+                raise MessageError(f"landmark status must be one of {', '.join(LANDMARK_STATUSES)}, "
+                                   f"got {self.status!r}")
+        else:
+            self.centroid = as_vector3(self.centroid)
+            self.extent = as_vector3(self.extent)
 
 
 class Observation(Part):
