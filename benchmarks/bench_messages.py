@@ -6,7 +6,7 @@
 `semmap` is imported from PYTHONPATH (no path of its own), so the same script times another checkout's messages:
 `PYTHONPATH=../other-checkout python benchmarks/bench_messages.py` (it uses only the API both have). Decode times
 are the message itself: images stay encoded (JPEG) until `rgb()`, in both implementations. Prints microseconds
-per call (median of 5 rounds) and payload sizes.
+per call in CPU time (median of 5 rounds: robust to a machine shared with other work) and payload sizes.
 """
 
 from __future__ import annotations
@@ -58,10 +58,10 @@ def _tracks() -> Tracks:
 def _time_us(fn: Callable[[], object], repeat: int) -> float:
     rounds = []
     for _ in range(5):
-        start = time.perf_counter()
+        start = time.process_time()
         for _ in range(repeat):
             fn()
-        rounds.append((time.perf_counter() - start) / repeat * 1e6)
+        rounds.append((time.process_time() - start) / repeat * 1e6)
     return statistics.median(rounds)
 
 
