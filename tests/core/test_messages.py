@@ -178,7 +178,11 @@ def test_corrupt_jpeg_is_an_error_when_decoded_not_a_crash() -> None:
         decoded.rgb()
 
 
-@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb("x"), b"\xff" * 100])
+DEEP = b"\x83" + msgpack.packb({"schema": "semmap.frame/1", "robot": "r"})[1:] + msgpack.packb("depth") + (
+    b"\x91" * 100_000 + b"\x01")  # a depth nested 100,000 lists deep
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb("x"), b"\xff" * 100, DEEP])
 def test_garbage_is_rejected(payload: bytes) -> None:
     for kind in ALL_MESSAGES:
         with pytest.raises(MessageError):

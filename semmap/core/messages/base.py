@@ -33,7 +33,8 @@ FLAT_MATRIX_SHAPES = ((4, 4), (6, 6))
 
 M = TypeVar("M", bound="Message")
 P = TypeVar("P", bound="Part")
-_CHECK_ERRORS = (KeyError, IndexError, AttributeError, OverflowError, TypeError, ValueError)
+# what a check (or msgspec on absurdly deep nesting: RecursionError) may raise on a hostile payload
+_CHECK_ERRORS = (KeyError, IndexError, AttributeError, OverflowError, TypeError, ValueError, RecursionError)
 
 
 class MessageError(ValueError):
@@ -400,7 +401,7 @@ def _schema_problem(cls: type[Message], payload: bytes | bytearray | memoryview)
     """Why a payload failed, when the reason is its `schema` (read again only on this error path)."""
     try:
         body = _ENVELOPE.decode(payload)
-    except (msgspec.MsgspecError, ValueError):  # msgspec raises UnicodeDecodeError on bad UTF-8 in a key
+    except (msgspec.MsgspecError, ValueError, RecursionError):  # (UnicodeDecodeError: bad UTF-8 in a key)
         return "a message must be a msgpack map"
     schema = body.get("schema")
     if schema == cls.SCHEMA:
