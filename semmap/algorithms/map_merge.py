@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
+from msgspec.structs import replace
 
 from semmap.algorithms.relocalize import MapObject, RelocAttempt, RelocParams, apply, relocalize
 from semmap.core.messages import Landmark

@@ -105,7 +105,7 @@ def _registered(
     b_db = _map_db(args.b)
     if not refit or b_db is None:
         return a, rigid, attempt.result, clouds_a, moved
-    from dataclasses import replace
+    from msgspec.structs import replace
 
     from semmap.runtime.map_refit import refit_run
 

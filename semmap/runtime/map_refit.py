@@ -11,12 +11,12 @@ when the pose graph changes (`LandmarkMapper.refine`).
 
 from __future__ import annotations
 
-import dataclasses
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
+import msgspec
 import numpy as np
 
 from semmap.algorithms.associator.mapper import LandmarkMapper
@@ -79,7 +79,7 @@ def refit_run(b_map_db: Path, a_map_db: Path | None, fit: RelocResult, a_landmar
                 out.skipped += 1
                 continue
             # B's own alignment (if it was itself relocalised) is folded into A's, given at its first frame
-            obs = dataclasses.replace(obs, alignment=alignment if out.frames == 0 else None)
+            obs = msgspec.structs.replace(obs, alignment=alignment if out.frames == 0 else None)
             try:
                 stage.step(pose, obs, cloud)
             except PoseGraphError:  # (a row the graph refuses, e.g. a pose that is not rigid: skipped)

@@ -4,10 +4,10 @@ relative-pose constraints, interpolation of non-node frames and late / out-of-or
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 
 import gtsam
+import msgspec
 import numpy as np
 import pytest
 from backend_sim import (
@@ -121,7 +121,7 @@ def test_merged_duplicates_close_the_loop() -> None:
     ideal = ate_rmse(scene.stamped_gt, optimized(run_graph(scene)[0]))
 
     def relabel(frame: int, obs: list[Observation]) -> list[Observation]:
-        return [dataclasses.replace(o, landmark_id=o.landmark_id + 100) for o in obs] if frame >= 50 else obs
+        return [msgspec.structs.replace(o, landmark_id=o.landmark_id + 100) for o in obs] if frame >= 50 else obs
 
     duplicated = copy.deepcopy(scene)
     duplicated.observations = {f: relabel(f, o) for f, o in scene.observations.items()}

@@ -143,20 +143,26 @@ def test_wrong_version_is_rejected_clearly() -> None:
         (1, {"pose": [2.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}, "orthonormal"),
         (1, {"pose": [1.0] * 15}, "16 numbers"),
         (1, {"frame_id": -1}, ">= 0"),
+        (1, {"stamp": float("inf")}, "'stamp' must be a finite number"),
+        (9, {"sent_at": float("nan")}, "'sent_at' must be a finite number"),
         (1, {"frame_id": "7"}, "must be"),
-        (1, {"robot": "a/b"}, "invalid robot name"),
-        (1, {"robot": "**"}, "invalid robot name"),
-        (1, {"sigma_translation": 0.0}, "positive"),
+        (1, {"robot": "a/b"}, "field 'robot' must be `str` matching regex"),
+        (1, {"robot": "**"}, "field 'robot' must be `str` matching regex"),
+        (1, {"sigma_translation": 0.0}, "'sigma_translation' must be `float` > 0"),
         (2, {"detections": [{"box": [10, 10, 5, 20], "class": "cup", "score": 0.5, "depth_m": 1.0}]}, "x2 > x1"),
-        (2, {"detections": [{"box": [1, 1, 5, 5], "class": "cup", "score": 1.5, "depth_m": 1.0}]}, r"\[0, 1\]"),
-        (2, {"intrinsics": {"fx": -1, "fy": 1, "cx": 0, "cy": 0, "width": 10, "height": 10}}, "positive"),
+        (2, {"detections": [{"box": [1, 1, 5, 5], "class": "cup", "score": 1.5, "depth_m": 1.0}]},
+         r"'detections\[0\].score' must be `float` <= 1.0"),
+        (2, {"intrinsics": {"fx": -1, "fy": 1, "cx": 0, "cy": 0, "width": 10, "height": 10}},
+         "'intrinsics.fx' must be `float` > 0"),
         (0, {"depth": {"dtype": "uint16", "shape": [48, 64], "data": b"\x00" * 10}}, "do not fit"),
         (0, {"depth": {"dtype": "float32", "shape": [48, 64], "data": b"\x00" * 48 * 64 * 4}}, "dtype"),
         (0, {"depth": {"dtype": "uint16", "shape": [4, 4], "data": b"\x00" * 32}}, "does not match intrinsics"),
         (0, {"depth_scale": 0.0}, "depth_scale"),
         (4, {"merges": [[1]]}, "merge"),
-        (8, {"command": "reboot"}, "unknown control command"),
-        (10, {"state": "confused"}, "unknown service state"),
+        (8, {"command": "reboot"}, "'command': unknown value 'reboot'"),
+        (10, {"state": "confused"}, "'state': unknown value 'confused'"),
+        (11, {"boxes": [{"track_id": 1, "class": "person", "box": [1, 2, 3, 4], "depth_min_m": 2.0,
+                         "depth_max_m": 1.0, "reason": "class"}]}, "depth_min_m <= depth_max_m"),
     ],
 )
 def test_malformed_fields_are_rejected(index: int, changes: dict, reason: str) -> None:
@@ -172,7 +178,11 @@ def test_corrupt_jpeg_is_an_error_when_decoded_not_a_crash() -> None:
         decoded.rgb()
 
 
-@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb("x"), b"\xff" * 100])
+DEEP = b"\x83" + msgpack.packb({"schema": "semmap.frame/1", "robot": "r"})[1:] + msgpack.packb("depth") + (
+    b"\x91" * 100_000 + b"\x01")  # a depth nested 100,000 lists deep
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb("x"), b"\xff" * 100, DEEP])
 def test_garbage_is_rejected(payload: bytes) -> None:
     for kind in ALL_MESSAGES:
         with pytest.raises(MessageError):
@@ -210,3 +220,36 @@ def test_corrected_poses_are_deltas_applied_onto_a_copy_and_the_old_version_is_r
                               full=False, num_frames=9)
     with pytest.raises(MessageError, match="ascending"):
         CorrectedPoses.decode(unsorted.encode())
+
+
+def test_the_committed_json_schema_is_fresh_and_describes_every_message() -> None:
+    """docs/interface.schema.json is what `python -m semmap.core.messages.schema` writes, and every sample's wire
+    map (bytes as base64, the way the schema says JSON carries msgpack bin) validates against it."""
+    import base64
+    import json
+    from pathlib import Path
+
+    import jsonschema
+
+    from semmap.core.messages.schema import DEFAULT_PATH, render, wire_schema
+
+    assert Path(DEFAULT_PATH).read_text() == render(), "stale: run python -m semmap.core.messages.schema"
+    schema = wire_schema()
+    validator = jsonschema.Draft202012Validator(schema)
+
+    def as_json(value):
+        if isinstance(value, bytes):
+            return base64.b64encode(value).decode()
+        if isinstance(value, dict):
+            return {k: as_json(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [as_json(v) for v in value]
+        return value
+
+    for message in _samples():
+        body = as_json(msgpack.unpackb(message.encode()))
+        validator.validate(body)
+        assert schema["x-semmap-kinds"][message.SCHEMA] == f"#/$defs/{type(message).__name__}"
+        with pytest.raises(jsonschema.ValidationError):
+            validator.validate({**body, "schema": "semmap.other/1"})
+    json.dumps(schema)  # plain JSON throughout

@@ -281,7 +281,7 @@ def _view_cloud(lm: LandmarkState, max_points: int = 2000) -> np.ndarray | None:
 
 
 def _status(lm: Landmark, status: str) -> Landmark:
-    from dataclasses import replace
+    from msgspec.structs import replace
 
     return replace(lm, status=status)
 

@@ -12,10 +12,10 @@ are not carried into the rebuilt graph (the closer finds revisits again against 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
+import msgspec
 import numpy as np
 
 from semmap.algorithms.backend.pose_graph import PoseGraph
@@ -84,4 +84,4 @@ class PriorAlignment:
     def _aligned(self, pose: OdometryPose) -> OdometryPose:
         if self.alignment is None:
             return pose
-        return dataclasses.replace(pose, pose=self.alignment.transform @ pose.pose)
+        return msgspec.structs.replace(pose, pose=self.alignment.transform @ pose.pose)
