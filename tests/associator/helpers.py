@@ -27,6 +27,16 @@ class Sphere:
     class_name: str = "cup"
 
 
+# five objects on a table, seen by an orbiting camera (the analytic closed-loop scenes)
+TABLE_SPHERES = [
+    Sphere((0.35, 0.0, 0.8), 0.06, "cup"),
+    Sphere((-0.3, 0.2, 0.75), 0.07, "bowl"),
+    Sphere((0.0, -0.35, 0.85), 0.05, "bottle"),
+    Sphere((-0.1, 0.4, 0.9), 0.06, "sports ball"),
+    Sphere((0.1, 0.05, 1.0), 0.05, "apple"),
+]
+
+
 def orbit_pose(
     t: float,
     radius: float = 1.2,

@@ -12,16 +12,10 @@ import pytest
 from semmap.core.config import load_config
 from semmap.core.messages import Detections
 from semmap.runtime.inprocess import ROBOT, Recording, run_loop
-from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
+from tests.associator.helpers import K_SMALL, TABLE_SPHERES, detections, orbit_pose
 
 RATE = 30.0
-SPHERES = [
-    Sphere((0.35, 0.0, 0.8), 0.06, "cup"),
-    Sphere((-0.3, 0.2, 0.75), 0.07, "bowl"),
-    Sphere((0.0, -0.35, 0.85), 0.05, "bottle"),
-    Sphere((-0.1, 0.4, 0.9), 0.06, "sports ball"),
-    Sphere((0.1, 0.05, 1.0), 0.05, "apple"),
-]
+SPHERES = TABLE_SPHERES
 
 
 @pytest.fixture(scope="module")

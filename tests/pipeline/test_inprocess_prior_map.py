@@ -23,15 +23,11 @@ from semmap.core.messages import Detections
 from semmap.runtime import inprocess
 from semmap.runtime.inprocess import ROBOT, Recording, run_loop
 from semmap.runtime.map_store import read_map_json
-from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
+from tests.associator.helpers import K_SMALL, TABLE_SPHERES, Sphere, detections, orbit_pose
 
 OFFSET = [1.5, -2.0, 0.3, 5.0, -3.0, 40.0]
 SPHERES = [
-    Sphere((0.35, 0.0, 0.8), 0.06, "cup"),
-    Sphere((-0.3, 0.2, 0.75), 0.07, "bowl"),
-    Sphere((0.0, -0.35, 0.85), 0.05, "bottle"),
-    Sphere((-0.1, 0.4, 0.9), 0.06, "sports ball"),
-    Sphere((0.1, 0.05, 1.0), 0.05, "apple"),
+    *TABLE_SPHERES,
     Sphere((0.3, 0.35, 0.7), 0.05, "orange"),
     Sphere((-0.35, -0.3, 0.9), 0.06, "vase"),
 ]

@@ -280,6 +280,15 @@ def check_box(box: tuple[float, float, float, float], name: str = "box") -> None
         raise MessageError(f"'{name}' must have x2 > x1 and y2 > y1")
 
 
+def settle_box(part: Any) -> None:
+    """A boxed part's `__post_init__`: decoded boxes are checked (msgspec made them a tuple of floats), boxes
+    built in code are normalised to floats (validation happens on receipt only, as for every message)."""
+    if decoding():
+        check_box(part.box)
+    else:
+        part.box = as_box(part.box)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # errors in the words receivers log
 

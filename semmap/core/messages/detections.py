@@ -16,10 +16,9 @@ from .base import (
     RobotName,
     Timings,
     array_map,
-    as_box,
-    check_box,
     decoding,
     expect_array,
+    settle_box,
 )
 from .frames import Intrinsics
 
@@ -55,10 +54,7 @@ class Detection(Part):
     depth_patch: DepthPatch | None = None
 
     def __post_init__(self) -> None:
-        if decoding():  # msgspec made it a tuple of floats
-            check_box(self.box)
-        else:
-            self.box = as_box(self.box)
+        settle_box(self)
 
 
 class Detections(Message, tag="semmap.detections/1"):

@@ -28,11 +28,10 @@ from .base import (
     Pose,
     Positive,
     RobotName,
-    as_box,
     as_matrix,
-    check_box,
     decode_array,
     decoding,
+    settle_box,
     validate_pose,
 )
 
@@ -97,10 +96,7 @@ class GroundTruthInstance(Part):
     moving: bool
 
     def __post_init__(self) -> None:
-        if decoding():  # msgspec made it a tuple of floats
-            check_box(self.box)
-        else:
-            self.box = as_box(self.box)
+        settle_box(self)
 
 
 DEPTH_SCHEMA = {

@@ -21,6 +21,7 @@ from .base import (
     as_box,
     check_box,
     decoding,
+    settle_box,
 )
 from .detections import Detection
 from .frames import Intrinsics
@@ -58,10 +59,7 @@ class TrackedBox(Part):
     candidate: bool
 
     def __post_init__(self) -> None:
-        if decoding():  # msgspec made it a tuple of floats
-            check_box(self.box)
-        else:
-            self.box = as_box(self.box)
+        settle_box(self)
 
 
 class Tracks(Message, tag="semmap.tracks/1"):
