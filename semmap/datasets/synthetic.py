@@ -651,9 +651,11 @@ class SyntheticDataset(Dataset):
         depth = hits["t_hit"].numpy()
         normals = hits["primitive_normals"].numpy()
         missed = hits["geometry_ids"].numpy() == o3d.t.geometry.RaycastingScene.INVALID_ID
-        if self._max_depth is not None:  # beyond the depth range: no depth, no object (the street's far end)
-            missed |= ~(depth <= np.float32(self._max_depth))
-        any_missed = bool(missed.any())  # only with a degenerate room
+        any_missed = bool(missed.any())  # only with a degenerate room (the street: the sky)
+        far = None  # beyond the depth range (the street's): shaded as ever, but no depth and no object
+        if self._max_depth is not None:
+            far = (depth > np.float32(self._max_depth)) & ~missed
+            far = far if far.any() else None
         if any_missed:
             triangle = np.where(missed, 0, triangle)
             depth = np.where(missed, np.float32(0.0), depth)
@@ -661,6 +663,8 @@ class SyntheticDataset(Dataset):
         labels = np.take(fs.tri_label, triangle)
         if any_missed:
             labels[missed] = 0
+        if far is not None:
+            labels[far] = 0
         # (object, row) pixel counts: the per-object totals, and the rows each object covers for its box.
         n_obj = fs.n_obj
         row_counts = np.bincount(labels * np.int32(k.height) + self._rows, minlength=n_obj * k.height)
@@ -725,6 +729,8 @@ class SyntheticDataset(Dataset):
         depth_mm = depth_mm.astype(np.uint16)
         if any_missed:
             depth_mm[missed] = 0
+        if far is not None:
+            depth_mm[far] = 0
 
         instances = self._instances(labels, counts, row_counts, fs)
         if fs.ids is not None:
