@@ -142,10 +142,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto", rate_hz: float = 10.0) 
                 f"(t x y z qx qy qz qw); its first data line has {n} fields"
             )
         fmt = "kitti" if n == 12 else "tum"
-    if fmt == "kitti":
-        poses = [(i / rate_hz, p) for i, p in enumerate(read_kitti_poses(path))]
-    else:
-        poses = read_tum(path)
+    poses = [(i / rate_hz, p) for i, p in enumerate(read_kitti_poses(path))] if fmt == "kitti" else read_tum(path)
     if len(poses) < 2:
         raise DatasetError(f"synthetic street: {path} holds {len(poses)} poses; at least 2 are needed")
     stack = np.stack([p for _, p in poses])
@@ -382,7 +379,7 @@ class StreetDataset(SyntheticDataset):
 
         for s in np.arange(c.spacing / 2, path.length, c.spacing):
             for side in (1.0, -1.0):
-                use, kind_draw, lateral, along, jitter = rng.random(), rng.random(), rng.random(), rng.random(), rng.random()
+                use, kind_draw, lateral, along, jitter = (float(x) for x in rng.random(5))
                 model_seed = int(rng.integers(2**31))
                 if use >= c.fill:
                     continue
@@ -453,15 +450,17 @@ class StreetDataset(SyntheticDataset):
         for name, s0, band, lateral, speed, phase in movers:
             parts = _car_parts(rng) if name == "car" else _person_parts(rng)
 
-            def motion(t: float, s0: float = s0, band: float = band, lateral: float = lateral, speed: float = speed,
-                       phase: float = phase) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+            def motion(
+                t: float, s0: float = s0, band: float = band, lateral: float = lateral, speed: float = speed,
+                phase: float = phase, oncoming: bool = name == "car",
+            ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
                 u = (t * speed / band + phase) % 2.0
                 forward = u < 1.0
                 s = s0 + band * (u if forward else 2.0 - u)
                 xy, heading, ground = path.at(s)
                 normal = np.array([-math.sin(heading), math.cos(heading)])
                 xy = xy + normal * lateral
-                if name == "car":  # oncoming traffic drives against the path's direction
+                if oncoming:  # oncoming traffic drives against the path's direction
                     forward = not forward
                 return _yaw_matrix(heading if forward else heading + math.pi), np.array([xy[0], xy[1], ground])
 
