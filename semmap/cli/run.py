@@ -52,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the whole pipeline on a dataset (or 'synthetic')",
                        description="Start every service as its own process over Zenoh and play DATA through them.")
     p.add_argument("data", help="dataset path (7-Scenes, TUM RGB-D, KITTI odometry), 'synthetic[:frames=N,seed=S]', "
+                   "'synthetic:trajectory=PATH' (a generated street along a KITTI/TUM trajectory file) "
                    "or 'external' (no player or odometry: a SLAM publishes frames and poses, "
                    "see semmap.runtime.client)")
     p.add_argument("--out", default="out", help="output directory (default: out)")

@@ -60,6 +60,10 @@ def available_formats() -> dict[str, str]:
 
 
 def _open_synthetic(path: Path | None = None, **options: Any) -> Dataset:
+    if "trajectory" in options:  # the street world along a trajectory file (issue 34)
+        from .street import StreetDataset
+
+        return StreetDataset(**options)
     from .synthetic import SyntheticDataset  # imports open3d (~1 s): only when asked for
 
     return SyntheticDataset(**options)
@@ -89,7 +93,14 @@ def _open_rosbag(path: Path, **options: Any) -> Dataset:
     return RosbagDataset(path, **options)
 
 
-register("synthetic", _open_synthetic, "synthetic[:frames=N,seed=S,size=WxH,...]: the built-in ray-cast scene")
+register(
+    "synthetic",
+    _open_synthetic,
+    "synthetic[:frames=N,seed=S,size=WxH,...]: the built-in ray-cast scene (a dining room); "
+    "synthetic:trajectory=PATH[,seed=S,size=WxH,frames=N,...]: a generated street (parked and moving cars, people, "
+    "bicycles, benches, traffic lights, stop signs, potted plants, buildings) along a KITTI or TUM trajectory file, "
+    "KITTI-like 620x188 camera, depth to 40 m",
+)
 register(
     "7scenes",
     _open_sevenscenes,

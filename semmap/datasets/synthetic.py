@@ -438,6 +438,25 @@ def _add_persons(objects: list[_Object], config: SyntheticConfig, rng: np.random
 
 
 @dataclass
+class FrameScene:
+    """The geometry one frame is ray cast against: the triangles, their per-triangle tables and the objects.
+
+    tri_label holds frame-local object indices 0..n_obj-1 (0 = background); `ids` maps them to instance ids
+    (None: local index = instance id, as in the room). `moving` holds the (R, t) of the moving objects in view,
+    keyed by local index (their texture lives in their mesh frame)."""
+
+    vertices: np.ndarray  # (V, 3) float32, moving objects already placed
+    triangles: Any  # o3d.core.Tensor (T, 3) uint32
+    tri_color: np.ndarray
+    tri_label: np.ndarray
+    tri_inv_size: np.ndarray
+    tri_contrast: np.ndarray
+    n_obj: int
+    moving: dict[int, tuple[np.ndarray, np.ndarray]]
+    ids: np.ndarray | None = None
+
+
+@dataclass
 class SyntheticRender:
     """A frame plus its HxW int32 instance-id image (0 = room / nothing), for tests and evaluation."""
 
@@ -585,6 +604,28 @@ class SyntheticDataset(Dataset):
     def __getitem__(self, index: int) -> FrameData:
         return self.render(index).frame
 
+    # Hooks the street world (semmap.datasets.street) overrides: the frame's geometry, the pose in the scene's
+    # frame, the colour of rays that hit nothing (None: the room's floor colour, as ever) and the depth range.
+    _sky: tuple[float, float, float] | None = None
+    _max_depth: float | None = None
+
+    def _frame_scene(self, index: int) -> FrameScene:
+        vertices = self._vertices.copy()
+        moving_poses = self.object_poses(index)
+        for instance_id, rows in self._moving_vertices.items():
+            rotation, translation = moving_poses[instance_id]
+            vertices[rows] = vertices[rows] @ rotation.T.astype(np.float32) + translation.astype(np.float32)
+        return FrameScene(
+            vertices, self._triangles, self._tri_color, self._tri_label, self._tri_inv_size, self._tri_contrast,
+            len(self._objects), {i: moving_poses[i] for i in self._moving_ids},
+        )  # fmt: skip
+
+    def _scene_pose(self, pose: np.ndarray) -> np.ndarray:
+        return pose
+
+    def _class_of(self, instance_id: int) -> str:
+        return self._classes[instance_id]
+
     def render(self, index: int) -> SyntheticRender:
         """Ray cast frame `index`: RGB, depth (mm), exact pose, instance boxes and the instance-id image."""
         if not -len(self) <= index < len(self):
@@ -592,37 +633,40 @@ class SyntheticDataset(Dataset):
         index %= len(self)
         k = self.intrinsics
         pose = self.camera_pose(index)
-        origin = pose[:3, 3].astype(np.float32)
+        fs = self._frame_scene(index)
+        cast_pose = self._scene_pose(pose)
+        origin = cast_pose[:3, 3].astype(np.float32)
         # rays = [origin, R d] for every pixel in one product: d's third component is 1, which adds the origin.
         to_rays = np.zeros((3, 6), np.float32)
-        to_rays[:, 3:] = pose[:3, :3].T
+        to_rays[:, 3:] = cast_pose[:3, :3].T
         to_rays[2, :3] = origin
         rays = self._dirs_cam @ to_rays
         dirs = rays[:, 3:]
 
-        vertices = self._vertices.copy()
-        moving_poses = self.object_poses(index)
-        for instance_id, rows in self._moving_vertices.items():
-            rotation, translation = moving_poses[instance_id]
-            vertices[rows] = vertices[rows] @ rotation.T.astype(np.float32) + translation.astype(np.float32)
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor.from_numpy(vertices), self._triangles)
+        scene.add_triangles(o3d.core.Tensor.from_numpy(fs.vertices), fs.triangles)
         hits = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.threads)
 
         triangle = hits["primitive_ids"].numpy().astype(np.intp)  # one conversion instead of one per lookup
         depth = hits["t_hit"].numpy()
         normals = hits["primitive_normals"].numpy()
         missed = hits["geometry_ids"].numpy() == o3d.t.geometry.RaycastingScene.INVALID_ID
-        any_missed = bool(missed.any())  # only with a degenerate room
+        any_missed = bool(missed.any())  # only with a degenerate room (the street: the sky)
+        far = None  # beyond the depth range (the street's): shaded as ever, but no depth and no object
+        if self._max_depth is not None:
+            far = (depth > np.float32(self._max_depth)) & ~missed
+            far = far if far.any() else None
         if any_missed:
             triangle = np.where(missed, 0, triangle)
             depth = np.where(missed, np.float32(0.0), depth)
             normals = np.where(missed[:, None], np.float32(0.0), normals)
-        labels = np.take(self._tri_label, triangle)
+        labels = np.take(fs.tri_label, triangle)
         if any_missed:
             labels[missed] = 0
+        if far is not None:
+            labels[far] = 0
         # (object, row) pixel counts: the per-object totals, and the rows each object covers for its box.
-        n_obj = len(self._objects)
+        n_obj = fs.n_obj
         row_counts = np.bincount(labels * np.int32(k.height) + self._rows, minlength=n_obj * k.height)
         row_counts = row_counts.reshape(n_obj, k.height)
         counts = row_counts.sum(axis=1)
@@ -637,10 +681,9 @@ class SyntheticDataset(Dataset):
         # the hash, so an axis-aligned face lying on a texture-cell boundary does not flicker.
         nx, ny, nz = normals[:, 0], normals[:, 1], normals[:, 2]
         tx, ty, tz = np.abs(nx) < 0.7, np.abs(ny) < 0.7, np.abs(nz) < 0.7
-        for i in self._moving_ids:
+        for i, (rotation, translation) in fs.moving.items():
             if counts[i] == 0:
                 continue
-            rotation, translation = moving_poses[i]
             pixels = np.flatnonzero(labels == i)
             cos_t, sin_t = np.float32(rotation[0, 0]), np.float32(rotation[1, 0])
             ox, oy = px[pixels] - np.float32(translation[0]), py[pixels] - np.float32(translation[1])
@@ -650,7 +693,7 @@ class SyntheticDataset(Dataset):
             lx = cos_t * nx[pixels] + sin_t * ny[pixels]
             ly = cos_t * ny[pixels] - sin_t * nx[pixels]
             tx[pixels], ty[pixels] = np.abs(lx) < 0.7, np.abs(ly) < 0.7
-        scale = np.take(self._tri_inv_size, triangle)
+        scale = np.take(fs.tri_inv_size, triangle)
         key = ((px * scale + self._MAGIC).view(np.int32) * (tx * self._HASH_WEIGHTS[0])) ^ self._texture_key
         key ^= (py * scale + self._MAGIC).view(np.int32) * (ty * self._HASH_WEIGHTS[1])
         key ^= (pz * scale + self._MAGIC).view(np.int32) * (tz * self._HASH_WEIGHTS[2])
@@ -666,11 +709,13 @@ class SyntheticDataset(Dataset):
         n_dot_l = (nx * self._light[0] + ny * self._light[1] + nz * self._light[2]) * -np.sign(n_dot_d)
         shade = np.maximum(n_dot_l, 0.0) * np.float32(0.6) + np.abs(n_dot_d) * self._inv_dir_norm * np.float32(0.2)
         shade += np.float32(0.25)
-        shade *= np.float32(1.0) + np.take(self._tri_contrast, triangle) * noise
+        shade *= np.float32(1.0) + np.take(fs.tri_contrast, triangle) * noise
         np.minimum(shade, np.float32(1.0), out=shade)
-        rgb = np.take(self._tri_color, triangle, axis=0)
+        rgb = np.take(fs.tri_color, triangle, axis=0)
         rgb *= shade[:, None]
         rgb = rgb.astype(np.uint8)
+        if any_missed and self._sky is not None:
+            rgb[missed] = np.asarray(self._sky, np.float32) * np.float32(255.0)
 
         depth_mm = depth * np.float32(1000.0)
         if self.config.depth_noise > 0:
@@ -684,7 +729,12 @@ class SyntheticDataset(Dataset):
         depth_mm = depth_mm.astype(np.uint16)
         if any_missed:
             depth_mm[missed] = 0
+        if far is not None:
+            depth_mm[far] = 0
 
+        instances = self._instances(labels, counts, row_counts, fs)
+        if fs.ids is not None:
+            labels = np.take(fs.ids, labels)
         labels_2d = labels.reshape(k.height, k.width)
         return SyntheticRender(
             frame=FrameData(
@@ -695,15 +745,17 @@ class SyntheticDataset(Dataset):
                 depth_scale=0.001,
                 intrinsics=k,
                 gt_pose=pose,
-                instances=self._instances(labels, counts, row_counts),
+                instances=instances,
             ),
             labels=labels_2d,
         )
 
-    def _instances(self, labels: np.ndarray, counts: np.ndarray, row_counts: np.ndarray) -> list[InstanceBox]:
+    def _instances(
+        self, labels: np.ndarray, counts: np.ndarray, row_counts: np.ndarray, fs: FrameScene
+    ) -> list[InstanceBox]:
         """Tight boxes of the objects with enough visible pixels; box = (x1, y1, x2, y2), x2/y2 exclusive."""
         k = self.intrinsics
-        n_obj = len(self._objects)
+        n_obj = fs.n_obj
         visible = [i for i in np.flatnonzero(counts >= self.config.min_visible_pixels) if i != 0]
         if not visible:
             return []
@@ -714,13 +766,14 @@ class SyntheticDataset(Dataset):
         boxes = []
         for i in visible:
             r, c = np.flatnonzero(rows[i]), np.flatnonzero(cols[i])
+            instance_id = int(i) if fs.ids is None else int(fs.ids[i])
             boxes.append(
                 InstanceBox(
-                    instance_id=int(i),
-                    class_name=self._classes[int(i)],
+                    instance_id=instance_id,
+                    class_name=self._class_of(instance_id),
                     box=(float(c[0]), float(r[0]), float(c[-1] + 1), float(r[-1] + 1)),
                     visible_pixels=int(counts[i]),
-                    moving=int(i) in self._moving_ids,
+                    moving=int(i) in fs.moving,
                 )
             )
         return boxes
