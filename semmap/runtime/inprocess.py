@@ -284,6 +284,7 @@ class LoopResult:
     classes: dict[str, int]
     mapper_ms_p50: float = 0.0  # mapper.process (+ refine) per frame
     loop_closures: dict[str, int] = field(default_factory=dict)  # the backend's loop closer's counters
+    graph_counters: dict[str, int] = field(default_factory=dict)  # the pose graph's (e.g. qr_refactorisations)
     backend_ms_p50: float = 0.0  # odometry + observations + iSAM2 update per frame
     mapper: LandmarkMapper | None = None
     optimized: list[tuple[float, np.ndarray]] = field(default_factory=list)
@@ -462,6 +463,7 @@ def run_loop(
         ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None,
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
+        graph_counters=dict(graph.counters),
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,
         associator=associator,
     )

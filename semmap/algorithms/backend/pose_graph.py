@@ -192,8 +192,9 @@ class PoseGraph:
             "factors_replaced": 0, "observations_ignored": 0, "estimates_read": 0, "estimate_full_reads": 0,
             "landmarks_retired": 0, "factors_retired": 0, "observations_retired": 0,
             "nodes_settled": 0, "settles": 0, "observations_settled": 0, "pose_priors": 0,
-            "pose_priors_on_settled": 0,
+            "pose_priors_on_settled": 0, "qr_refactorisations": 0,
         }
+        self.refactorised_because = ""  # why iSAM2 was rebuilt with QR factorisation, if it was
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -405,11 +406,49 @@ class PoseGraph:
             if factor is not None:
                 graph.add(factor)
                 tags.append(tag)
-        result = self._isam.update(graph, values, self._remove)
-        for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
-            if tag is not None:
-                self._factor_ids[tag] = int(index)
+        slots_before = self._isam.getFactorsUnsafe().size()
+        try:
+            result = self._isam.update(graph, values, self._remove)
+        except RuntimeError as exc:
+            if "Indeterminate" not in str(exc):
+                raise
+            self._refactor_by_qr(tags, slots_before, str(exc).strip().splitlines()[0])
+        else:
+            for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
+                if tag is not None:
+                    self._factor_ids[tag] = int(index)
         self._new_factors, self._new_tag_pos, self._remove = [], {}, []
+
+    def _refactor_by_qr(self, new_tags: list[Hashable | None], slots_before: int, why: str) -> None:
+        """iSAM2's Cholesky gave up on a graph that is solvable but badly conditioned: rebuild it from the same
+        factors and values, factorised by QR from now on (slower, numerically stable).
+
+        Why it happens: a long chain anchored only at its start (a street: 300 m in 330 frames) leaves its newest
+        poses and landmarks free to swing together by tens of metres (Hessian eigenvalues ~2e-4) while each step is
+        pinned to millimetres (~3e7): a condition number of 1e11, which Levenberg-Marquardt and QR solve and
+        Cholesky's pivot test refuses ("Indeterminate linear system"). The failed update has already taken the
+        new factors (appended after `slots_before`) and values, so the rebuild reads everything from it.
+        """
+        self.refactorised_because = why  # (counted in `qr_refactorisations`; the backend's status shows both)
+        index_tag = {index: tag for tag, index in self._factor_ids.items()}
+        index_tag.update({slots_before + i: tag for i, tag in enumerate(new_tags) if tag is not None})
+        removed = set(self._remove)
+        failed = self._isam.getFactorsUnsafe()
+        graph, tags = gtsam.NonlinearFactorGraph(), []
+        for index in range(failed.size()):
+            factor = failed.at(index)
+            if factor is None or index in removed:
+                continue
+            graph.add(factor)
+            tags.append(index_tag.get(index))
+        values = gtsam.Values(self._isam.getLinearizationPoint())
+        self._isam_params.setFactorization("QR")
+        self._isam = gtsam.ISAM2(self._isam_params)
+        result = self._isam.update(graph, values)
+        self._factor_ids = {tag: int(index) for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True)
+                            if tag is not None}
+        self._ref.rows[self._n_settled :] = np.nan  # a new iSAM2: read every live node again
+        self.counters["qr_refactorisations"] += 1
 
     # ------------------------------------------------------------------------------------------ settling
 

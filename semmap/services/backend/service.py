@@ -163,6 +163,7 @@ class BackendService(StageService):
                 self.log.warning("frame %d carries a prior-map alignment, but this backend was not started for a "
                                  "prior map (--prior-map): ignored", obs.frame_id)
             self.metrics.time_ms("update_ms", step.update_ms)
+            self._count_refactorisation()
             if cloud is not None:
                 self._loop_closed(cloud, step.closure, step.loop_closure_ms or 0.0)
             self.metrics.time_ms("publish_ms", step.timing_ms["publish"])
@@ -181,6 +182,14 @@ class BackendService(StageService):
             self.metrics.count("observations_unjoined")
         for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
             del self.clouds[stale]
+
+    def _count_refactorisation(self) -> None:
+        """Say so when the pose graph had to leave Cholesky for QR (an ill-conditioned graph: a long street)."""
+        done = self.graph.counters["qr_refactorisations"]
+        if done > self.metrics.counters.get("graph_qr_refactorisations", 0):
+            self.metrics.counters["graph_qr_refactorisations"] = done
+            self.log.warning("pose graph: iSAM2's Cholesky refused an ill-conditioned update (%s); rebuilt and "
+                             "factorised by QR from now on (slower, stable)", self.graph.refactorised_because)
 
     def _log_realigned(self, obs: Observations) -> None:
         """A frame that carried a prior-map alignment moved the graph into the prior map's frame
