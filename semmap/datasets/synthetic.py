@@ -717,21 +717,7 @@ class SyntheticDataset(Dataset):
         if any_missed and self._sky is not None:
             rgb[missed] = np.asarray(self._sky, np.float32) * np.float32(255.0)
 
-        depth_mm = depth * np.float32(1000.0)
-        if self.config.depth_noise > 0:
-            start = (index * 7919 + 104729) % (len(self._noise_bank) - depth.size)
-            noise_mm = self._noise_bank[start : start + depth.size] * depth
-            noise_mm *= depth
-            noise_mm *= np.float32(self.config.depth_noise * 1000.0)
-            depth_mm += noise_mm
-        depth_mm += np.float32(0.5)
-        np.clip(depth_mm, 0.0, 65535.0, out=depth_mm)
-        depth_mm = depth_mm.astype(np.uint16)
-        if any_missed:
-            depth_mm[missed] = 0
-        if far is not None:
-            depth_mm[far] = 0
-
+        depth_mm = self._depth_mm(index, depth, missed if any_missed else None, far)
         instances = self._instances(labels, counts, row_counts, fs)
         if fs.ids is not None:
             labels = np.take(fs.ids, labels)
@@ -749,6 +735,26 @@ class SyntheticDataset(Dataset):
             ),
             labels=labels_2d,
         )
+
+    def _depth_mm(self, index: int, depth: np.ndarray, missed: np.ndarray | None,
+                  far: np.ndarray | None) -> np.ndarray:
+        """The ray lengths as a uint16 depth image in mm, with the sensor's noise (seeded per frame); rays that hit
+        nothing (`missed`) or ended beyond the depth range (`far`) read 0, as a depth camera's holes do."""
+        depth_mm = depth * np.float32(1000.0)
+        if self.config.depth_noise > 0:
+            start = (index * 7919 + 104729) % (len(self._noise_bank) - depth.size)
+            noise_mm = self._noise_bank[start : start + depth.size] * depth
+            noise_mm *= depth
+            noise_mm *= np.float32(self.config.depth_noise * 1000.0)
+            depth_mm += noise_mm
+        depth_mm += np.float32(0.5)
+        np.clip(depth_mm, 0.0, 65535.0, out=depth_mm)
+        depth_mm = depth_mm.astype(np.uint16)
+        if missed is not None:
+            depth_mm[missed] = 0
+        if far is not None:
+            depth_mm[far] = 0
+        return depth_mm
 
     def _instances(
         self, labels: np.ndarray, counts: np.ndarray, row_counts: np.ndarray, fs: FrameScene

@@ -435,15 +435,13 @@ def run_loop(
                 f"({time.perf_counter() - t_start:.0f} s)",
                 file=sys.stderr,
             )
-    mapper = associator.mapper
     graph = backend.graph
     ids, stamps, corrected = graph.corrected_poses()
     optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
     gt = [(s, g) for s, g in zip(rec.stamps, rec.gt, strict=True) if g is not None]
-    landmarks = mapper.landmarks()
+    landmarks = associator.mapper.landmarks()
     slam = getattr(front, "slam_trajectory", None)
-    close = getattr(front, "close", None)
-    if close is not None:
+    if (close := getattr(front, "close", None)) is not None:
         close()
     return LoopResult(
         ate_odometry=ate_rmse(gt, odo_traj),
@@ -456,7 +454,7 @@ def run_loop(
         frames=len(rec.detections),
         wall_s=time.perf_counter() - t_start,
         classes=dict(Counter(lm.class_name for lm in landmarks)),
-        mapper=mapper,
+        mapper=associator.mapper,
         optimized=optimized,
         odometry=odo_traj,
         frontend_counters=dict(getattr(front, "counters", {})),
