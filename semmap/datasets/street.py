@@ -30,7 +30,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .base import DatasetError, ObjectTruth
+from .base import DatasetError
 from .synthetic import (
     FrameScene,
     Mesh,
@@ -569,39 +569,8 @@ class StreetDataset(SyntheticDataset):
             np.concatenate([t[5] for t in tables]),
         )
 
-    def object_poses(self, index: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        """(R, t) of every moving object at frame `index`, in the street frame (z up)."""
-        t = self.stamp(index)
-        return {o.instance_id: o.motion(t) for o in self._objects if o.motion is not None}
-
     def _world_vertices(self, obj: _Object, poses: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
         """The object's vertices in the trajectory file's frame."""
         vertices = self._object_vertices(obj, poses)
         return vertices @ self._to_street[:3, :3]  # street -> trajectory frame (the transpose's action)
 
-    def object_centroids(self, index: int) -> dict[int, np.ndarray]:
-        poses = self.object_poses(index)
-        result = {}
-        for obj in self._objects[1:]:
-            vertices = self._world_vertices(obj, poses)
-            result[obj.instance_id] = (vertices.min(0) + vertices.max(0)) / 2
-        return result
-
-    def objects(self) -> list[ObjectTruth]:
-        """Every object, in the trajectory file's frame (AABB there; the moving ones at frame 0)."""
-        poses = self.object_poses(0)
-        truths = []
-        for obj in self._objects[1:]:
-            vertices = self._world_vertices(obj, poses)
-            lo, hi = vertices.min(0), vertices.max(0)
-            centroid, extent = (lo + hi) / 2, hi - lo
-            truths.append(
-                ObjectTruth(
-                    instance_id=obj.instance_id,
-                    class_name=obj.class_name,
-                    centroid=(float(centroid[0]), float(centroid[1]), float(centroid[2])),
-                    extent=(float(extent[0]), float(extent[1]), float(extent[2])),
-                    moving=obj.moving,
-                )
-            )
-        return truths

@@ -561,12 +561,17 @@ class SyntheticDataset(Dataset):
             vertices = vertices @ rotation.T + translation
         return vertices
 
+    def _world_vertices(self, obj: _Object, poses: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """The object's vertices in the frame its ground truth is reported in (the room's own; a world built in
+        another frame, the street, turns them)."""
+        return self._object_vertices(obj, poses)
+
     def object_centroids(self, index: int) -> dict[int, np.ndarray]:
         """World AABB centre of every object at frame `index` (static ones never change)."""
         poses = self.object_poses(index)
         result = {}
         for obj in self._objects[1:]:
-            vertices = self._object_vertices(obj, poses)
+            vertices = self._world_vertices(obj, poses)
             result[obj.instance_id] = (vertices.min(0) + vertices.max(0)) / 2
         return result
 
@@ -575,7 +580,7 @@ class SyntheticDataset(Dataset):
         poses = self.object_poses(0)
         truths = []
         for obj in self._objects[1:]:
-            vertices = self._object_vertices(obj, poses)
+            vertices = self._world_vertices(obj, poses)
             lo, hi = vertices.min(0), vertices.max(0)
             centroid, extent = (lo + hi) / 2, hi - lo
             truths.append(
