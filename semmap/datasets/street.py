@@ -44,6 +44,7 @@ from .synthetic import (
     _rotate_x,
     _yaw_matrix,
     box_mesh,
+    config_from_options,
     cylinder_mesh,
     sphere_mesh,
 )
@@ -94,29 +95,7 @@ class StreetConfig:
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> StreetConfig:
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        values: dict[str, Any] = {}
-        for key, raw in options.items():
-            if key == "size":
-                try:
-                    values["width"], values["height"] = (int(v) for v in str(raw).lower().split("x"))
-                except ValueError as exc:
-                    raise DatasetError(f"synthetic street: size must look like 620x188, got {raw!r}") from exc
-                continue
-            if key not in fields:
-                names = ", ".join(["size", *fields])
-                raise DatasetError(f"synthetic street: unknown option {key!r}; valid options: {names}")
-            default = getattr(cls, key)
-            try:
-                if isinstance(default, str):
-                    values[key] = str(raw)
-                elif isinstance(default, int):
-                    values[key] = int(raw)
-                else:
-                    values[key] = None if raw is None else float(raw)
-            except (TypeError, ValueError) as exc:
-                raise DatasetError(f"synthetic street: bad value for {key}: {raw!r}") from exc
-        return cls(**values)
+        return config_from_options(cls, options, "synthetic street", "620x188")
 
 
 def read_trajectory(path: str | Path, fmt: str = "auto", rate_hz: float = 10.0) -> list[tuple[float, np.ndarray]]:

@@ -16,7 +16,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import open3d as o3d
@@ -26,6 +26,9 @@ from semmap.core.geometry import look_at
 from .base import Dataset, DatasetError, FrameData, InstanceBox, Intrinsics, ObjectTruth
 
 Mesh = tuple[np.ndarray, np.ndarray]  # (V x 3 float vertices, T x 3 int triangles)
+
+
+C = TypeVar("C")  # a world's config dataclass (config_from_options)
 
 
 @dataclass(frozen=True)
@@ -93,33 +96,42 @@ class SyntheticConfig:
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> SyntheticConfig:
         """Build from loose options (strings from a spec like `synthetic:frames=600,seed=3,size=320x240`)."""
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        values: dict[str, Any] = {}
-        for key, raw in options.items():
-            if key == "size":
-                try:
-                    width, height = (int(v) for v in str(raw).lower().split("x"))
-                except ValueError as exc:
-                    raise DatasetError(f"synthetic: size must look like 640x480, got {raw!r}") from exc
-                values["width"], values["height"] = width, height
-                continue
-            if key not in fields:
-                names = ", ".join(["size", *fields])
-                raise DatasetError(f"synthetic: unknown option {key!r}; valid options: {names}")
-            default = getattr(cls, key)
+        return config_from_options(cls, options, "synthetic", "640x480")
+
+
+def config_from_options(cls: type[C], options: Mapping[str, Any], label: str, size_example: str) -> C:
+    """A world's config dataclass from loose options (strings from `synthetic:frames=600,size=320x240`): `size`
+    sets width and height; each other option is read as its field's default type (tuple `AxBxC`, str, bool, int,
+    else float; None stays None). DatasetError names an unknown option or a bad value."""
+    fields = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]  # (declared order, for the error)
+    values: dict[str, Any] = {}
+    for key, raw in options.items():
+        if key == "size":
             try:
-                if key == "room_size":
-                    parts = raw if isinstance(raw, list | tuple) else str(raw).lower().split("x")
-                    values[key] = tuple(float(v) for v in parts)
-                elif isinstance(default, bool):
-                    values[key] = raw if isinstance(raw, bool) else str(raw).lower() in ("1", "true", "yes")
-                elif isinstance(default, int):
-                    values[key] = int(raw)
-                else:  # floats and the optional intrinsics
-                    values[key] = None if raw is None else float(raw)
-            except (TypeError, ValueError) as exc:
-                raise DatasetError(f"synthetic: bad value for {key}: {raw!r}") from exc
-        return cls(**values)
+                width, height = (int(v) for v in str(raw).lower().split("x"))
+            except ValueError as exc:
+                raise DatasetError(f"{label}: size must look like {size_example}, got {raw!r}") from exc
+            values["width"], values["height"] = width, height
+            continue
+        if key not in fields:
+            names = ", ".join(["size", *fields])
+            raise DatasetError(f"{label}: unknown option {key!r}; valid options: {names}")
+        default = getattr(cls, key)
+        try:
+            if isinstance(default, tuple):
+                parts = raw if isinstance(raw, list | tuple) else str(raw).lower().split("x")
+                values[key] = tuple(float(v) for v in parts)
+            elif isinstance(default, str):
+                values[key] = str(raw)
+            elif isinstance(default, bool):
+                values[key] = raw if isinstance(raw, bool) else str(raw).lower() in ("1", "true", "yes")
+            elif isinstance(default, int):
+                values[key] = int(raw)
+            else:  # floats and the optional intrinsics
+                values[key] = None if raw is None else float(raw)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(f"{label}: bad value for {key}: {raw!r}") from exc
+    return cls(**values)
 
 
 # ----------------------------------------------------------------------------------------------------------
