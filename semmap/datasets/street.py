@@ -320,20 +320,7 @@ class StreetDataset(SyntheticDataset):
         self._moving_ids = {o.instance_id for o in self._objects if o.moving}
         self._build_cells(background)
 
-        k = self.intrinsics
-        u, v = np.meshgrid(np.arange(k.width, dtype=np.float32), np.arange(k.height, dtype=np.float32))
-        self._dirs_cam = np.stack(
-            [((u - np.float32(k.cx)) / np.float32(k.fx)).ravel(), ((v - np.float32(k.cy)) / np.float32(k.fy)).ravel(),
-             np.ones(u.size, np.float32)], axis=1
-        )  # fmt: skip
-        self._inv_dir_norm = (1.0 / np.linalg.norm(self._dirs_cam, axis=1)).astype(np.float32)
-        bank_rng = np.random.default_rng([c.seed, 11])
-        self._noise_bank = bank_rng.standard_normal(2 * u.size + 7919, dtype=np.float32)
-        self._rows = np.repeat(np.arange(k.height, dtype=np.int32), k.width)
-        self._cols = np.tile(np.arange(k.width, dtype=np.int32), k.height)
-        self._texture_key = np.int32((c.seed * 2654435761) & 0x7FFFFFFF)
-        light = np.array([0.35, -0.25, 1.0])
-        self._light = (light / np.linalg.norm(light)).astype(np.float32)
+        self._prepare_rays(c.seed)
         self._cache_key: tuple[int, ...] | None = None
         self._cache: tuple[np.ndarray, ...] | None = None
 

@@ -523,23 +523,7 @@ class SyntheticDataset(Dataset):
         self._triangles = o3d.core.Tensor(np.vstack(triangles).astype(np.uint32))
         self._tri_color, self._tri_label = np.vstack(color), np.concatenate(label)
         self._tri_inv_size, self._tri_contrast = np.concatenate(inv_size), np.concatenate(contrast)
-        k = self.intrinsics
-        u, v = np.meshgrid(np.arange(k.width, dtype=np.float32), np.arange(k.height, dtype=np.float32))
-        # (N, 3) camera-frame ray directions with z = 1, so the ray parameter t_hit is the z-depth itself.
-        self._dirs_cam = np.stack(
-            [((u - np.float32(k.cx)) / np.float32(k.fx)).ravel(), ((v - np.float32(k.cy)) / np.float32(k.fy)).ravel(),
-             np.ones(u.size, np.float32)], axis=1
-        )  # fmt: skip
-        self._inv_dir_norm = (1.0 / np.linalg.norm(self._dirs_cam, axis=1)).astype(np.float32)
-        # Depth noise is drawn from one seeded bank at a per-frame offset: a fresh normal draw per frame
-        # would cost more than the rest of the shading together.
-        bank_rng = np.random.default_rng([self.config.seed, 11])
-        self._noise_bank = bank_rng.standard_normal(2 * u.size + 7919, dtype=np.float32)
-        self._rows = np.repeat(np.arange(k.height, dtype=np.int32), k.width)
-        self._cols = np.tile(np.arange(k.width, dtype=np.int32), k.height)
-        self._texture_key = np.int32((self.config.seed * 2654435761) & 0x7FFFFFFF)
-        light = np.array([0.35, -0.25, 1.0])
-        self._light = (light / np.linalg.norm(light)).astype(np.float32)  # direction towards a high, oblique light
+        self._prepare_rays(self.config.seed)
 
     # ---- geometry over time
 
@@ -642,6 +626,27 @@ class SyntheticDataset(Dataset):
 
     def _class_of(self, instance_id: int) -> str:
         return self._classes[instance_id]
+
+    def _prepare_rays(self, seed: int) -> None:
+        """What every frame's ray cast and shading reuse: the camera's ray directions, the seeded depth-noise bank,
+        pixel rows and columns, the texture key and the light."""
+        k = self.intrinsics
+        u, v = np.meshgrid(np.arange(k.width, dtype=np.float32), np.arange(k.height, dtype=np.float32))
+        # (N, 3) camera-frame ray directions with z = 1, so the ray parameter t_hit is the z-depth itself.
+        self._dirs_cam = np.stack(
+            [((u - np.float32(k.cx)) / np.float32(k.fx)).ravel(), ((v - np.float32(k.cy)) / np.float32(k.fy)).ravel(),
+             np.ones(u.size, np.float32)], axis=1
+        )  # fmt: skip
+        self._inv_dir_norm = (1.0 / np.linalg.norm(self._dirs_cam, axis=1)).astype(np.float32)
+        # Depth noise is drawn from one seeded bank at a per-frame offset: a fresh normal draw per frame
+        # would cost more than the rest of the shading together.
+        bank_rng = np.random.default_rng([seed, 11])
+        self._noise_bank = bank_rng.standard_normal(2 * u.size + 7919, dtype=np.float32)
+        self._rows = np.repeat(np.arange(k.height, dtype=np.int32), k.width)
+        self._cols = np.tile(np.arange(k.width, dtype=np.int32), k.height)
+        self._texture_key = np.int32((seed * 2654435761) & 0x7FFFFFFF)
+        light = np.array([0.35, -0.25, 1.0])
+        self._light = (light / np.linalg.norm(light)).astype(np.float32)  # direction towards a high, oblique light
 
     def render(self, index: int) -> SyntheticRender:
         """Ray cast frame `index`: RGB, depth (mm), exact pose, instance boxes and the instance-id image."""
