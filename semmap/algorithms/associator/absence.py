@@ -61,14 +61,16 @@ def absent_landmarks(
     if not visible.any():
         return []
     dist = np.linalg.norm(cam, axis=1)
-    dirs = cam / np.maximum(dist, 1e-9)[:, None]
-    along = dirs @ cam.T  # along[i, j]: depth of landmark j along the line of sight to landmark i
-    perp = np.sqrt(np.maximum(np.square(np.linalg.norm(cam, axis=1))[None, :] - along**2, 0.0))
-    blocks = (perp < radius[None, :]) & (along + radius[None, :] < dist[:, None] - radius[:, None]) & (along > 0)
-    np.fill_diagonal(blocks, False)
+    rows = np.flatnonzero(visible)  # occlusion only for the landmarks in view: (in view) x (all), not all x all
+    dirs = cam[rows] / np.maximum(dist[rows], 1e-9)[:, None]
+    along = dirs @ cam.T  # along[r, j]: depth of landmark j along the line of sight to landmark rows[r]
+    perp = np.sqrt(np.maximum(np.square(dist)[None, :] - along**2, 0.0))
+    blocks = (perp < radius[None, :]) & (along + radius[None, :] < (dist - radius)[rows][:, None]) & (along > 0)
+    blocks[np.arange(len(rows)), rows] = False
     gone: list[int] = []
-    for i, lm in enumerate(lms):
-        if not visible[i] or frame_id in lm.frames or blocks[i].any():
+    for r, i in enumerate(rows):
+        lm = lms[i]
+        if frame_id in lm.frames or blocks[r].any():
             continue
         r_px = max(2.0, lm.radius * k.fx / z[i])  # its disk on the image meets a box of its class
         seen = any(

@@ -61,6 +61,23 @@ def nn_distance(cloud: np.ndarray, lm: LandmarkState, trim: float) -> float:
     return trimmed_mean(d, trim)
 
 
+def near_enough(
+    centroid: np.ndarray, size: float, landmarks: list[LandmarkState], stamp: float, p: MapperParams
+) -> list[LandmarkState]:
+    """The landmarks (with views) whose gate may hold `centroid`, found with array arithmetic: a street-scale map
+    holds a thousand cars, and one Python distance per landmark per candidate would grow with the map. The
+    bound is the gate radius itself with a small tolerance (the exact test follows, per landmark)."""
+    live = [lm for lm in landmarks if lm.views]
+    if len(live) <= 16:
+        return live
+    c = np.array([lm.centroid for lm in live], dtype=np.float64)
+    s = np.maximum(np.array([lm.size for lm in live]), size)
+    dt = np.maximum(stamp - np.array([lm.last_assoc for lm in live]), 0.0)
+    r = np.maximum(np.sqrt(dt / p.gate_u * s), np.maximum(p.gate_min_m, p.gate_size_factor * s))
+    d = np.linalg.norm(c - centroid, axis=1)
+    return [lm for lm, ok in zip(live, d <= r * (1.0 + 1e-9) + 1e-9, strict=True) if ok]
+
+
 @dataclass
 class Decision:
     kind: str  # "new" | "associate" | "hold"
@@ -83,9 +100,7 @@ def decide(
 ) -> Decision:
     """Where a validated candidate goes (see module docstring). `landmarks`: same class, id order."""
     in_gate: list[tuple[LandmarkState, float, float]] = []  # (landmark, distance, gate radius)
-    for lm in landmarks:
-        if len(lm.views) == 0:
-            continue
+    for lm in near_enough(centroid, size, landmarks, stamp, p):
         s = max(lm.size, size)
         r = gate_radius(stamp - lm.last_assoc, s, p)
         d = float(np.linalg.norm(centroid - lm.centroid))

@@ -138,11 +138,30 @@ class LandmarkState:
         )
 
 
+class CentroidIndex:
+    """Which landmarks lie near a point: a KD-tree over their centroids, for one pass over a map that does not
+    change meanwhile (rebuild it after a merge). Why: merging and association against a street-scale map of
+    thousands of landmarks must not compare every pair (a refine re-merges every landmark that moved)."""
+
+    def __init__(self, landmarks: list[LandmarkState]) -> None:
+        self.landmarks = landmarks
+        self.max_radius = max((lm.radius for lm in landmarks), default=0.0)
+        centroids = np.stack([lm.centroid for lm in landmarks]) if landmarks else np.zeros((0, 3))
+        self._tree = cKDTree(centroids)
+
+    def within(self, point: np.ndarray, distance: float) -> list[LandmarkState]:
+        """The landmarks whose centroid lies within `distance` of `point`, in the order they were given."""
+        if not self.landmarks:
+            return []
+        return [self.landmarks[i] for i in sorted(self._tree.query_ball_point(point, distance))]
+
+
 class LandmarkMap:
     """Landmarks by id (ids increase, never reused), iterated in id order."""
 
     def __init__(self) -> None:
         self._landmarks: dict[int, LandmarkState] = {}
+        self._in_order: list[LandmarkState] | None = None  # all() cached until a landmark comes or goes
         self.next_id = 0
 
     def __len__(self) -> int:
@@ -160,21 +179,27 @@ class LandmarkMap:
     def create(self, class_name: str, stamp: float) -> LandmarkState:
         lm = LandmarkState(self.next_id, class_name, first_seen=stamp, last_seen=stamp, last_assoc=stamp)
         self._landmarks[lm.id] = lm
+        self._in_order = None
         self.next_id += 1
         return lm
 
     def remove(self, landmark_id: int) -> None:
         self._landmarks.pop(landmark_id, None)
+        self._in_order = None
 
     def insert(self, lm: LandmarkState) -> None:
         """A landmark made elsewhere (a prior map's) under its own id; later ids come after it."""
         if lm.id in self._landmarks:
             raise ValueError(f"landmark {lm.id} exists already")
         self._landmarks[lm.id] = lm
+        self._in_order = None
         self.next_id = max(self.next_id, lm.id + 1)
 
     def all(self) -> list[LandmarkState]:
-        return [self._landmarks[i] for i in sorted(self._landmarks)]
+        """Every landmark in id order (a new list; the order is cached, as every candidate asks for it)."""
+        if self._in_order is None:
+            self._in_order = [self._landmarks[i] for i in sorted(self._landmarks)]
+        return list(self._in_order)
 
     def of_class(self, class_name: str) -> list[LandmarkState]:
         return [lm for lm in self.all() if lm.class_name == class_name]

@@ -17,7 +17,7 @@ import numpy as np
 from .association import gate_floor
 from .candidate import MapProblem, View, map_centroids, start_point, view_sigmas, whole_views, world_centroids
 from .geometry import robust_box, voxel_downsample
-from .landmark_map import LandmarkMap, LandmarkState
+from .landmark_map import CentroidIndex, LandmarkMap, LandmarkState
 from .params import MapperParams
 
 
@@ -166,11 +166,13 @@ def merge_pass(
     `absorb_fn(keep, gone)` does the merge; returns the merges (absorbed id, surviving id) in order."""
     merges: list[tuple[int, int]] = []
     queue = sorted(set(ids))
+    index = CentroidIndex(landmarks.all()) if queue else None
     while queue:
         a = landmarks.get(queue.pop(0))
-        if a is None:
+        if a is None or index is None:
             continue
-        for b in landmarks.all():
+        # only landmarks whose spheres can touch a's (every pair would be quadratic in the map's size)
+        for b in index.within(a.centroid, a.radius + index.max_radius):
             if b.id == a.id or float(np.linalg.norm(a.centroid - b.centroid)) > a.radius + b.radius:
                 continue
             if b.class_name != a.class_name:
@@ -190,5 +192,6 @@ def merge_pass(
             merges.append((gone.id, keep.id))
             recompute([keep], stamp, p, dirty)
             queue = sorted(set(queue) - {gone.id} | {keep.id})
+            index = CentroidIndex(landmarks.all())  # keep moved, gone left
             break
     return merges
