@@ -57,9 +57,9 @@ def _assert_recording(rrd: Path, body: dict) -> None:
     """The recording loads and holds landmark boxes, centre spheres, labels `class #id`, trajectories, timings."""
     assert _rerun("rrd", "verify", str(rrd)).returncode == 0
     summary = _rerun("rrd", "print", str(rrd)).stdout
-    for entity, archetype in [("/world/landmarks ", "Boxes3D:half_sizes"),
-                              ("/world/landmarks/centres", "Ellipsoids3D:half_sizes"),
-                              ("/world/landmarks/labels", "Points3D:"),
+    for entity, archetype in [("/world/landmarks/tile_", "Boxes3D:half_sizes"),
+                              ("/world/landmarks/tile_", "Ellipsoids3D:half_sizes"),
+                              ("/world/landmarks/tile_", "Points3D:"),
                               ("/world/trajectory/odometry", "LineStrips3D:strips"),
                               ("/world/trajectory/optimized", "LineStrips3D:strips"),
                               ("/world/camera/image ", "EncodedImage:blob"),

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -34,7 +35,11 @@ from semmap.runtime.pipeline import AssociatorStage, PriorFrame
 from semmap.runtime.service import service_main
 from semmap.runtime.stage_service import StageService
 
-SAVE_PERIOD_S = 1.0
+SAVE_PERIOD_S = 1.0  # refinements of existing landmarks are saved at most this often
+# ... and no save comes sooner than its own duration / SAVE_SHARE after the last: a save writes the whole map, so on
+# a street of thousands of landmarks saving at every new one would take most of the associator's time (the input
+# journal keeps whatever came after a save, so a crash loses nothing either way)
+SAVE_SHARE = 0.05
 REALTIME_MAX_PENDING = 8  # tracks of later frames that may wait for a missing one (real time)
 
 
@@ -59,6 +64,7 @@ class AssociatorService(StageService):
         self.map_seq = 0
         self.completed_frame = -1  # the newest frame completed (what a save includes)
         self.last_saved = 0.0
+        self.last_save_s = 0.0  # how long the last save took (saves are spaced by it: SAVE_SHARE)
         self.dirty = False
         db = self.args.map_db or (self.out_dir / "map.sqlite" if self.out_dir is not None else None)
         self.store = MapStore(db) if db is not None else None
@@ -213,6 +219,13 @@ class AssociatorService(StageService):
             step = self.stage.process(tracks.frame_id, tracks.stamp, tracks.candidates, tracks.ended, boxes)
         for stage, ms in step.timing_ms.items():
             self.metrics.time_ms(f"{stage}_ms", ms)
+        revisit = self.stage.last_revisit
+        if revisit is not None:
+            t = revisit.transform[:3, 3]
+            self.log.info("revisit at frame %d: %d landmarks seen before (next best placement %d, residual %.2f m, "
+                          "drift since %.1f m): fused into the old ones", tracks.frame_id, len(revisit.pairs),
+                          revisit.runner_up, revisit.rms_m, math.hypot(*t))
+        self.metrics.counters.update(self.stage.revisits.counters())
         prior = self.stage.prior_step(tracks.frame_id, tracks.stamp, boxes, step)
         self._count_prior(tracks.frame_id, prior)
         step = prior.step
@@ -263,8 +276,9 @@ class AssociatorService(StageService):
         self._map_changed(step, full)
 
     def _map_changed(self, step: MapperStep, full: bool) -> None:
-        """Refresh what queries answer from and save when due: a new, removed or merged landmark at once (a crash
-        must not lose it), refinements of existing ones at most once a second (most frames change nothing)."""
+        """Refresh what queries answer from and save when due: a new, removed or merged landmark at once while saves
+        are cheap, refinements of existing ones at most once a second (most frames change nothing); a large map's
+        saves are spaced so that saving takes at most SAVE_SHARE of the time."""
         structural = False
         if step.updated or step.removed or step.merges or full:
             known = {lm.id for lm in self.snapshot}
@@ -275,7 +289,8 @@ class AssociatorService(StageService):
         self.metrics.count("merges", len(step.merges))
         for absorbed, survivor in step.merges:
             self.log.info("merged landmark %d into %d", absorbed, survivor)
-        if self.dirty and (structural or time.monotonic() - self.last_saved > SAVE_PERIOD_S):
+        since = time.monotonic() - self.last_saved
+        if self.dirty and since > self.last_save_s / SAVE_SHARE and (structural or since > SAVE_PERIOD_S):
             self._save()
 
     # -- persistence ----------------------------------------------------------------------------------------
@@ -320,6 +335,7 @@ class AssociatorService(StageService):
         if self.muted or self.stage.awaiting is not None:
             self.dirty = True
             return
+        t0 = time.perf_counter()
         with self.metrics.timer("save_ms"):
             if self.store is not None:
                 self.store.save({**self.stage.to_state(), "journal_seq": self.journal_seq,
@@ -329,6 +345,7 @@ class AssociatorService(StageService):
             if self.out_dir is not None:
                 write_map_json(self.out_dir / "map.json", self.snapshot)
         self.last_saved = time.monotonic()
+        self.last_save_s = time.perf_counter() - t0
         self.dirty = False
 
     def on_end_of_stream(self, control: Control) -> None:

@@ -1,10 +1,14 @@
 """Rerun sink: records the run to `DIR/run.rrd` (and optionally serves the web viewer for a live run).
 
 Entity layout (Rerun 0.41):
-- `world/landmarks`: each landmark as the outline of its extent's box (`Boxes3D`, wireframe: nothing solid hides
-  what lies inside, a cup on the table stays visible) in a stable colour per landmark id, and a small solid
-  sphere at its centroid (`world/landmarks/centres`); labels `class #id` sit on leader lines above the boxes
-  (`world/landmarks/labels`), raised where they would pile up on each other.
+- `world/landmarks/<tile>`: the landmarks whose centroid lies in one cube of `MAP_TILE_M` (`tile_<i>_<j>_<k>`,
+  `m` for a minus sign), each as the outline of its extent's box (`Boxes3D`, wireframe: nothing solid hides what
+  lies inside, a cup on the table stays visible) in a stable colour per landmark id, and a small solid sphere at
+  its centroid (`.../centres`); labels `class #id` sit on leader lines above the boxes (`.../labels`,
+  `.../leaders`), raised where they would pile up on each other. Why tiles: a map update re-logs only the tiles
+  it touched, so drawing costs the same per frame in a kitchen and on a street of thousands of landmarks (one
+  batch of all of them every frame grew the recording and the viewer's work with the map's size), and a tile's
+  labels stay few enough for Rerun to show them.
 - `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
 - `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
   `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
@@ -40,6 +44,7 @@ from semmap.core.messages import (
 from semmap.runtime.service import Service, service_main
 
 OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
+MAP_TILE_M = 16.0  # landmarks are drawn in cubes of this size; an update re-logs the cubes it touched
 LABEL_GAP_M = 0.12  # labels closer than this (horizontally and vertically) would overlap: the later is raised
 CORE_RADIUS_M = (0.03, 0.06)  # the centroid sphere: a fifth of the landmark's radius, within these bounds
 
@@ -57,15 +62,52 @@ def label_anchors(centres: np.ndarray, tops: np.ndarray, up: np.ndarray, gap: fl
     """Where each label goes: just above its box top, raised along `up` by steps of `gap` until it is at least
     `gap` from every label placed before it (in id order), so near-by objects' labels stack instead of piling."""
     up = np.asarray(up, float) / np.linalg.norm(up)
-    placed: list[np.ndarray] = []
-    for c, top in zip(np.asarray(centres, float), np.asarray(tops, float), strict=True):
+    centres, tops = np.asarray(centres, float).reshape(-1, 3), np.asarray(tops, float).reshape(-1, 3)
+    placed = np.zeros_like(centres)
+    for i, (c, top) in enumerate(zip(centres, tops, strict=True)):
         anchor = c + up * (float(np.dot(top - c, up)) + 0.05)
         for _ in range(50):
-            if all(np.linalg.norm(anchor - q) >= gap for q in placed):
+            if i == 0 or np.min(np.linalg.norm(placed[:i] - anchor, axis=1)) >= gap:
                 break
             anchor = anchor + up * gap
-        placed.append(anchor)
-    return np.array(placed).reshape(-1, 3)
+        placed[i] = anchor
+    return placed
+
+
+def map_tile(centroid: tuple[float, float, float] | np.ndarray) -> str:
+    """The entity name of the `MAP_TILE_M` cube a centroid lies in (Rerun path parts: no minus signs)."""
+    ijk = (int(np.floor(float(c) / MAP_TILE_M)) for c in centroid)
+    return "tile_" + "_".join(str(i).replace("-", "m") for i in ijk)
+
+
+class MapTiles:
+    """Which drawn tile each landmark is in (`map_tile` of its centroid when last drawn), so that a map update
+    re-logs only the tiles it touched: the one a landmark left and the one it is in now."""
+
+    def __init__(self) -> None:
+        self.members: dict[str, set[int]] = {}
+        self.tile_of: dict[int, str] = {}
+
+    def place(self, changed: set[int], landmarks: dict[int, Landmark]) -> dict[str, list[int]]:
+        """Move the `changed` landmarks (gone ones: absent from `landmarks`) to their tiles; returns every touched
+        tile with its members in id order (an empty list: the tile is empty now)."""
+        touched: set[str] = set()
+        for lid in changed:
+            old = self.tile_of.pop(lid, None)
+            if old is not None:
+                touched.add(old)
+                self.members[old].discard(lid)
+            lm = landmarks.get(lid)
+            if lm is not None:
+                tile = map_tile(lm.centroid)
+                self.tile_of[lid] = tile
+                self.members.setdefault(tile, set()).add(lid)
+                touched.add(tile)
+        out = {tile: sorted(self.members.get(tile, ())) for tile in sorted(touched)}
+        for tile, ids in out.items():
+            if not ids:
+                self.members.pop(tile, None)
+        return out
 
 
 def blueprint(up: np.ndarray | None = None, centre: np.ndarray | None = None, span: float = 4.0) -> object:
@@ -134,6 +176,7 @@ class VizService(Service):
         self.up: np.ndarray | None = None  # gravity's opposite, from the first pose (image y points down)
         rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.landmarks: dict[int, Landmark] = {}
+        self.tiles = MapTiles()
         self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
         self.optimized: dict[int, np.ndarray] = {}  # frame id -> corrected pose (the backend sends deltas)
         self.optimized_drawn_at = 0.0
@@ -157,7 +200,7 @@ class VizService(Service):
                 body = json.loads(reply.ok.payload.to_bytes())
                 self.landmarks = {lm.id: lm for lm in map(Landmark.from_dict, body.get("landmarks", []))}
                 if self.landmarks:
-                    self._log_landmarks()
+                    self._log_landmarks(set(self.landmarks))
                 break
 
     def _at(self, frame_id: int) -> None:
@@ -254,17 +297,21 @@ class VizService(Service):
     def _log_map(self, update: MapUpdate) -> None:
         rr = self.rr
         self._at(update.frame_id)
+        changed = set(self.landmarks) if update.full else set()
         if update.full:
             self.landmarks.clear()
         for gone in update.removed:
             self.landmarks.pop(gone, None)
+            changed.add(gone)
         for absorbed, _ in update.merges:
             self.landmarks.pop(absorbed, None)
+            changed.add(absorbed)
         for lm in update.landmarks:
             self.landmarks[lm.id] = lm
+            changed.add(lm.id)
         self.map_frame = max(self.map_frame, update.frame_id)
-        if update.landmarks or update.removed or update.merges or update.full:
-            self._log_landmarks()
+        if changed:
+            self._log_landmarks(changed)
         if update.rejected_candidates:
             # drawn red on the image from now on (see on_tracks), and noted in the log view
             self.rejected.update(update.rejected_candidates)
@@ -273,29 +320,33 @@ class VizService(Service):
         for name, ms in update.timing_ms.items():
             rr.log(f"timings/associator/{name}", rr.Scalars(ms))
 
-    def _log_landmarks(self) -> None:
+    def _log_landmarks(self, changed: set[int]) -> None:
+        """Re-log the tiles that the `changed` landmarks left or lie in (a tile left empty is cleared)."""
+        for tile, ids in self.tiles.place(changed, self.landmarks).items():
+            if ids:
+                self._log_tile(tile, [self.landmarks[i] for i in ids])
+            else:
+                self.rr.log(f"world/landmarks/{tile}", self.rr.Clear(recursive=True))
+
+    def _log_tile(self, tile: str, items: list[Landmark]) -> None:
+        """One tile's boxes, centre spheres, labels and leader lines (the whole tile: Rerun keeps the latest)."""
         rr = self.rr
-        items = [self.landmarks[i] for i in sorted(self.landmarks)]
-        if not items:
-            rr.log("world/landmarks", rr.Clear(recursive=True))
-            return
+        path = f"world/landmarks/{tile}"
         centres = np.array([lm.centroid for lm in items], float)
         half = np.array([np.maximum(np.asarray(lm.extent, float), 0.04) / 2 for lm in items])
         colors = [landmark_color(lm.id) for lm in items]
         labels = [f"{lm.class_name} #{lm.id}" for lm in items]
-        rr.log("world/landmarks", rr.Boxes3D(centers=centres, half_sizes=half, colors=colors, radii=0.005,
-                                             fill_mode="majorwireframe", labels=labels, show_labels=False))
+        rr.log(path, rr.Boxes3D(centers=centres, half_sizes=half, colors=colors, radii=0.005,
+                                fill_mode="majorwireframe", labels=labels, show_labels=False))
         core = np.clip([0.2 * lm.radius for lm in items], *CORE_RADIUS_M)
-        rr.log("world/landmarks/centres", rr.Ellipsoids3D(centers=centres, half_sizes=np.repeat(core[:, None], 3, 1),
-                                                          colors=colors, fill_mode="solid"))
+        rr.log(f"{path}/centres", rr.Ellipsoids3D(centers=centres, half_sizes=np.repeat(core[:, None], 3, 1),
+                                                  colors=colors, fill_mode="solid"))
         up = self.up if self.up is not None else np.array([0.0, 0.0, 1.0])
         up = up / np.linalg.norm(up)
         tops = centres + up * np.abs(half @ np.abs(up))[:, None] if len(items) else centres
         anchors = label_anchors(centres, tops, up)
-        rr.log("world/landmarks/labels", rr.Points3D(anchors, colors=colors, radii=0.006, labels=labels,
-                                                     show_labels=True))
-        rr.log("world/landmarks/leaders", rr.LineStrips3D(np.stack([centres, anchors], axis=1), colors=colors,
-                                                          radii=0.002))
+        rr.log(f"{path}/labels", rr.Points3D(anchors, colors=colors, radii=0.006, labels=labels, show_labels=True))
+        rr.log(f"{path}/leaders", rr.LineStrips3D(np.stack([centres, anchors], axis=1), colors=colors, radii=0.002))
 
     def on_end_of_stream(self, control) -> None:  # noqa: ANN001 - Control
         frames_done = self.last_frame_id >= control.last_frame_id
