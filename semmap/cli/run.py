@@ -152,7 +152,7 @@ def _run(args: argparse.Namespace) -> int:
     special = args.data in ("synthetic", "external") or args.data.startswith("synthetic:")
     odometry_line = ""
     if args.data != "external":
-        chosen, odometry_line = choose_odometry(config, synthetic=special)
+        chosen, odometry_line = choose_odometry(config, synthetic=special, data=args.data)
         overrides += chosen
         if chosen:
             config = load_config(args.config, overrides)
@@ -268,7 +268,7 @@ def _start(plan: RunPlan, args: argparse.Namespace, config: Config, dataset: Dat
             dataset.close()
     plan.lock_fd = lock.fd
     # the odometry (a simulated one above all) and the camera are said even with --quiet: two lines
-    for line in start_banner(plan, dataset_camera, odometry_line):
+    for line in start_banner(plan, dataset_camera, odometry_line, config.odometry.drift_profile):
         print(f"semmap: {line}", file=sys.stderr, flush=True)
     try:
         return Orchestrator(plan).run()
@@ -276,10 +276,11 @@ def _start(plan: RunPlan, args: argparse.Namespace, config: Config, dataset: Dat
         lock.release()
 
 
-def choose_odometry(config: Config, synthetic: bool) -> tuple[list[str], str]:
+def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[list[str], str]:
     """The front end this run uses, decided once, here, and named: `auto` becomes orbslam3 (where the pyorbslam3
     wheel is installed and a vocabulary is set or lies in the model dir as orbvoc.txt) or rgbd; on the synthetic
-    world its simulated odometry. Returns the overrides that pin it for every service, and the line that says it."""
+    world its simulated odometry, whose drift profile `auto` becomes the data's platform (a car drifts per metre).
+    Returns the overrides that pin it for every service, and the line that says it."""
     from semmap.algorithms.odometry import AUTO, check_mode, resolve_mode
     from semmap.algorithms.odometry.orbslam3 import installed
     from semmap.runtime.model_store import default_vocabulary
@@ -296,6 +297,10 @@ def choose_odometry(config: Config, synthetic: bool) -> tuple[list[str], str]:
     if section.mode == AUTO:
         overrides.append(f"odometry.mode={mode}")
     kind, _ = check_mode(mode)
+    if kind.name == "gt+drift" and section.drift_profile == "auto":
+        from semmap.datasets import platform_of
+
+        overrides.append(f"odometry.drift_profile={platform_of(data) if data else 'handheld'}")
     if kind.simulated:
         return overrides, (f"odometry: {mode} -- SIMULATED odometry made from the data's ground truth, not measured: "
                            "its drift and the correction of it are semmap's own invention (a real front end: "
@@ -329,14 +334,15 @@ def simulated_odometry(mode: str) -> bool:
     return check_mode(mode)[0].needs_groundtruth
 
 
-def start_banner(plan: RunPlan, camera: str, odometry_line: str = "") -> list[str]:
+def start_banner(plan: RunPlan, camera: str, odometry_line: str = "", drift_profile: str = "handheld") -> list[str]:
     """What the run says before its first frame: the odometry (simulated said out loud; a real front end named
     with why it was chosen: `choose_odometry`) and the camera."""
     if plan.data == "external":
         checked = "checked step by step (--check-slam)" if plan.odometry == "external" else "as they are"
         lines = [f"odometry: the external SLAM's poses, {checked}"]
     elif plan.simulated_odometry:
-        drift = " with seeded drift" if "drift" in plan.odometry else ""
+        per = "per metre driven, a vehicle's" if drift_profile == "vehicle" else "per frame, a hand-held camera's"
+        drift = f" with seeded drift ({per})" if "drift" in plan.odometry else ""
         lines = [f"odometry {plan.odometry}: simulated odometry (from ground truth){drift}, not a real front end "
                  "(a real one: --odometry orbslam3, rgbd or file:TRAJ.tum)"]
     else:
@@ -450,6 +456,7 @@ def _check_file_odometry(dataset: Dataset | None, data: str, path: str, config: 
         stamps = (dataset if dataset is not None else open_dataset(data)).stamps()  # (synthetic: opened here)
         if config.run.max_frames:
             stamps = stamps[: config.run.max_frames]
-        return check_trajectory_overlap(path, stamps, config.odometry.file_time_offset_s)
+        return check_trajectory_overlap(path, stamps, config.odometry.file_time_offset_s,
+                                        rate_hz=config.odometry.file_rate_hz)
     except (DatasetError, OdometryError) as exc:
         return f"error: {exc}"

@@ -31,6 +31,7 @@ __all__ = [
     "detect_format",
     "find_data_root",
     "open_dataset",
+    "platform_of",
     "reader_options",
     "register",
 ]
@@ -195,6 +196,20 @@ def reader_options(spec: str | Path, config: Config) -> dict[str, Any]:
     except (DatasetError, OSError):
         fmt = None
     return {"gt_max_gap_s": config.run.gt_max_gap_s} if fmt == "tum" else {}
+
+
+def platform_of(spec: str | Path) -> str:
+    """What carries the camera of `spec` ("handheld" or "vehicle", `Dataset.platform`), told without opening it
+    (a street world renders a city first): the street world and KITTI folders are vehicles, the rest hand-held."""
+    text = str(spec).strip()
+    name, _, rest = text.partition(":")
+    if name == "synthetic":
+        return "vehicle" if "trajectory" in _parse_options(rest, text) else "handheld"
+    try:
+        fmt = name if (rest and name in _REGISTRY) else detect_format(text)
+    except (DatasetError, OSError):
+        fmt = None
+    return "vehicle" if fmt == "kitti" else "handheld"
 
 
 def open_dataset(spec: str | Path, **options: Any) -> Dataset:

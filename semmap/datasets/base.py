@@ -64,6 +64,9 @@ class Dataset(ABC):
 
     name: str = "dataset"
     rate_hz: float = 30.0
+    # what carries the camera: "handheld" (a person: turns a lot, moves little) or "vehicle" (a car: metres a
+    # frame); the simulated drift of `gt+drift` follows it (odometry.drift_profile auto)
+    platform: str = "handheld"
 
     @abstractmethod
     def __len__(self) -> int: ...

@@ -114,6 +114,7 @@ class KittiDataset(Dataset):
     """
 
     name = "kitti"
+    platform = "vehicle"
     rate_hz = 10.0
 
     def __init__(

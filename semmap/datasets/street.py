@@ -48,7 +48,7 @@ from .synthetic import (
     cylinder_mesh,
     sphere_mesh,
 )
-from .trajectory_io import read_kitti_poses, read_tum
+from .trajectory_io import read_trajectory as read_trajectory_file
 
 STATIC_CLASSES = ("car", "bench", "bicycle", "traffic light", "stop sign", "potted plant")
 MOVING_CLASSES = ("car", "person")
@@ -101,27 +101,10 @@ class StreetConfig:
 def read_trajectory(path: str | Path, fmt: str = "auto", rate_hz: float = 10.0) -> list[tuple[float, np.ndarray]]:
     """(stamp, 4x4 camera-to-world) from a KITTI pose file (stamps i / rate_hz) or a TUM file; DatasetError
     for a missing, empty or unreadable file."""
-    path = Path(path).expanduser()
-    if not path.is_file():
-        raise DatasetError(f"synthetic street: trajectory file {path} does not exist")
-    if fmt == "auto":
-        first = ""
-        try:
-            with path.open(errors="replace") as handle:
-                for line in handle:
-                    if line.strip() and not line.lstrip().startswith("#"):
-                        first = line
-                        break
-        except OSError as exc:
-            raise DatasetError(f"synthetic street: cannot read {path}: {exc}") from exc
-        n = len(first.replace(",", " ").split())
-        if n not in (8, 12):
-            raise DatasetError(
-                f"synthetic street: {path} is neither a KITTI pose file (12 numbers a line) nor a TUM trajectory "
-                f"(t x y z qx qy qz qw); its first data line has {n} fields"
-            )
-        fmt = "kitti" if n == 12 else "tum"
-    poses = [(i / rate_hz, p) for i, p in enumerate(read_kitti_poses(path))] if fmt == "kitti" else read_tum(path)
+    try:
+        poses = read_trajectory_file(path, fmt, rate_hz)
+    except DatasetError as exc:
+        raise DatasetError(f"synthetic street: {exc}") from exc
     if len(poses) < 2:
         raise DatasetError(f"synthetic street: {path} holds {len(poses)} poses; at least 2 are needed")
     stack = np.stack([p for _, p in poses])
@@ -271,6 +254,7 @@ class StreetDataset(SyntheticDataset):
     """The street world: SyntheticDataset's renderer over a generated street along a trajectory file."""
 
     name = "synthetic-street"
+    platform = "vehicle"
 
     def __init__(self, config: StreetConfig | None = None, threads: int = 0, **options: Any) -> None:
         if config is not None and options:

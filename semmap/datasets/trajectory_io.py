@@ -127,6 +127,31 @@ def write_kitti_poses(path: str | Path, poses: Iterable[Pose]) -> int:
     return len(lines)
 
 
+KITTI_RATE_HZ = 10.0  # KITTI pose files carry no stamps: pose i is at i / rate (the sequences' nominal rate)
+
+
+def read_trajectory(path: str | Path, fmt: str = "auto", rate_hz: float = KITTI_RATE_HZ) -> list[tuple[float, Pose]]:
+    """(stamp, 4x4 camera-to-world) from a TUM file or a KITTI pose file (stamps i / rate_hz), the format told by
+    `fmt` or, with "auto", by the first data line (8 fields: TUM, 12: KITTI). Why both: SLAM systems write either
+    (ORB-SLAM writes KITTI files for stereo sequences), and a user should not have to convert one."""
+    path = Path(path).expanduser()
+    if fmt not in ("auto", "kitti", "tum"):
+        raise DatasetError(f"trajectory format must be auto, kitti or tum, got {fmt!r}")
+    if not path.is_file():
+        raise DatasetError(f"trajectory file {path} does not exist")
+    if fmt == "auto":
+        first = next(iter(_data_lines(path)), (0, []))[1]
+        if len(first) not in (8, 12):
+            raise DatasetError(f"{path} is neither a TUM trajectory (stamp tx ty tz qx qy qz qw) nor a KITTI pose file "
+                               f"(12 numbers a line): its first data line has {len(first)} fields")
+        fmt = "kitti" if len(first) == 12 else "tum"
+    if fmt == "tum":
+        return read_tum(path)
+    if not rate_hz > 0:
+        raise DatasetError(f"a KITTI pose file needs a positive rate for its stamps, got {rate_hz!r}")
+    return [(i / rate_hz, pose) for i, pose in enumerate(read_kitti_poses(path))]
+
+
 def read_timestamps(path: str | Path) -> list[float]:
     """One stamp per line (KITTI times.txt); '#' comments and blank lines skipped."""
     path = Path(path)

@@ -135,7 +135,7 @@ def test_bad_trajectory_files(tmp_path: Path) -> None:
         open_dataset(f"synthetic:trajectory={tmp_path / 'nope.txt'}")
     garbage = tmp_path / "garbage.txt"
     garbage.write_text("this is not a trajectory\n")
-    with pytest.raises(DatasetError, match="neither a KITTI"):
+    with pytest.raises(DatasetError, match="neither a TUM trajectory .* nor a KITTI pose file"):
         open_dataset(f"synthetic:trajectory={garbage}")
     broken = tmp_path / "broken.txt"
     broken.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 x 0 1 0 0 0 0 1 0\n")

@@ -96,6 +96,10 @@ def _gt(c: OdometryConfig, _: str) -> FrontEnd:
 def _drift(c: OdometryConfig, _: str) -> FrontEnd:
     from .frontends import DriftingOdometry
 
+    if c.drift_profile == "vehicle":  # (auto is pinned to the data's platform by `semmap run`; unpinned: handheld)
+        return DriftingOdometry(c.seed, c.drift_vehicle_translation_sigma, c.drift_vehicle_yaw_sigma_deg,
+                                c.drift_vehicle_yaw_bias_deg, bias_horizon_frames=c.drift_bias_horizon_frames,
+                                per_metre=True)
     return DriftingOdometry(
         c.seed,
         c.drift_translation_sigma_m,
@@ -115,7 +119,7 @@ def _file(c: OdometryConfig, path: str) -> FrontEnd:
     from .frontends import FileOdometry
 
     return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s,
-                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c))
+                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c), rate_hz=c.file_rate_hz)
 
 
 def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams

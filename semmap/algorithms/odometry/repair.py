@@ -37,6 +37,16 @@ class RepairParams:
     max_step_deg: float = 15.0
     scope: str = "dynamic"  # check steps only while dynamic objects are in view (and `hold_s` after); "always"
     hold_s: float = 2.0  # a SLAM that mapped a person keeps those points a while after the person left the view
+    # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
+    # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)
+    gate_rate_hz: float = 30.0
+    max_coast_s: float = 1.0  # the motion model carries at most this long in a row; then the SLAM's steps count
+    # without a witness a step breaks the recent motion only if it also differs by this share of the step's length:
+    # a SLAM's jitter on a car's metre-long steps is centimetres, a person dragging a hand-held camera doubles them
+    jump_share: float = 0.25
+    # a registration whose step breaks the recent motion by more than this many gates (and twice `jump_share` of
+    # the step) witnesses nothing: ICP that slid along a featureless road says "stopped" to a car at 7 m/s
+    check_jump_gates: float = 4.0
 
 
 @dataclass
@@ -49,13 +59,15 @@ class RepairReport:
     unchecked: int = 0  # no trustworthy registration: the SLAM's step stands (it agreed with the recent motion)
     static: int = 0  # no dynamic object in view for `hold_s`: the SLAM's step stands unchecked (its own ground)
     implausible: int = 0  # no trustworthy registration and the SLAM's step broke the recent motion: replaced
+    coast_limit: int = 0  # ...but the motion model had carried `max_coast_s` already: the SLAM's step taken
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
 
     def counters(self) -> dict[str, int]:
         return {"repair_steps": self.steps, "repair_overruled": self.overruled,
                 "repair_slam_missing": self.slam_missing, "repair_unchecked": self.unchecked,
-                "repair_implausible": self.implausible, "repair_static": self.static}
+                "repair_implausible": self.implausible, "repair_static": self.static,
+                "repair_coast_limit": self.coast_limit}
 
     def spans(self) -> list[tuple[int, int]]:
         """The overruled frames as [first, last] runs of consecutive ids: where the SLAM went wrong."""
@@ -96,6 +108,8 @@ class SlamRepair:
         self._slam_prev: np.ndarray | None = None  # the SLAM's previous pose (None: it had none)
         self._last_step = np.eye(4)  # the last step taken (constant velocity when nothing is known)
         self._dynamic_seen: float | None = None  # stamp of the last frame with a dynamic object in view
+        self._stamp: float | None = None  # of the previous frame (the gates scale with the frame interval)
+        self._coast_since: float | None = None  # stamp where the motion model began to carry the chain
 
     def copy(self, frame_id: int, slam_pose: np.ndarray | None) -> np.ndarray:
         """No check (`odometry.repair` off): the SLAM's steps as they are; a frame without a SLAM pose repeats the
@@ -120,10 +134,23 @@ class SlamRepair:
         if len(self.report.overruled_frames) < self.report.max_listed:
             self.report.overruled_frames.append(int(frame_id))
 
-    def _trusted(self, step: np.ndarray | None, fitness: float) -> bool:
+    def _trusted(self, step: np.ndarray | None, fitness: float, scale: float) -> bool:
         p = self.params
-        return (step is not None and bool(np.all(np.isfinite(step))) and fitness >= p.min_fitness
-                and float(np.linalg.norm(step[:3, 3])) <= p.max_step_m and _rotation_deg(step) <= p.max_step_deg)
+        if not (step is not None and bool(np.all(np.isfinite(step))) and fitness >= p.min_fitness
+                and float(np.linalg.norm(step[:3, 3])) <= p.max_step_m and _rotation_deg(step) <= p.max_step_deg):
+            return False
+        if self.report.steps <= 1:
+            return True
+        dt, dr = step_difference(step, self._last_step)
+        length = max(float(np.linalg.norm(step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
+        return (dt <= max(p.check_jump_gates * p.translation_m * scale, 2.0 * p.jump_share * length)
+                and dr <= p.check_jump_gates * p.rotation_deg * scale)
+
+    def _gate_scale(self, stamp: float | None) -> float:
+        """How much wider the gates are for this frame's interval than for one at `gate_rate_hz` (never narrower)."""
+        if stamp is None or self._stamp is None or stamp <= self._stamp:
+            return 1.0
+        return max(1.0, ((stamp - self._stamp) * self.params.gate_rate_hz) ** 2)
 
     def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
                fitness: float = 1.0, dynamic_in_view: bool = True, stamp: float | None = None) -> np.ndarray:
@@ -147,7 +174,8 @@ class SlamRepair:
             self._slam_prev = None if slam_pose is None else slam_pose.copy()
             return self._pose.copy()
         r.steps += 1
-        trusted = self._trusted(check_step, fitness)
+        scale = self._gate_scale(stamp)
+        trusted = self._trusted(check_step, fitness, scale)
         if slam_pose is None or self._slam_prev is None:
             # no SLAM step (lost, or the first pose after it was lost: a new map's origin says nothing)
             r.slam_missing += 1
@@ -158,19 +186,10 @@ class SlamRepair:
                 r.static += 1
                 step = slam_step
             elif not trusted:
-                # no witness of semmap's own: the SLAM's step still has to agree with the camera's recent motion
-                # (constant velocity) within the gate, else the motion model carries this frame
-                dt, dr = step_difference(slam_step, self._last_step)
-                if dt > p.translation_m or dr > p.rotation_deg:
-                    r.implausible += 1
-                    self._note(frame_id)
-                    step = self._last_step
-                else:
-                    r.unchecked += 1
-                    step = slam_step
+                step = self._without_witness(frame_id, slam_step, stamp, scale)
             else:
                 dt, dr = step_difference(slam_step, check_step)
-                if dt > p.translation_m or dr > p.rotation_deg:
+                if dt > p.translation_m * scale or dr > p.rotation_deg * scale:
                     r.overruled += 1
                     self._note(frame_id)
                     step = check_step
@@ -179,7 +198,32 @@ class SlamRepair:
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
+        if stamp is not None:
+            self._stamp = float(stamp)
         return self._pose.copy()
+
+    def _without_witness(self, frame_id: int, slam_step: np.ndarray, stamp: float | None, scale: float) -> np.ndarray:
+        """No witness of semmap's own: the SLAM's step still has to agree with the camera's recent motion (constant
+        velocity) within the gates, scaled to the frame interval, else the motion model carries this frame; but
+        not for longer than `max_coast_s` in a row: a camera that changed its speed for good (a car braking) would
+        otherwise be held at its old speed for ever, its SLAM refused at every later step."""
+        p, r = self.params, self.report
+        dt, dr = step_difference(slam_step, self._last_step)
+        length = max(float(np.linalg.norm(slam_step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
+        first = r.steps <= 1  # no motion known yet (the identity is no witness of a camera at rest)
+        if first or (dt <= p.translation_m * scale or dt <= p.jump_share * length) and dr <= p.rotation_deg * scale:
+            r.unchecked += 1
+            self._coast_since = None
+            return slam_step
+        if stamp is not None and self._coast_since is not None and stamp - self._coast_since >= p.max_coast_s:
+            r.coast_limit += 1
+            self._coast_since = None
+            return slam_step
+        if self._coast_since is None and stamp is not None:
+            self._coast_since = float(self._stamp if self._stamp is not None else stamp)
+        r.implausible += 1
+        self._note(frame_id)
+        return self._last_step
 
     def break_chain(self) -> None:
         """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
@@ -188,8 +232,9 @@ class SlamRepair:
     def state(self) -> dict:
         r = self.report
         return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
-                "counters": [r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static],
-                "dynamic_seen": self._dynamic_seen,
+                "counters": [r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static,
+                             r.coast_limit],
+                "dynamic_seen": self._dynamic_seen, "stamp": self._stamp, "coast_since": self._coast_since,
                 "frames": list(r.overruled_frames)}
 
     def restore(self, state: dict) -> None:
@@ -197,10 +242,11 @@ class SlamRepair:
         self._slam_prev = _unflat(state.get("slam_prev"), (4, 4))
         last = _unflat(state.get("last_step"), (4, 4))
         self._last_step = np.eye(4) if last is None else last
-        c = state.get("counters") or [0, 0, 0, 0, 0, 0]
+        c = [*(state.get("counters") or []), 0, 0, 0, 0, 0, 0, 0][:7]  # (states saved before coast_limit: 6)
         r = self.report
-        r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static = (int(v) for v in c)
+        r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static, r.coast_limit = (int(v) for v in c)
         self._dynamic_seen = state.get("dynamic_seen")
+        self._stamp, self._coast_since = state.get("stamp"), state.get("coast_since")
         r.overruled_frames = [int(f) for f in state.get("frames", [])]
 
 

@@ -203,6 +203,18 @@ class OdometryConfig(Section):
         description="declared yaw sigma = sqrt(sigma^2 + horizon * bias^2): a bias grows linearly, a "
         "declared random walk only with sqrt(frames) (frontends.py)",
     )
+    drift_profile: Literal["auto", "handheld", "vehicle"] = Field(
+        "auto",
+        description="gt+drift: `handheld` drifts per frame (the drift_* settings above), `vehicle` per metre "
+        "driven (drift_vehicle_*: a car's odometry); auto: the data's platform (street world, KITTI: vehicle)",
+    )
+    drift_vehicle_translation_sigma: NonNegative = Field(
+        0.01, description="vehicle: translation noise per step, as a share of the step's length (1 %)"
+    )
+    drift_vehicle_yaw_sigma_deg: NonNegative = Field(0.02, description="vehicle: yaw noise per sqrt(metre) driven")
+    drift_vehicle_yaw_bias_deg: Float = Field(
+        0.004, description="vehicle: yaw bias per metre driven (15 deg over KITTI 00's 3.7 km)"
+    )
     gt_sigma_translation_m: Positive = Field(0.0002, description="the covariance the `gt` front end declares (tight)")
     gt_sigma_rotation_deg: Positive = 0.01
     rgbd_sigma_translation_m: Positive = 0.01
@@ -227,6 +239,9 @@ class OdometryConfig(Section):
     file_sigma_rotation_deg: Positive = 0.5
     file_time_offset_s: Float = Field(
         0.0, description="added to a `file:PATH` trajectory's stamps before matching (--time-offset)"
+    )
+    file_rate_hz: Positive = Field(
+        10.0, description="a `file:PATH` in KITTI's format (12 numbers a line, no stamps): pose i is at i / rate"
     )
     repair: bool = Field(
         True,
