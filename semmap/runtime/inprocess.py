@@ -55,7 +55,7 @@ from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, ma
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
-from semmap.datasets import open_dataset
+from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.map_store import MapStore, write_map_json
@@ -295,7 +295,11 @@ class LoopResult:
 
     @property
     def improvement_pct(self) -> float:
-        return 100.0 * (self.ate_odometry - self.ate_optimized) / max(self.ate_odometry, 1e-12)
+        """How much of the odometry's error the optimisation removed (0 when the odometry had none to remove:
+        ground truth, where a percentage of a rounding error would read as nonsense)."""
+        if self.ate_odometry < 1e-3:
+            return 0.0
+        return 100.0 * (self.ate_odometry - self.ate_optimized) / self.ate_odometry
 
     def summary(self) -> dict:
         return {
@@ -360,7 +364,6 @@ def run_loop(
     `prior_map` (a map.sqlite) is the map the session starts from."""
     t_start = time.perf_counter()
     front = make_frontend(odometry, config.odometry)  # with cached poses only for what it declares
-    sigma_t, sigma_r = front.sigmas
     keyframe_every = config.odometry.keyframe_every
     # a session in a frame of its own (`odometry.frame_offset`), as the odometry service expresses its poses
     offset = frame_offset(config.odometry.frame_offset)
@@ -397,8 +400,8 @@ def run_loop(
             stamp,
             pose,
             keyframe=i % keyframe_every == 0,
-            sigma_translation=sigma_t,
-            sigma_rotation=sigma_r,
+            sigma_translation=front.sigmas[0],  # (read per frame: a vehicle's drift declares per step)
+            sigma_rotation=front.sigmas[1],
             source=odometry,
         )
         odo_traj.append((stamp, pose.copy()))
@@ -461,7 +464,7 @@ def run_loop(
         ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None,
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
-        graph_counters=dict(graph.counters),
+        graph_counters={**graph.counters, **associator.revisits.counters()},
         backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,
         associator=associator,
     )
@@ -482,6 +485,8 @@ def closed_loop(
     map `prior_map`, a map.sqlite, if given)."""
     over = [*(overrides or []), f"odometry.mode={odometry}", f"odometry.seed={seed}"]
     config = load_config(None, over)
+    if config.odometry.drift_profile == "auto":  # pinned to the data's platform, as `semmap run` does
+        config = load_config(None, [*over, f"odometry.drift_profile={platform_of(data)}"])
     rec = detect_recording(data, frames, config, cache_dir, refresh, verbose)
     # `rgbd` poses are cached unless the front end leaves out dynamic objects: then they depend on the tracker and
     # the associator (moving tracklets) and are estimated in the loop, frame by frame, as the services do
@@ -628,7 +633,7 @@ def main(argv: list[str] | None = None) -> int:
                 prior_map,
             )
         except (ValueError, MessageError) as exc:  # (MessageError: a prior map of another version)
-            print(f"error: --map {args.map}: {exc}", file=sys.stderr)
+            print(f"error: {f'--map {args.map}: ' if args.map else ''}{exc}", file=sys.stderr)
             return 2
         if args.out is not None:
             res.write_outputs(args.out / f"seed{seed}" if args.seeds else args.out)
@@ -657,7 +662,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{res.ate_optimized:.4f} m ({res.improvement_pct:+.1f} %), landmarks {res.landmarks}, observations "
             f"{res.observations} ({res.observation_factors} factors, {res.graph_landmarks} in graph), merges "
             f"{res.merges}, loop closures {res.loop_closures.get('accepted', 0)}/"
-            f"{res.loop_closures.get('registered', 0)}, {res.wall_s:.0f} s{extra}",
+            f"{res.loop_closures.get('registered', 0)}, revisits {res.graph_counters.get('revisits', 0)} "
+            f"({res.graph_counters.get('revisit_fused_landmarks', 0)} landmarks), {res.wall_s:.0f} s{extra}",
             flush=True,
         )
     if args.json_out is not None:

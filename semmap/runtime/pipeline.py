@@ -27,6 +27,7 @@ import numpy as np
 from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 from semmap.algorithms.associator.pose_book import PoseBook
 from semmap.algorithms.associator.prior_map import PriorParams, PriorSession
+from semmap.algorithms.associator.revisit import Revisit, RevisitFinder
 from semmap.algorithms.backend.corrections import CorrectionDelta, CorrectionPublisher, CorrectionsParams
 from semmap.algorithms.backend.loop_closure import KeyframeCloud, LoopCloser, LoopClosure, LoopClosureParams
 from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
@@ -216,6 +217,8 @@ class AssociatorStage:
         self.prior: PriorSession | None = None  # the prior map this session relocalises against (`load_prior`)
         self.session_start: float | None = None  # the earliest stamp of this session (prior landmarks age from it)
         self.alignment: MapAlignment | None = None  # to go out with the current frame's observations
+        self.revisits = RevisitFinder(self.mapper.params)  # places seen again after drift (revisit.py)
+        self.last_revisit: Revisit | None = None  # the revisit the last `process` found (for the service's log)
 
     # -- a prior map
     def load_prior(self, path: Path, params: PriorParams | None = None) -> PriorSession:
@@ -303,8 +306,22 @@ class AssociatorStage:
     def process(
         self, frame_id: int, stamp: float, candidates: list, ended: list[int], boxes: list | None
     ) -> MapperStep:
-        """The mapper's step for one frame (`boxes` None: a skipped frame, no absence evidence)."""
-        return self.mapper.process(frame_id, stamp, candidates, ended, self.poses, boxes=boxes)
+        """The mapper's step for one frame (`boxes` None: a skipped frame, no absence evidence), then, when due, the
+        search for a revisit: a place seen again after drift, whose recent landmarks are fused into the old ones
+        (the merges go to the backend with this frame's observations and close the loop there)."""
+        step = self.mapper.process(frame_id, stamp, candidates, ended, self.poses, boxes=boxes)
+        self.last_revisit = None
+        if self.revisits.due(stamp):
+            t0 = time.perf_counter()
+            found = self.revisits.search(self.mapper.map.all(), stamp)
+            step.timing_ms["revisit"] = (time.perf_counter() - t0) * 1e3
+            if found is not None:
+                for recent, old in found.pairs:
+                    if recent in self.mapper.map and old in self.mapper.map and recent != old:
+                        self.mapper.fuse(old, recent, step)
+                        self.revisits.fused += 1
+                self.last_revisit = found
+        return step
 
     def take_merges(self, step: MapperStep) -> list[tuple[int, int]]:
         """The merges to send with this frame's observations: the carried-over ones first."""
@@ -358,7 +375,7 @@ class AssociatorStage:
         """Everything a restarted associator needs to go on exactly as this one would (saved between frames, when
         none is held): the mapper, the pose book and the merges a refine found that still have to go out with
         the next frame's observations (lost, the backend would never join the two landmarks)."""
-        return {**self.mapper.to_state(), "poses": self.poses.to_state(),
+        return {**self.mapper.to_state(), "poses": self.poses.to_state(), "revisits": self.revisits.to_state(),
                 "pending_merges": [[int(a), int(b)] for a, b in self.pending_merges],
                 "session_start": self.session_start, "prior": None if self.prior is None else self.prior.to_state()}
 
@@ -366,6 +383,7 @@ class AssociatorStage:
         """Continue from `to_state()` output (read back from the map store; a prior map, if any, is loaded
         first: its relocalisation and statuses are restored here)."""
         self.mapper = LandmarkMapper.from_state(state, self.mapper.params)
+        self.revisits.restore(state.get("revisits"))
         self.poses = PoseBook.from_state(state.get("poses"))
         self.pending_merges = [(int(a), int(b)) for a, b in state.get("pending_merges") or []]
         self.awaiting = None

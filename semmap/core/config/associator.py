@@ -158,6 +158,20 @@ class MapperParams(Section):
     # (its centre slides with what is in view: 7-Scenes, 9-12 cm median error vs 3-5 cm for whole views)
     pose_wait_s: Positive = 5.0  # a measurement whose frame has no pose yet waits this long, then is dropped
 
+    # --- revisits (revisit.py): a place seen again after drift beyond any gate, recognised by its objects, whose
+    # recent landmarks are fused into the old ones (a loop closure through the backend's merge factor)
+    revisit: bool = True
+    revisit_every_s: NonNegative = 2.0  # search at most this often
+    revisit_recent_s: Positive = 20.0  # the recent landmarks: first seen within this
+    revisit_old_s: Positive = 60.0  # the old ones: last seen longer ago than this (a room re-associates its objects
+    # through the gate all the time: they never get this old there)
+    revisit_min_views: AtLeastOne = 5  # a recent landmark takes part once it has this many views
+    revisit_min_inliers: AtLeastOne = 5  # objects that must agree (a row of parked cars agrees with many places)
+    revisit_gate_size_factor: Positive = 0.33  # a recent landmark must land within this x the recent landmarks'
+    # median size of an old one of its class, after the fit (cars: 1.5 m; a kitchen's objects: the floor below)
+    revisit_gate_min_m: Positive = 0.15
+    revisit_max_rotation_sigma_deg: Positive = 2.0  # the fit's rotation must be pinned this well (1 sigma)
+
 
 class PriorParams(Section):
     """Starting from a saved map (`semmap run --map`): relocalisation and the prior landmarks' status. In the
