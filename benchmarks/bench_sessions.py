@@ -206,8 +206,11 @@ def main() -> None:
             "semmap merge of the two sessions vs the relocalised run", read_map_json(work / "merged" / "map.json"), s2
         )
     if (work / "merged_rigid" / "map.json").is_file():
-        compare("  the same with --rigid (session 2 alone moved by the objects' fit only)",
-                read_map_json(work / "merged_rigid" / "map.json"), s2)
+        compare(
+            "  the same with --rigid (session 2 alone moved by the objects' fit only)",
+            read_map_json(work / "merged_rigid" / "map.json"),
+            s2,
+        )
 
 
 if __name__ == "__main__":

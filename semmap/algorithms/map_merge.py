@@ -180,9 +180,14 @@ def merge_maps(
     return sorted(out, key=lambda lm: lm.id)
 
 
-def _pair_overlapping(a: Sequence[Landmark], b: Sequence[Landmark], pairs: list[tuple[int, int]],
-                      clouds_a: dict[int, np.ndarray], clouds_b: dict[int, np.ndarray],
-                      p: MatchParams) -> list[tuple[int, int]]:
+def _pair_overlapping(
+    a: Sequence[Landmark],
+    b: Sequence[Landmark],
+    pairs: list[tuple[int, int]],
+    clouds_a: dict[int, np.ndarray],
+    clouds_b: dict[int, np.ndarray],
+    p: MatchParams,
+) -> list[tuple[int, int]]:
     """One-to-one pairs (indices) among the landmarks `pairs` left, same class, whose clouds overlap (see
     MatchParams.overlap_share), most overlapping first."""
     from scipy.spatial import cKDTree
