@@ -303,9 +303,7 @@ def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = T
     # Even steps would carry 1/(k-1) each; a single jump carries ~all of it. And the views must sit tight
     # around their segment's median: erratic centroids (surface switching) can line up by chance.
     share = displacement / (k - 1)
-    scatter = float(
-        np.median(np.concatenate([np.linalg.norm(c[i] - m[j], axis=1) for j, i in enumerate(parts)]))
-    )
+    scatter = float(np.median(np.concatenate([np.linalg.norm(c[i] - m[j], axis=1) for j, i in enumerate(parts)])))
     steady = bool(
         np.all(along >= -0.1 * displacement)
         and np.max(along) <= (0.45 + 0.6 / (k - 1)) * displacement
@@ -315,7 +313,11 @@ def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = T
 
 
 def track_motion(
-    stamps: np.ndarray, centroids: np.ndarray, unclear: np.ndarray, size: float, p: MapperParams,
+    stamps: np.ndarray,
+    centroids: np.ndarray,
+    unclear: np.ndarray,
+    size: float,
+    p: MapperParams,
     whole_only: bool = True,
 ) -> tuple[bool, float]:
     """(moving, displacement) over a whole track: its views' world centroids binned by `track_motion_bin_s`,
@@ -504,9 +506,7 @@ def map_centroids(problems: list[MapProblem], p: MapperParams) -> list[np.ndarra
     return [best_x[o].copy() for o in range(n_obj)]
 
 
-def map_problem(
-    views: list[View], p: MapperParams, seed: tuple[int, ...], size: float | None = None
-) -> MapProblem:
+def map_problem(views: list[View], p: MapperParams, seed: tuple[int, ...], size: float | None = None) -> MapProblem:
     """The MAP problem of a set of views (a candidate's or a landmark's): whole views when enough."""
     views = whole_views(views, 3)
     c = world_centroids(views)
