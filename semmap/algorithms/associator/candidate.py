@@ -216,6 +216,13 @@ def view_sigmas(views: list[View], size: float, p: MapperParams) -> np.ndarray:
     return p.sigma_base_m + p.sigma_depth_factor * depth + p.sigma_size_factor * size
 
 
+def inlier_limit(views: list[View], sig: np.ndarray, size: float, p: MapperParams) -> np.ndarray:
+    """How far each view's centroid may be from the MAP centroid; a truncated view's centre may be off by
+    up to half the object, so it gets that much slack."""
+    limit = np.maximum(p.inlier_min_m, p.inlier_sigmas * sig)
+    return limit + 0.5 * size * np.array([v.truncated for v in views])
+
+
 def whole_views(views: list[View], min_views: int) -> list[View]:
     """The views that saw the whole object (box clear of the image border), or all when too few did."""
     whole = [v for v in views if not v.truncated]

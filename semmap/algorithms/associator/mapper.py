@@ -415,6 +415,9 @@ class LandmarkMapper:
                     moved.add(id(v))
                     v.pose = T @ v.pose
                     v.alt_world = transform(v.pose, v.alt_centroids)
+        for lm in self.map.all():  # a prior landmark's place moves with its views
+            if lm.anchor is not None:
+                lm.anchor.centroid = transform(T, lm.anchor.centroid[None, :])[0]
         self._dirty.update(lm.id for lm in self.map.all())
 
     def fuse(self, keep_id: int, gone_id: int, step: MapperStep) -> None:
