@@ -54,8 +54,21 @@ def sessions(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
     for name, args in runs:
         result = _semmap_run(args, timeout=1500)
         assert result.returncode == 0, f"{name}: {result.stderr[-3000:]}"
-    merge = subprocess.run([sys.executable, "-m", "semmap.cli", "merge", str(out["s1"]), str(out["s2_alone"]),
-                            "--out", str(out["merged"])], capture_output=True, text=True, timeout=600)
+    merge = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semmap.cli",
+            "merge",
+            str(out["s1"]),
+            str(out["s2_alone"]),
+            "--out",
+            str(out["merged"]),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert merge.returncode == 0, merge.stderr
     return out
 
@@ -118,8 +131,12 @@ def test_no_duplicate_of_a_prior_landmark_and_the_trajectory_in_the_prior_frame(
 
 def _paired(a: list, b: list) -> tuple[list[float], list, list]:  # noqa: ANN001
     """One-to-one same-class pairs, nearest first: their distances, and what either has left."""
-    cand = sorted((math.dist(x.centroid, y.centroid), i, j) for i, x in enumerate(a) for j, y in enumerate(b)
-                  if x.class_name == y.class_name)
+    cand = sorted(
+        (math.dist(x.centroid, y.centroid), i, j)
+        for i, x in enumerate(a)
+        for j, y in enumerate(b)
+        if x.class_name == y.class_name
+    )
     used_a, used_b, dist = set(), set(), []
     for d, i, j in cand:
         if i not in used_a and j not in used_b and d < 0.5:
@@ -132,8 +149,9 @@ def _paired(a: list, b: list) -> tuple[list[float], list, list]:  # noqa: ANN001
 def test_the_final_map_matches_one_1000_frame_run(sessions: dict[str, Path]) -> None:
     """Measured: 16 of 16 paired, all within 10 cm (median 1.9, max 9.9 cm: the laptop, seen only in session 2's
     stretch that no session-1 keyframe covers). The bound below leaves the run-to-run margin of that one object."""
-    dist, only_s2, only_full = _paired(read_map_json(sessions["s2"] / "map.json"),
-                                       read_map_json(sessions["full"] / "map.json"))
+    dist, only_s2, only_full = _paired(
+        read_map_json(sessions["s2"] / "map.json"), read_map_json(sessions["full"] / "map.json")
+    )
     assert not only_s2 and not only_full, (only_s2, only_full)
     assert np.median(dist) < 0.05 and sum(d > 0.10 for d in dist) <= 1 and max(dist) < 0.15, dist
 
@@ -142,8 +160,9 @@ def test_merge_of_the_two_sessions_gives_the_relocalised_runs_landmarks(sessions
     """Measured: 15 paired, all within 10 cm (max 4.4 cm); the relocalised run has one more, a laptop seen 13
     times at the end of session 2, whose tracklet (7 views in 1 s) missed the static test for short tracklets by a
     hair under session 2 alone's own poses (spread 5.0 cm, limit 5.0 cm): a merge fuses only what both maps hold."""
-    dist, only_merged, only_s2 = _paired(read_map_json(sessions["merged"] / "map.json"),
-                                         read_map_json(sessions["s2"] / "map.json"))
+    dist, only_merged, only_s2 = _paired(
+        read_map_json(sessions["merged"] / "map.json"), read_map_json(sessions["s2"] / "map.json")
+    )
     # fp32 on an AVX2-only CPU (session 10): the relocalised run loses session 1's microwave, which a merge of the
     # two maps keeps (issue 34: "the microwave disappears from the map"); at most that one
     assert len(only_merged) <= 1 and len(only_s2) <= 1, (only_merged, only_s2)
@@ -153,10 +172,15 @@ def test_merge_of_the_two_sessions_gives_the_relocalised_runs_landmarks(sessions
 def test_merging_the_relocalised_run_itself_keeps_its_landmarks(sessions: dict[str, Path], tmp_path: Path) -> None:
     """Session 2 was started from session 1's map: its odometry is in its own frame, its map in session 1's. The
     replay must take its odometry through its own alignment too (measured: 16 of 16 within 4.3 cm)."""
-    merge = subprocess.run([sys.executable, "-m", "semmap.cli", "merge", str(sessions["s1"]), str(sessions["s2"]),
-                            "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    merge = subprocess.run(
+        [sys.executable, "-m", "semmap.cli", "merge", str(sessions["s1"]), str(sessions["s2"]), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert merge.returncode == 0 and "re-optimised in A's frame" in merge.stderr, merge.stderr
-    dist, only_merged, only_s2 = _paired(read_map_json(tmp_path / "map.json"),
-                                         read_map_json(sessions["s2"] / "map.json"))
+    dist, only_merged, only_s2 = _paired(
+        read_map_json(tmp_path / "map.json"), read_map_json(sessions["s2"] / "map.json")
+    )
     # (the one object of session 1 the relocalised run lost, as above, comes back from session 1's map)
     assert len(only_merged) <= 1 and not only_s2 and max(dist) < 0.10, (dist, only_merged, only_s2)
