@@ -106,6 +106,7 @@ class LandmarkState:
         return [k for k, v in enumerate(self.views) if v.frame_id >= 0]
 
     def over_cap(self, max_views: int) -> bool:
+        """More views than `max_views` of those it caps (`_own_views`): one must go."""
         return len(self._own_views()) > max_views
 
     def _drop_redundant_view(self) -> None:

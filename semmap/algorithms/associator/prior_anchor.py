@@ -5,24 +5,25 @@ session's own views of it are placed by the session's poses. Before issue 34 bot
 cloud, whose robust box gave the centre: on 7-Scenes (frames 0-499, then 500-999 in a frame moved by a few
 metres and up to 40 degrees) a table, a book and the wall screen moved 10-14 cm from their session-1 places
 although nothing had moved. Two causes add up: the centre of a partly seen object moves with the viewpoint
-(session 2's views alone put the table 43 cm, the screen 21 cm, a book 18 cm from session 1's centres, from
-the other side of the room), and session 2's views carry its registration error (1-2 degrees, a few cm). The
-landmark keeps a bounded number of views, and the newest win, so session 1's views are also thinned out.
+(session 2's views alone put the table 40-43 cm, the screen 19-23 cm, a book 16-18 cm from session 1's centres,
+from the other side of the room), and session 2's views carry its registration error (1-2 degrees, a few cm).
+The landmark kept a bounded number of views, the newest winning, so session 1's views were also thinned out.
 
 So a prior landmark holds its prior place as a prior (`PriorAnchor`), and the session's evidence moves it only
 as far as that evidence is worth:
 
 - the prior place is known to `sigma_m` (the prior map's anchor sigma, `associator.prior_anchor_sigma_m`, the
   same the backend holds prior landmarks with);
-- the session's own estimate (the robust box of its inlier views' cloud, as the prior centre was made) is known
-  to `hypot(registration, viewpoint)`: registration = the relocalisation's residual and its rotation
-  uncertainty at the landmark's distance from the fit's landmarks, at least `registration_sigma_m`
-  (`associator.prior_registration_sigma_m`); viewpoint = the mapper's `sigma_size_factor` times the object's size
-  (how far a partial view's centre strays with the viewpoint; not averaged down by more views: they all stand on
-  the session's side). Neither shrinks with the session's view count: both are shared by all its views;
+- the session's own estimate (its views alone, those that agree with their median, fused and boxed as the prior
+  centre was made: `session_estimate`) is known to `hypot(registration, viewpoint)`: registration = the
+  relocalisation's residual and its rotation uncertainty at the landmark's distance from the fit's landmarks, at
+  least `registration_sigma_m` (`associator.prior_registration_sigma_m`); viewpoint = the mapper's
+  `sigma_size_factor` times the object's size (how far a partial view's centre strays with the viewpoint).
+  Neither shrinks with the session's view count: both are shared by all its views (they all stand on the
+  session's side);
 - the two are fused precision-weighted; but when the session's estimate lies more than `moved_sigmas` of their
-  combined sigma from the prior place, from at least `moved_min_views` inlier views, the evidence says the object
-  moved and the landmark takes the session's place (and may change class, below).
+  combined sigma from the prior place, from at least `moved_min_views` of its views, the evidence says the object
+  moved and the landmark takes the session's place, cloud and extent (and may change class, below).
 
 Class: a detector's class for one object depends on the viewpoint (the 7-Scenes microwave is boxed as a laptop
 from most of session 2's places), so a majority over both sessions' boxes measures where the second session
@@ -56,7 +57,7 @@ class PriorAnchor:
     sigma_m: float  # how well the prior map knows that place
     registration_sigma_m: float  # how well the session's views are placed in the prior frame, at this landmark
     moved_sigmas: float = 3.0  # the session's estimate this many combined sigmas away: the object moved
-    moved_min_views: int = 5  # ... seen in at least this many of the session's inlier views
+    moved_min_views: int = 5  # ... from at least this many of the session's views
     moved: bool = False  # the session's evidence says it moved: it follows the session (derived, per update)
     session_offset_m: float = 0.0  # |session's estimate - prior place| at the last update (diagnostics)
 
@@ -91,7 +92,7 @@ def registration_sigma(
 ) -> float:
     """How far the session's poses may put a view of this landmark from where it is: the fit's residual and its
     rotation uncertainty times the landmark's distance from the fit's landmarks (the lever arm), at least
-    `floor_m` (the fit's own sigma is optimistic: on 7-Scenes 0.3-0.7 degrees, against 1.7-1.8 off the truth)."""
+    `floor_m` (the fit's own sigma is optimistic: on 7-Scenes 0.3-0.7 degrees, against 1.2-3.4 off the truth)."""
     lever = float(np.linalg.norm(np.asarray(centroid) - np.asarray(fit_centre)))
     return max(floor_m, math.hypot(residual_m, math.radians(rotation_sigma_deg) * lever))
 
@@ -139,7 +140,7 @@ def held_place(
 ) -> tuple[np.ndarray, bool]:
     """(the place, whether it moved): a prior place and a later estimate of it fused by their sigmas, or the
     estimate alone once it lies more than `moved_sigmas` of their combined sigma away (and `may_move`: evidence
-    enough to say so). Shared by the relocalised session (`anchored_centroid`) and `semmap merge`, so that a map
+    enough to say so). Shared by the relocalised session (`anchored_place`) and `semmap merge`, so that a map
     merged from two sessions places a landmark where the second session relocalised against the first does."""
     prior, estimate = np.asarray(prior, dtype=np.float64), np.asarray(estimate, dtype=np.float64)
     combined = math.hypot(prior_sigma, estimate_sigma)
