@@ -238,5 +238,8 @@ def test_merging_a_relocalised_run_into_a_third_frame(sessions: dict[str, Path],
             for o in objects
             if o.class_name == lm.class_name
         )
-        # (a large object's centre is where its seen part puts it: the refrigerator is 21 cm off in A's own map)
-        assert nearest < max(0.15, 0.25 * lm.radius), (lm.id, lm.class_name, lm.status, nearest)
+        # A is day 2 alone on drifting odometry: its own map puts objects 6-21 cm off (the screen 21, the
+        # refrigerator 18: a large object's centre is where its seen part puts it), the merge holds A's places, and
+        # B's landmarks that A never saw are placed by the fit to A's map (the potted plant 22 cm); one left in
+        # day 1's frame would be metres away
+        assert nearest < max(0.3, 0.25 * lm.radius), (lm.id, lm.class_name, lm.status, nearest)
