@@ -12,12 +12,14 @@ within a gate of `max(gate_m, gate_radius_factor * larger radius)`: a large obje
   marks `prior` (carried over, never looked at) is reported `unseen`, not missing.
 - merge: landmarks are paired as for diff, then (with clouds) unpaired same-class landmarks whose clouds overlap
   (two sides of one table, centres 40 cm apart); a pair becomes one landmark (the older id, A's), observations
-  summed, first/last seen the earliest/latest; where both maps come with their clouds (run directories), its
-  centre and extent are the robust box of the two clouds fused (as the mapper fuses views: a large object seen
-  from two sides is centred on both sides, not on the mean of two partial centres, which was 10 cm off for a
-  fridge), otherwise the observation-weighted mean and the larger extent; unpaired landmarks of B join with new
-  ids after A's. The
-  result is in A's frame.
+  summed, first/last seen the earliest/latest; its extent is the robust box of the two clouds fused where both
+  maps come with their clouds (run directories), otherwise the larger; its centre is A's, moved by B's only as
+  far as B's is worth (`held_place`, semmap/algorithms/associator/prior_anchor.py: B's registration and the
+  object's size against A's anchor sigma), or B's when B's lies beyond `moved_sigmas` of that (a pair by the gate
+  only: two overlapping clouds are one object in place), as a session relocalised against A places A's
+  landmarks (issue 34); before, the fused clouds' centre, which put a partly seen object 10-14 cm from A's place
+  (what the relocalised run did then too). Unpaired landmarks of B join with new ids after A's. The result is in
+  A's frame.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np
 from msgspec.structs import replace
 
 from semmap.algorithms.relocalize import MapObject, RelocAttempt, RelocParams, apply, relocalize
+from semmap.core.config.associator import PriorParams
 from semmap.core.messages import Landmark
 
 
@@ -44,6 +47,11 @@ class MatchParams:
     # overlap 0.5-1.0, neighbours of one class 0.0-0.11)
     touch_m: float = 0.05
     overlap_share: float = 0.5
+    # a pair's centre (`held_place`): as a relocalised session holds a prior landmark (PriorParams, same defaults)
+    anchor_sigma_m: float = PriorParams().anchor_sigma_m
+    registration_sigma_m: float = PriorParams().registration_sigma_m
+    moved_sigmas: float = PriorParams().moved_sigmas
+    moved_min_observations: int = PriorParams().moved_min_views
 
 
 @dataclass
@@ -168,8 +176,12 @@ def merge_maps(
     p = params or MatchParams()
     clouds_a, clouds_b_in_a = clouds_a or {}, clouds_b_in_a or {}
     pairs = _pair(a, b_in_a, lambda x, y: _gate(x, y, p))
+    by_gate = set(pairs)
     pairs += _pair_overlapping(a, b_in_a, pairs, clouds_a, clouds_b_in_a, p)
-    fused = {a[i].id: _fuse(a[i], b_in_a[j], clouds_a.get(a[i].id), clouds_b_in_a.get(b_in_a[j].id)) for i, j in pairs}
+    fused = {
+        a[i].id: _fuse(a[i], b_in_a[j], p, clouds_a.get(a[i].id), clouds_b_in_a.get(b_in_a[j].id), (i, j) in by_gate)
+        for i, j in pairs
+    }
     paired_b = {j for _, j in pairs}
     out = [fused.get(lm.id, lm) for lm in a]
     next_id = max((lm.id for lm in a), default=-1) + 1
@@ -180,9 +192,14 @@ def merge_maps(
     return sorted(out, key=lambda lm: lm.id)
 
 
-def _pair_overlapping(a: Sequence[Landmark], b: Sequence[Landmark], pairs: list[tuple[int, int]],
-                      clouds_a: dict[int, np.ndarray], clouds_b: dict[int, np.ndarray],
-                      p: MatchParams) -> list[tuple[int, int]]:
+def _pair_overlapping(
+    a: Sequence[Landmark],
+    b: Sequence[Landmark],
+    pairs: list[tuple[int, int]],
+    clouds_a: dict[int, np.ndarray],
+    clouds_b: dict[int, np.ndarray],
+    p: MatchParams,
+) -> list[tuple[int, int]]:
     """One-to-one pairs (indices) among the landmarks `pairs` left, same class, whose clouds overlap (see
     MatchParams.overlap_share), most overlapping first."""
     from scipy.spatial import cKDTree
@@ -224,19 +241,31 @@ def _pair_overlapping(a: Sequence[Landmark], b: Sequence[Landmark], pairs: list[
     return out
 
 
-def _fuse(x: Landmark, y: Landmark, cx: np.ndarray | None = None, cy: np.ndarray | None = None) -> Landmark:
-    wx, wy = max(x.observations, 1), max(y.observations, 1)
-    c = (np.asarray(x.centroid) * wx + np.asarray(y.centroid) * wy) / (wx + wy)
+def _fuse(
+    x: Landmark,
+    y: Landmark,
+    p: MatchParams,
+    cx: np.ndarray | None = None,
+    cy: np.ndarray | None = None,
+    may_move: bool = True,
+) -> Landmark:
+    """A's landmark `x` and B's `y` as one: A's id and class, A's place unless B's says it moved (module
+    docstring), the extent of both."""
+    from semmap.algorithms.associator.params import MapperParams
+    from semmap.algorithms.associator.prior_anchor import estimate_sigma, held_place
+
+    mp = MapperParams()
     e = np.maximum(x.extent, y.extent)
     radius = max(x.radius, y.radius)
     if cx is not None and cy is not None and len(cx) >= 4 and len(cy) >= 4:
         from semmap.algorithms.associator.geometry import robust_box, voxel_downsample
-        from semmap.algorithms.associator.params import MapperParams
 
-        mp = MapperParams()
         cloud = voxel_downsample(np.concatenate([cx, cy]), mp.voxel_m, mp.cloud_max_points)
-        c, e = robust_box(cloud, mp.extent_percentile)
+        _, e = robust_box(cloud, mp.extent_percentile)
         radius = float(np.linalg.norm(e)) / 2.0
+    sigma = estimate_sigma(p.registration_sigma_m, float(np.linalg.norm(e)), mp)
+    enough = may_move and y.observations >= p.moved_min_observations
+    c, _ = held_place(np.asarray(x.centroid), p.anchor_sigma_m, np.asarray(y.centroid), sigma, p.moved_sigmas, enough)
     statuses = (x.status, y.status)
     status = next(s for s in ("present", "missing", "prior") if s in statuses)
     return Landmark(

@@ -1,11 +1,15 @@
-"""Two sessions of 7-Scenes redkitchen through the real pipeline (issue 19's first and third done-when).
+"""Two sessions of 7-Scenes redkitchen through the real pipeline (issue 19's first and third done-when, issue 34's).
 
 Session 1 maps frames 0-499 on ground-truth odometry (so the prior map is in the ground truth's frame, and the
 recovered transform can be judged against it); session 2 plays frames 500-999 with `gt+drift` odometry in a
-frame moved by 2 m, 1.5 m, 0.4 m and 4, -6, 35 degrees, with `--map` session 1. It must relocalise with the
-transform within 10 cm and 3 degrees of the truth, map no duplicate of a prior landmark, its optimised
-trajectory must lie in the prior frame, and its final map must match one 1000-frame run's. Session 2 run alone
-and merged with session 1 by `semmap merge` must give the relocalised run's landmarks. Measured and documented in
+frame of its own, with `--map` session 1. The frame offset and the drift seed are drawn at random, seeded
+(tests/maps/session_checks.py: a few metres, 25-40 degrees about one axis, 5-15 about the others): until issue 34
+they were one fixed case (2, -1.5, 0.4 m, 4, -6, 35 degrees, seed 1), and another offset and seed moved prior
+landmarks 12-15 cm and lost the microwave. It must relocalise with the transform within 10 cm and 3 degrees of
+the truth, map no duplicate of a prior landmark, keep >= 11 of session 1's 13 objects (the same share of however
+many it maps) within 10 cm of their session-1 places and lose none of its classes, its optimised trajectory must
+lie in the prior frame, and its final map must hold the objects of one 1000-frame run. Session 2 run alone and
+merged with session 1 by `semmap merge` must give the relocalised run's landmarks. Measured and documented in
 docs/MAPS.md ("Measured"); `benchmarks/bench_sessions.py` prints the same figures.
 """
 
@@ -20,13 +24,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semmap.algorithms.associator.params import MapperParams
 from semmap.algorithms.odometry.frontends import frame_offset
 from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.datasets.trajectory_io import read_tum
 from semmap.runtime.map_store import read_map_json
+from tests.maps.session_checks import draws, lined_up
 
 pytestmark = [pytest.mark.slow, pytest.mark.needs_data, pytest.mark.needs_model]
-OFFSET = [2.0, -1.5, 0.4, 4.0, -6.0, 35.0]
+OFFSET, DRIFT_SEED = draws(1934, 1)[0]  # (-3.16, -2.12, 0.51 m, 6.25, -27.01, -8.03 degrees; seed 963)
 # fp32 (lockstep's default): int8 agrees with fp32 only on CPUs with VNNI (issue 31); on an AVX2-only CPU its
 # detections lose objects and the two sessions' maps no longer register by their objects
 COMMON = ["--no-viz"]
@@ -44,7 +50,7 @@ def sessions(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
     root = tmp_path_factory.mktemp("kitchen_sessions")
     out = {name: root / name for name in ("s1", "s2", "full", "s2_alone", "merged")}
     offset = "odometry.frame_offset=[" + ",".join(str(v) for v in OFFSET) + "]"
-    second = ["--start-frame", "500", "--seed", "1", "--odometry", "gt+drift", "--set", offset]
+    second = ["--start-frame", "500", "--seed", str(DRIFT_SEED), "--odometry", "gt+drift", "--set", offset]
     runs = [
         ("session 1", [str(kitchen_dir), "--out", str(out["s1"]), "--max-frames", "500", "--odometry", "gt", *COMMON]),
         ("session 2", [str(kitchen_dir), "--out", str(out["s2"]), *second, "--map", str(out["s1"]), *COMMON]),
@@ -54,8 +60,21 @@ def sessions(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
     for name, args in runs:
         result = _semmap_run(args, timeout=1500)
         assert result.returncode == 0, f"{name}: {result.stderr[-3000:]}"
-    merge = subprocess.run([sys.executable, "-m", "semmap.cli", "merge", str(out["s1"]), str(out["s2_alone"]),
-                            "--out", str(out["merged"])], capture_output=True, text=True, timeout=600)
+    merge = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semmap.cli",
+            "merge",
+            str(out["s1"]),
+            str(out["s2_alone"]),
+            "--out",
+            str(out["merged"]),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert merge.returncode == 0, merge.stderr
     return out
 
@@ -63,8 +82,9 @@ def sessions(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
 def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[str, Path]) -> None:
     """The truth is the rigid transform the session's poses are given in (issue 19: "a rigid transform ... plus
     gt+drift drift"), judged at the camera of the fit's frame. Not the drifted odometry's transform at that frame:
-    the fit places landmarks mapped over the frames before it, and the drift jumps by 2 degrees between frames 20
-    and 35 of this window (measured: the fit is 1.2 deg / 7 cm off the offset, 3.2 deg off the frame-35 drift)."""
+    the fit places landmarks mapped over the frames before it, and the drift can turn fast (with the old fixed
+    case, seed 1, by 2 degrees between frames 20 and 35: the fit was 1.2 deg / 7 cm off the offset, 3.2 deg off the
+    frame-35 drift)."""
     s2 = sessions["s2"]
     fit = json.loads((s2 / "relocalization.json").read_text())
     assert fit["inliers"] >= 4 and fit["refined_on_clouds"]
@@ -81,8 +101,8 @@ def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[st
     at_start = truth[round(stamp, 4)] @ np.linalg.inv(first)
     assert rotation_angle_deg((np.linalg.inv(at_start) @ T)[:3, :3]) <= 3.0
     # the transform the session ends with (its keyframes registered to session 1's) places that frame's camera
-    # within 10 cm and 3 degrees even against the drift gathered by then (measured 1.7 deg, 3.5 cm; the object
-    # fit alone: 3.2 deg)
+    # within 10 cm and 3 degrees even against the drift gathered by then (measured on this draw 1.35 deg, 3.0 cm;
+    # the object fit alone: 2.5 deg; the old fixed case: 1.7 deg, 3.5 cm, the fit alone 3.2 deg)
     stamp, _ = read_tum(s2 / "trajectory_odometry.tum")[fit["frame_id"]]
     optimised = {round(t, 4): p for t, p in read_tum(s2 / "trajectory_optimized.tum")}[round(stamp, 4)]
     final, at_frame = optimised @ np.linalg.inv(pose), truth[round(stamp, 4)] @ np.linalg.inv(pose)
@@ -97,29 +117,32 @@ def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[st
 
 
 def test_no_duplicate_of_a_prior_landmark_and_the_trajectory_in_the_prior_frame(sessions: dict[str, Path]) -> None:
-    prior_ids = {lm.id for lm in read_map_json(sessions["s1"] / "map.json")}
+    s1 = read_map_json(sessions["s1"] / "map.json")
     s2 = read_map_json(sessions["s2"] / "map.json")
-    assert prior_ids <= {lm.id for lm in s2}
-    dup = [
-        (n.id, p.id)
-        for n in s2
-        if n.id not in prior_ids
-        for p in s2
-        if p.id in prior_ids and p.class_name == n.class_name and math.dist(p.centroid, n.centroid) < 0.3
-    ]
-    assert dup == []
+    assert {lm.id for lm in s1} <= {lm.id for lm in s2}
+    assert lined_up(s1, s2)[1] == []
     gt = {round(t, 4): p for t, p in read_tum(sessions["s2"] / "groundtruth.tum")}
     opt = read_tum(sessions["s2"] / "trajectory_optimized.tum")
     err = [np.linalg.norm(p[:3, 3] - gt[round(t, 4)][:3, 3]) for t, p in opt if round(t, 4) in gt]
-    # measured 5.2 cm (docs/MAPS.md; 8-10 cm before the keyframes registered to session 1's); the odometry
-    # alone, in its own frame, is metres away
+    # measured 4.3 cm on this draw (5.2 cm on the old fixed case, 8-10 cm before the keyframes registered to
+    # session 1's); the odometry alone, in its own frame, is metres away
     assert len(err) == 500 and math.sqrt(np.mean(np.square(err))) < 0.08
 
 
-def _paired(a: list, b: list) -> tuple[list[float], list, list]:  # noqa: ANN001
-    """One-to-one same-class pairs, nearest first: their distances, and what either has left."""
-    cand = sorted((math.dist(x.centroid, y.centroid), i, j) for i, x in enumerate(a) for j, y in enumerate(b)
-                  if x.class_name == y.class_name)
+def _paired(a: list, b: list, confusable: bool = False) -> tuple[list[float], list, list]:  # noqa: ANN001
+    """One-to-one pairs of one class (or, with `confusable`, of classes the mapper takes for one object:
+    `confusable_classes`), nearest first, within 0.5 m: their distances, and what either has left."""
+    groups = [set(g.split("|")) for g in MapperParams().confusable_classes.split(";")]
+
+    def same(x: str, y: str) -> bool:
+        return x == y or (confusable and any(x in g and y in g for g in groups))
+
+    cand = sorted(
+        (math.dist(x.centroid, y.centroid), i, j)
+        for i, x in enumerate(a)
+        for j, y in enumerate(b)
+        if same(x.class_name, y.class_name)
+    )
     used_a, used_b, dist = set(), set(), []
     for d, i, j in cand:
         if i not in used_a and j not in used_b and d < 0.5:
@@ -129,34 +152,63 @@ def _paired(a: list, b: list) -> tuple[list[float], list, list]:  # noqa: ANN001
     return dist, [x for i, x in enumerate(a) if i not in used_a], [y for j, y in enumerate(b) if j not in used_b]
 
 
-def test_the_final_map_matches_one_1000_frame_run(sessions: dict[str, Path]) -> None:
-    """Measured: 16 of 16 paired, all within 10 cm (median 1.9, max 9.9 cm: the laptop, seen only in session 2's
-    stretch that no session-1 keyframe covers). The bound below leaves the run-to-run margin of that one object."""
-    dist, only_s2, only_full = _paired(read_map_json(sessions["s2"] / "map.json"),
-                                       read_map_json(sessions["full"] / "map.json"))
+def test_session_1s_objects_keep_their_places_and_classes(sessions: dict[str, Path]) -> None:
+    """Issue 34's done-when: >= 11 of session 1's 13 objects (that share of however many it maps) within 10 cm of
+    their session-1 places in the relocalised map, no duplicate, no class of session 1 lost. Before issue 34, on
+    two other offsets and seeds: 11 and 10 of 13, the microwave a laptop; after: 13 of 13 (docs/MAPS.md). Measured
+    on this draw: 13 of 13 (the farthest 1.3 cm from its place in process)."""
+    s1 = read_map_json(sessions["s1"] / "map.json")
+    kept, dup, lost = lined_up(s1, read_map_json(sessions["s2"] / "map.json"))
+    assert kept * 13 >= 11 * len(s1) and not dup and not lost, (kept, len(s1), dup, lost)
+
+
+def test_the_final_map_holds_the_objects_of_one_1000_frame_run(sessions: dict[str, Path]) -> None:
+    """Every object of one 1000-frame run is in the relocalised map and nothing else, one to one; the landmarks
+    session 2 mapped itself lie within 10 cm of the 1000-frame run's (before issue 34: 16 of 16, median 1.9, max 9.9
+    cm, one object over the run-to-run margin allowed). Session 1's landmarks hold their session-1 places (issue
+    34), so against the 1000-frame run they are as far as session 1's own partial views put them from all 1000
+    frames' (measured: the screen 23 cm, the table and a book 12 cm): within the 0.5 m pairing, not bounded here.
+    Classes pair where the mapper takes them for one object: the 1000-frame run elects the microwave a laptop from
+    both halves' boxes, the relocalised map keeps session 1's microwave. Measured on this draw: 16 of 16 paired,
+    session 2's own 3 within 8.1 cm."""
+    prior = {lm.id for lm in read_map_json(sessions["s1"] / "map.json")}
+    s2 = read_map_json(sessions["s2"] / "map.json")
+    full = read_map_json(sessions["full"] / "map.json")
+    _, only_s2, only_full = _paired(s2, full, confusable=True)
     assert not only_s2 and not only_full, (only_s2, only_full)
-    assert np.median(dist) < 0.05 and sum(d > 0.10 for d in dist) <= 1 and max(dist) < 0.15, dist
+    dist, _, _ = _paired([lm for lm in s2 if lm.id not in prior], full, confusable=True)
+    assert dist and sum(d > 0.10 for d in dist) <= 1 and max(dist) < 0.15, dist
 
 
 def test_merge_of_the_two_sessions_gives_the_relocalised_runs_landmarks(sessions: dict[str, Path]) -> None:
-    """Measured: 15 paired, all within 10 cm (max 4.4 cm); the relocalised run has one more, a laptop seen 13
-    times at the end of session 2, whose tracklet (7 views in 1 s) missed the static test for short tracklets by a
-    hair under session 2 alone's own poses (spread 5.0 cm, limit 5.0 cm): a merge fuses only what both maps hold."""
-    dist, only_merged, only_s2 = _paired(read_map_json(sessions["merged"] / "map.json"),
-                                         read_map_json(sessions["s2"] / "map.json"))
-    # fp32 on an AVX2-only CPU (session 10): the relocalised run loses session 1's microwave, which a merge of the
-    # two maps keeps (issue 34: "the microwave disappears from the map"); at most that one
+    """Before issue 34 (the fixed offset): 15 paired, all within 10 cm (max 4.4 cm); the relocalised run had one
+    more, a laptop seen 13 times at the end of session 2, whose tracklet (7 views in 1 s) missed the static test for
+    short tracklets by a hair under session 2 alone's own poses: a merge fuses only what both maps hold. A merge
+    holds A's places as the relocalised run holds the prior's (issue 34), so the pairs agree: measured on this
+    draw 16 paired, all within 3.3 cm (median 0.1), and the merge's one more, the laptop below."""
+    dist, only_merged, only_s2 = _paired(
+        read_map_json(sessions["merged"] / "map.json"), read_map_json(sessions["s2"] / "map.json")
+    )
+    # a merge pairs one class only: session 2 alone calls the microwave a laptop, which joins beside session 1's
+    # microwave (the relocalised run, which keeps the microwave, has no such laptop); at most one either side
     assert len(only_merged) <= 1 and len(only_s2) <= 1, (only_merged, only_s2)
     assert max(dist) < 0.10, dist
 
 
 def test_merging_the_relocalised_run_itself_keeps_its_landmarks(sessions: dict[str, Path], tmp_path: Path) -> None:
     """Session 2 was started from session 1's map: its odometry is in its own frame, its map in session 1's. The
-    replay must take its odometry through its own alignment too (measured: 16 of 16 within 4.3 cm)."""
-    merge = subprocess.run([sys.executable, "-m", "semmap.cli", "merge", str(sessions["s1"]), str(sessions["s2"]),
-                            "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    replay must take its odometry through its own alignment too (measured: 16 of 16 within 4.3 cm; on this draw,
+    with the prior places held in both, within 1.4 cm)."""
+    merge = subprocess.run(
+        [sys.executable, "-m", "semmap.cli", "merge", str(sessions["s1"]), str(sessions["s2"]), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert merge.returncode == 0 and "re-optimised in A's frame" in merge.stderr, merge.stderr
-    dist, only_merged, only_s2 = _paired(read_map_json(tmp_path / "map.json"),
-                                         read_map_json(sessions["s2"] / "map.json"))
-    # (the one object of session 1 the relocalised run lost, as above, comes back from session 1's map)
+    dist, only_merged, only_s2 = _paired(
+        read_map_json(tmp_path / "map.json"), read_map_json(sessions["s2"] / "map.json")
+    )
+    # (before issue 34 the relocalised run lost session 1's microwave, which came back from session 1's map: one
+    # more in the merge)
     assert len(only_merged) <= 1 and not only_s2 and max(dist) < 0.10, (dist, only_merged, only_s2)

@@ -216,6 +216,13 @@ def view_sigmas(views: list[View], size: float, p: MapperParams) -> np.ndarray:
     return p.sigma_base_m + p.sigma_depth_factor * depth + p.sigma_size_factor * size
 
 
+def inlier_limit(views: list[View], sig: np.ndarray, size: float, p: MapperParams) -> np.ndarray:
+    """How far each view's centroid may be from the MAP centroid; a truncated view's centre may be off by
+    up to half the object, so it gets that much slack."""
+    limit = np.maximum(p.inlier_min_m, p.inlier_sigmas * sig)
+    return limit + 0.5 * size * np.array([v.truncated for v in views])
+
+
 def whole_views(views: list[View], min_views: int) -> list[View]:
     """The views that saw the whole object (box clear of the image border), or all when too few did."""
     whole = [v for v in views if not v.truncated]
@@ -303,9 +310,7 @@ def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = T
     # Even steps would carry 1/(k-1) each; a single jump carries ~all of it. And the views must sit tight
     # around their segment's median: erratic centroids (surface switching) can line up by chance.
     share = displacement / (k - 1)
-    scatter = float(
-        np.median(np.concatenate([np.linalg.norm(c[i] - m[j], axis=1) for j, i in enumerate(parts)]))
-    )
+    scatter = float(np.median(np.concatenate([np.linalg.norm(c[i] - m[j], axis=1) for j, i in enumerate(parts)])))
     steady = bool(
         np.all(along >= -0.1 * displacement)
         and np.max(along) <= (0.45 + 0.6 / (k - 1)) * displacement
@@ -315,7 +320,11 @@ def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = T
 
 
 def track_motion(
-    stamps: np.ndarray, centroids: np.ndarray, unclear: np.ndarray, size: float, p: MapperParams,
+    stamps: np.ndarray,
+    centroids: np.ndarray,
+    unclear: np.ndarray,
+    size: float,
+    p: MapperParams,
     whole_only: bool = True,
 ) -> tuple[bool, float]:
     """(moving, displacement) over a whole track: its views' world centroids binned by `track_motion_bin_s`,
@@ -504,9 +513,7 @@ def map_centroids(problems: list[MapProblem], p: MapperParams) -> list[np.ndarra
     return [best_x[o].copy() for o in range(n_obj)]
 
 
-def map_problem(
-    views: list[View], p: MapperParams, seed: tuple[int, ...], size: float | None = None
-) -> MapProblem:
+def map_problem(views: list[View], p: MapperParams, seed: tuple[int, ...], size: float | None = None) -> MapProblem:
     """The MAP problem of a set of views (a candidate's or a landmark's): whole views when enough."""
     views = whole_views(views, 3)
     c = world_centroids(views)

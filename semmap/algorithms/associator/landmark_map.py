@@ -8,7 +8,9 @@ least new viewpoint), so a landmark seen for minutes keeps a spread of viewpoint
 
 Class: a detector's class for one object flips between views (a laptop seen as tv or microwave). A landmark
 keeps a histogram of the classes of the measurements that fed it (`class_votes`); its reported class is the
-majority (ties keep the current one), and candidates of any class it has been voted for may join it.
+majority (ties keep the current one), and candidates of any class it has been voted for may join it. A prior
+map's landmark in a relocalised session (`anchor`, prior_anchor.py) keeps its prior class while it stands in
+its prior place.
 
 Derived state (MAP centroid, inlier views, voxelised world cloud, robust extent, KD-tree) is recomputed by
 `LandmarkMapper` when views or poses change; the KD-tree is cached per cloud version, rebuilt lazily.
@@ -27,6 +29,7 @@ from scipy.spatial import cKDTree
 from semmap.core.messages import Landmark
 
 from .candidate import View
+from .prior_anchor import PriorAnchor
 
 STATE_VERSION = 1
 MAX_FRAMES = 4000  # frame ids remembered per landmark for co-visibility
@@ -59,6 +62,7 @@ class LandmarkState:
     views_at_full: int = 0  # views at the last full re-estimate (MAP, inliers, cloud)
     last_full: float = float("-inf")  # stamp of that re-estimate
     added_since_full: int = 0
+    anchor: PriorAnchor | None = None  # a prior map's landmark in a relocalised session: its prior place and class
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_version: int = -1
 
@@ -87,19 +91,34 @@ class LandmarkState:
             self.last_seen = max(self.last_seen, v.stamp)
         if len(self.views) > len(views) and views and views[0].stamp < self.views[-len(views) - 1].stamp:
             self.views.sort(key=lambda v: (v.stamp, v.frame_id, v.track_id))
-        while len(self.views) > max_views:
+        while self.over_cap(max_views):
             self._drop_redundant_view()
         if len(self.frames) > MAX_FRAMES:  # co-visibility only matters for recent frames
             self.frames = set(sorted(self.frames)[-MAX_FRAMES // 2 :])
 
+    def _own_views(self) -> list[int]:
+        """Indices of the views the `max_views` cap applies to: all, but for a prior landmark in a relocalised
+        session (`anchor`) only this session's. Its prior views (frozen: negative frame ids) keep their weight:
+        the newest views win the cap, and on 7-Scenes session 2 had thinned a prior landmark's views until those
+        left put its centre 15-23 cm from where all of them had (issue 34)."""
+        if self.anchor is None:
+            return list(range(len(self.views)))
+        return [k for k, v in enumerate(self.views) if v.frame_id >= 0]
+
+    def over_cap(self, max_views: int) -> bool:
+        """More views than `max_views` of those it caps (`_own_views`): one must go."""
+        return len(self._own_views()) > max_views
+
     def _drop_redundant_view(self) -> None:
-        """Drop the older of the two stored views whose camera positions are closest (never the newest)."""
-        pos = np.stack([v.pose[:3, 3] for v in self.views])
+        """Drop the older of the two capped views (`_own_views`) whose camera positions are closest (never the
+        newest)."""
+        own = self._own_views()
+        pos = np.stack([self.views[k].pose[:3, 3] for k in own])
         d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=-1)
         d[np.arange(len(pos)), np.arange(len(pos))] = np.inf
         d[-1, :] = d[:, -1] = np.inf  # keep the newest view
         i, j = np.unravel_index(int(np.argmin(d)), d.shape)
-        del self.views[min(i, j)]
+        del self.views[own[min(i, j)]]
 
     def vote(self, class_name: str, count: int) -> None:
         """Count `count` measurements of `class_name`; the class becomes the majority (ties keep the current)."""
@@ -114,9 +133,22 @@ class LandmarkState:
         self._elect()
 
     def _elect(self) -> None:
+        if self.anchor is not None and not self.anchor.moved:  # in its prior place: its prior class
+            self.class_name = self.anchor.class_name
+            return
         best = max(sorted(self.class_votes), key=lambda c: self.class_votes[c])  # sorted: ties by name
         if self.class_votes[best] > self.class_votes.get(self.class_name, 0):
             self.class_name = best
+
+    def set_moved(self, moved: bool) -> None:
+        """A prior landmark's evidence says it moved (or no longer does): its class is then elected by its votes
+        (or is its prior class again)."""
+        if self.anchor is not None and self.anchor.moved != moved:
+            self.anchor.moved = moved
+            if self.class_votes:
+                self._elect()
+            else:
+                self.class_name = self.anchor.class_name
 
     def remove_track(self, track_id: int) -> None:
         """Forget the views of one track (it turned out to be a moving object)."""
@@ -312,6 +344,7 @@ def _landmark_state(lm: LandmarkState) -> dict[str, Any]:
         "absent_streak": lm.absent_streak,
         "absent_total": lm.absent_total,
         "last_full": None if not np.isfinite(lm.last_full) else lm.last_full,
+        "anchor": None if lm.anchor is None else lm.anchor.to_state(),
     }
 
 
@@ -338,4 +371,5 @@ def _landmark_from_state(d: dict[str, Any]) -> LandmarkState:
     lm.views_at_full, lm.added_since_full = int(d["views_at_full"]), int(d["added_since_full"])
     lm.absent_streak, lm.absent_total = int(d["absent_streak"]), int(d["absent_total"])
     lm.last_full = float("-inf") if d["last_full"] is None else float(d["last_full"])
+    lm.anchor = None if d.get("anchor") is None else PriorAnchor.from_state(d["anchor"])  # (absent before issue 34)
     return lm

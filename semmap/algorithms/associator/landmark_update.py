@@ -15,10 +15,20 @@ from collections.abc import Callable
 import numpy as np
 
 from .association import gate_floor
-from .candidate import MapProblem, View, map_centroids, start_point, view_sigmas, whole_views, world_centroids
+from .candidate import (
+    MapProblem,
+    View,
+    inlier_limit,
+    map_centroids,
+    start_point,
+    view_sigmas,
+    whole_views,
+    world_centroids,
+)
 from .geometry import robust_box, voxel_downsample
 from .landmark_map import CentroidIndex, LandmarkMap, LandmarkState
 from .params import MapperParams
+from .prior_anchor import anchored_place
 
 
 def confusable(a: LandmarkState, b: LandmarkState, groups: str) -> bool:
@@ -41,14 +51,9 @@ def views_cloud(views: list[View], p: MapperParams) -> np.ndarray:
     return voxel_downsample(pts, p.voxel_m, p.cloud_max_points)
 
 
-def inlier_limit(views: list[View], sig: np.ndarray, size: float, p: MapperParams) -> np.ndarray:
-    """How far each view's centroid may be from the MAP centroid; a truncated view's centre may be off by
-    up to half the object, so it gets that much slack."""
-    limit = np.maximum(p.inlier_min_m, p.inlier_sigmas * sig)
-    return limit + 0.5 * size * np.array([v.truncated for v in views])
-
-
 def set_cloud(lm: LandmarkState, cloud: np.ndarray, n_inliers: int, p: MapperParams) -> None:
+    """The landmark's cloud, extent and centre from its inlier views' fused cloud; a prior map's landmark in a
+    relocalised session keeps its prior place unless this session's evidence is worth more (prior_anchor.py)."""
     if len(cloud) >= 4:
         centre, extent = robust_box(cloud, p.extent_percentile)
     else:
@@ -57,6 +62,14 @@ def set_cloud(lm: LandmarkState, cloud: np.ndarray, n_inliers: int, p: MapperPar
     lm.extent = extent
     lm.size = float(np.linalg.norm(extent))
     lm.set_cloud(cloud)
+    if lm.anchor is not None:
+        place = anchored_place(lm, lm.anchor, p)
+        lm.centroid = place.centroid
+        if place.moved and place.cloud is not None:  # it stands elsewhere now: its cloud is this session's
+            lm.extent = robust_box(place.cloud, p.extent_percentile)[1]
+            lm.size = float(np.linalg.norm(lm.extent))
+            lm.set_cloud(place.cloud)
+        lm.set_moved(place.moved)
 
 
 def recompute(lms: list[LandmarkState], stamp: float, p: MapperParams, dirty: set[int]) -> None:
@@ -139,7 +152,7 @@ def absorb(keep: LandmarkState, gone: LandmarkState, landmarks: LandmarkMap, p: 
     """`gone` joins `keep` (views, tracks, frames, votes, clocks) and leaves the map."""
     keep.views.extend(gone.views)
     keep.views.sort(key=lambda v: (v.stamp, v.frame_id, v.track_id))
-    while len(keep.views) > p.max_views:
+    while keep.over_cap(p.max_views):
         keep._drop_redundant_view()
     keep.tracks.extend(t for t in gone.tracks if t not in keep.tracks)
     keep.frames |= gone.frames

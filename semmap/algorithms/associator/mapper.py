@@ -103,9 +103,7 @@ class LandmarkMapper:
         self._rejected: set[int] = set()
         self._bp = backproject_params(self.params)
         self._dirty: set[int] = set()  # landmarks needing a full re-estimate (views removed or re-chosen)
-        self._intrinsics: Intrinsics | None = (
-            None  # the camera of the latest measurement (for absence checks)
-        )
+        self._intrinsics: Intrinsics | None = None  # the camera of the latest measurement (for absence checks)
 
     # ---- queries
 
@@ -176,8 +174,9 @@ class LandmarkMapper:
 
     # ---- the stages of process()
 
-    def _proposal(self, candidates: list[CandidateUpdate], stamp: float, pose: PoseLookup, step: MapperStep,
-                  touched: Touched) -> list[tuple[Candidate, list[View]]]:
+    def _proposal(
+        self, candidates: list[CandidateUpdate], stamp: float, pose: PoseLookup, step: MapperStep, touched: Touched
+    ) -> list[tuple[Candidate, list[View]]]:
         """Views from the new measurements (and from older ones whose pose came), validation; returns the
         candidates that passed with their new views."""
         p = self.params
@@ -212,8 +211,14 @@ class LandmarkMapper:
             fed.append((cand, new_views))
         return fed
 
-    def _association(self, fed: list[tuple[Candidate, list[View]]], ended: list[int], stamp: float,
-                     step: MapperStep, touched: Touched) -> float:
+    def _association(
+        self,
+        fed: list[tuple[Candidate, list[View]]],
+        ended: list[int],
+        stamp: float,
+        step: MapperStep,
+        touched: Touched,
+    ) -> float:
         """Feed candidates tied to a landmark; gate the others (old enough to tell whether they move) and the
         ones whose tracklet ended; returns the time spent in cloud comparisons (ms)."""
         p = self.params
@@ -250,8 +255,15 @@ class LandmarkMapper:
                 nn_ms += self._associate(cand, stamp, touched, force=True)
         return nn_ms
 
-    def _update_merge(self, frame_id: int, stamp: float, pose: PoseLookup, boxes: Sequence[TrackedBox] | None,
-                      step: MapperStep, touched: Touched) -> None:
+    def _update_merge(
+        self,
+        frame_id: int,
+        stamp: float,
+        pose: PoseLookup,
+        boxes: Sequence[TrackedBox] | None,
+        step: MapperStep,
+        touched: Touched,
+    ) -> None:
         """Re-estimate the touched landmarks (full or incremental), merge, observations, absence; the step's
         updated landmarks."""
         p = self.params
@@ -403,6 +415,9 @@ class LandmarkMapper:
                     moved.add(id(v))
                     v.pose = T @ v.pose
                     v.alt_world = transform(v.pose, v.alt_centroids)
+        for lm in self.map.all():  # a prior landmark's place moves with its views
+            if lm.anchor is not None:
+                lm.anchor.centroid = transform(T, lm.anchor.centroid[None, :])[0]
         self._dirty.update(lm.id for lm in self.map.all())
 
     def fuse(self, keep_id: int, gone_id: int, step: MapperStep) -> None:
@@ -468,16 +483,20 @@ class LandmarkMapper:
             c = Candidate(
                 int(d["track_id"]),
                 str(d["class"]),
-                [view_from_state(v) if ref is None else mapper.map[int(ref[0])].views[int(ref[1])]
-                 for v, ref in zip(d["views"], shared, strict=True)],
+                [
+                    view_from_state(v) if ref is None else mapper.map[int(ref[0])].views[int(ref[1])]
+                    for v, ref in zip(d["views"], shared, strict=True)
+                ],
                 {int(f) for f in d["frames"]},
                 [Measurement.from_dict(m) for m in d["pending"]],
                 None if d["landmark_id"] is None else int(d["landmark_id"]),
                 bool(d["held"]),
                 int(d["since_validation"]),
                 int(d["skipped"]),
-                {int(e[0]): (float(e[1]), np.array(e[2:5], dtype=np.float64), bool(e[5]), len(e) > 6 and bool(e[6]))
-                 for e in d.get("path", [])},
+                {
+                    int(e[0]): (float(e[1]), np.array(e[2:5], dtype=np.float64), bool(e[5]), len(e) > 6 and bool(e[6]))
+                    for e in d.get("path", [])
+                },
             )
             mapper._cands[c.track_id] = c
         return mapper

@@ -42,13 +42,16 @@ from semmap.core.messages import Intrinsics, Landmark, MapAlignment, TrackedBox
 from .geometry import inverse_transform
 from .landmark_map import LandmarkMap, LandmarkState
 from .mapper import LandmarkMapper, MapperStep
+from .prior_anchor import PriorAnchor, registration_sigma
 
 STATE_VERSION = 1
 
 
 def _frozen(i: int) -> int:
-    """A prior frame or track id, mapped where no id of this session can be (negative)."""
-    return -1 - int(i)
+    """A prior frame or track id, mapped where no id of this session can be (negative). One frozen already (a
+    prior map that was itself a relocalised session's: its own prior's views) stays as it is: frozen twice, it
+    came back positive, where the new session's poses re-placed it."""
+    return int(i) if int(i) < 0 else -1 - int(i)
 
 
 class PriorSession:
@@ -107,7 +110,7 @@ class PriorSession:
         self.fit, self.transform, self.aligned_at = fit, fit.transform.copy(), frame_id
         stamps = [lm.last_seen for lm in self.prior.all()] + [lm.last_assoc for lm in self.prior.all()]
         shift = min(0.0, session_start - 1.0 - max(stamps, default=0.0))  # the prior session ends before this one
-        adopted = [_freeze(lm, shift) for lm in self.prior.all()]
+        adopted = [_freeze(lm, shift, self._anchor(lm, fit)) for lm in self.prior.all()]
         mapper.adopt_landmarks(adopted)
         step = mapper.refine(pose)
         for session_id, prior_id in fit.matches:
@@ -128,6 +131,22 @@ class PriorSession:
             float(fit.cloud_rms_m if fit.refined and fit.cloud_rms_m is not None else fit.rms_m),
         )
         return step, alignment
+
+    def _anchor(self, lm: LandmarkState, fit: RelocResult) -> PriorAnchor:
+        """The prior landmark's place and class, held against this session's views (prior_anchor.py), which are
+        worth what the fit's residual and rotation uncertainty leave at its distance from the fit's landmarks."""
+        matched = [self.prior[prior_id].centroid for _, prior_id in fit.matches if prior_id in self.prior]
+        centre = np.mean(matched, axis=0) if matched else lm.centroid
+        residual = float(fit.cloud_rms_m if fit.refined and fit.cloud_rms_m is not None else fit.rms_m)
+        p = self.params
+        return PriorAnchor(
+            lm.centroid.copy(),
+            lm.class_name,
+            p.anchor_sigma_m,
+            registration_sigma(lm.centroid, centre, residual, fit.rotation_sigma_deg, p.registration_sigma_m),
+            p.moved_sigmas,
+            p.moved_min_views,
+        )
 
     # ---- changes
 
@@ -286,9 +305,11 @@ def _status(lm: Landmark, status: str) -> Landmark:
     return replace(lm, status=status)
 
 
-def _freeze(lm: LandmarkState, shift: float) -> LandmarkState:
-    """A prior landmark for the session's map: its views keep their (prior-frame) poses for good, and its
-    stamps move before the session's start (the association gate grows with the time since it was seen)."""
+def _freeze(lm: LandmarkState, shift: float, anchor: PriorAnchor) -> LandmarkState:
+    """A prior landmark for the session's map: its views keep their (prior-frame) poses for good, its place and
+    class are held (`anchor`: this session's views move it only as far as they are worth), and its stamps move
+    before the session's start (the association gate grows with the time since it was seen)."""
+    lm.anchor = anchor
     for v in lm.views:
         v.frame_id = _frozen(v.frame_id)
         v.track_id = _frozen(v.track_id)

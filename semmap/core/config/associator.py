@@ -181,7 +181,14 @@ class PriorParams(Section):
     relocalize_min_views: AtLeastOne = 5  # a session landmark takes part once it has this many views
     relocalize_min_inliers: AtLeastOne = 4  # semmap/algorithms/relocalize.py RelocParams.min_inliers
     relocalize_max_rotation_sigma_deg: Positive = 1.5  # RelocParams.max_rotation_sigma_deg
-    anchor_sigma_m: Positive = 0.03  # how firmly the backend holds a prior landmark
+    anchor_sigma_m: Positive = 0.03  # how firmly the backend and the associator (prior_anchor.py) hold a prior landmark
+    # a relocalised session's views of a prior landmark move it only as far as they are worth: their registration
+    # (the fit's residual and rotation uncertainty at the landmark, at least this: on 7-Scenes the fit's own sigma
+    # said 0.3-0.7 degrees, the truth was 1.7-1.8 off) and the object's size (a partial view's centre moves with
+    # the viewpoint); the session's estimate this many combined sigmas away, from enough views: the object moved
+    registration_sigma_m: Positive = 0.05
+    moved_sigmas: Positive = 3.0
+    moved_min_views: AtLeastOne = 5
     missing_after_frames: AtLeastOne = 10  # at least; more for a class the detector often misses (below)
     missing_miss_probability: Fraction = 0.01  # how unlikely the run of misses must be for an object still there
     missing_min_depth_m: NonNegative = 0.5
