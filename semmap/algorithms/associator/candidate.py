@@ -45,7 +45,7 @@ which is why sampling beats a closed form here.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -82,6 +82,9 @@ class View:
     inlier: bool = True  # agrees with its landmark's MAP centroid (used for the landmark's cloud)
     alt_world: np.ndarray | None = None  # (a, 3) cached world centroids
     occluded: bool = False  # a dynamic object's box (a person) covers part of it: its depth may be the person's
+    # the pose object `refresh` last looked at: the pose book hands out the same object until a correction for that
+    # frame arrives, so a refine over tens of thousands of stored views skips the unchanged ones by identity
+    _looked_at: object = field(default=None, repr=False, compare=False)
 
     def shows_motion(self, trust_occluded: bool) -> bool:
         """May this view's centroid speak for the object's motion? Not when truncated (its centre slides with
@@ -120,11 +123,21 @@ class View:
     def world_points(self) -> np.ndarray:
         return transform(self.pose, self.points.astype(np.float64))
 
-    def refresh(self, lookup: PoseLookup) -> bool:
-        """Take the frame's current pose from the lookup (if it has one); True if it changed."""
+    def refresh(self, lookup: PoseLookup, tolerance_m: float = 0.0) -> bool:
+        """Take the frame's current pose from the lookup (if it has one); True if it changed. With a tolerance, a
+        pose that moves the chosen surface's centre by less than `tolerance_m` from where this view put it is not
+        taken (the view keeps its pose; moves add up until they pass the tolerance)."""
         pose = lookup(self.frame_id)
-        if pose is None or np.array_equal(pose, self.pose):
+        if pose is None or pose is self._looked_at:
             return False
+        self._looked_at = pose
+        if np.array_equal(pose, self.pose):
+            return False
+        if tolerance_m > 0.0 and len(self.alt_centroids):
+            c = self.alt_centroids[self.choice]
+            shift = (pose[:3, :3] - self.pose[:3, :3]) @ c + (pose[:3, 3] - self.pose[:3, 3])
+            if float(np.linalg.norm(shift)) < tolerance_m:
+                return False
         self.pose = np.asarray(pose, dtype=np.float64).copy()
         self.alt_world = transform(self.pose, self.alt_centroids)
         return True

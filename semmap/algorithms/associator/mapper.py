@@ -157,13 +157,15 @@ class LandmarkMapper:
         t0 = time.perf_counter()
         step = MapperStep()
         moved = []
+        p = self.params
         for lm in self.map.all():
-            changed = [v.refresh(pose) for v in lm.views]  # (before the candidates: they share views)
+            tolerance = max(p.refine_tolerance_min_m, p.refine_tolerance_size_factor * lm.size)
+            changed = [v.refresh(pose, tolerance) for v in lm.views]  # (before the candidates: they share views)
             if any(changed) or lm.id in self._dirty:
                 moved.append(lm)
         for cand in self._cands.values():
             for v in cand.views:
-                v.refresh(pose)
+                v.refresh(pose, p.refine_tolerance_min_m)
         now = stamp if stamp is not None else max((lm.last_seen for lm in moved), default=0.0)
         recompute(moved, now, self.params, self._dirty)
         touched: Touched = {lm.id: [] for lm in moved}

@@ -103,6 +103,11 @@ class MapperParams(Section):
     full_refresh_s: NonNegative = 1.0  # full re-estimate of a fed landmark at least this often ...
     full_growth: Fraction = 0.25  # ... or once its views grew by this share ...
     full_min_new_views: Count = 3  # ... but not before this many new views
+    refine_tolerance_size_factor: NonNegative = 0.01  # a refine re-places a view only once its object's centre
+    # moved by this x the object's size (at least refine_tolerance_min_m) from where the view put it: after a loop
+    # closure iSAM2 keeps nudging every pose of the loop by millimetres, and re-estimating hundreds of street
+    # landmarks for millimetres each refine made the per-frame cost grow with the map (KITTI 00: 0.3-0.6 s a refine)
+    refine_tolerance_min_m: NonNegative = 0.002
 
     # --- association (paper: gate r = sqrt(dt / u * s))
     gate_u: Positive = 10.0  # paper
