@@ -66,6 +66,9 @@ class RelocParams:
     distinct_m: float = 0.3  # two hypotheses are distinct if some query landmark lands this far apart
     max_base_pairs: int = 15  # widest, rarest-class pairs; any pair of two true matches finds the answer
     max_hypotheses: int = 20000
+    # third landmarks tried per base pair (None: all): those furthest from the pair's line, which pin the fit best;
+    # a street's revisit search sets a few, as 30 recent cars against 200 old ones made ~100k Python steps a search
+    max_thirds: int | None = None
     icp_iterations: int = 30  # per stage of the schedule
     icp_schedule_m: tuple[float, ...] = (0.3, 0.2, 0.1, 0.05)  # correspondence gates, coarse to fine
     icp_trim: float = 0.8  # share of closest correspondences kept per iteration
@@ -279,13 +282,18 @@ def _triples(
     for _, neg_d, i, j in base:
         d_ij = -neg_d
         axis = (qc[j] - qc[i]) / d_ij
-        thirds = []
+        thirds, lever = [], []
         for k in range(len(query)):
             off = qc[k] - qc[i]
-            if k not in (i, j) and np.linalg.norm(off - (off @ axis) * axis) >= p.min_triangle_m:
+            perp = float(np.linalg.norm(off - (off @ axis) * axis))
+            if k not in (i, j) and perp >= p.min_triangle_m:
                 thirds.append(k)
+                lever.append(perp)
         if not thirds:
             continue
+        if p.max_thirds is not None and len(thirds) > p.max_thirds:
+            best = sorted(np.argsort(-np.asarray(lever), kind="stable")[: p.max_thirds])
+            thirds = [thirds[n] for n in best]
         A = index.by_class[query[i].class_name]
         pa = index.centroids[A]
         cls_j = index.by_class[query[j].class_name]

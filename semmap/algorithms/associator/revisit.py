@@ -61,7 +61,8 @@ class RevisitFinder:
         gate = max(p.revisit_gate_min_m, p.revisit_gate_size_factor * size_m)
         return RelocParams(min_inliers=p.revisit_min_inliers, inlier_gate_m=gate, max_rms_m=0.5 * gate,
                            pair_tol_m=0.7 * gate, min_triangle_m=gate, distinct_m=gate,
-                           max_rotation_sigma_deg=p.revisit_max_rotation_sigma_deg, centroid_sigma_floor_m=0.2)
+                           max_rotation_sigma_deg=p.revisit_max_rotation_sigma_deg, centroid_sigma_floor_m=0.2,
+                           max_hypotheses=p.revisit_max_hypotheses, max_thirds=p.revisit_max_thirds)
 
     def due(self, stamp: float) -> bool:
         return self.params.revisit and stamp - self.last_search >= self.params.revisit_every_s

@@ -176,6 +176,8 @@ class MapperParams(Section):
     # median size of an old one of its class, after the fit (cars: 1.5 m; a kitchen's objects: the floor below)
     revisit_gate_min_m: Positive = 0.15
     revisit_max_rotation_sigma_deg: Positive = 2.0  # the fit's rotation must be pinned this well (1 sigma)
+    revisit_max_hypotheses: AtLeastOne = 20000  # placements tried per search (a street of 300 cars offers many)
+    revisit_max_thirds: AtLeastOne = 4  # third landmarks tried per base pair, the furthest from its line
 
 
 class PriorParams(Section):
