@@ -40,7 +40,9 @@ class RepairParams:
     # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
     # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)
     gate_rate_hz: float = 30.0
-    max_coast_s: float = 1.0  # the motion model carries at most this long in a row; then the SLAM's steps count
+    # the motion model carries at most this long in a row, then the SLAM's steps count; off (inf) by default: on
+    # Bonn crowd a SLAM dragged by people stays wrong for seconds, and 1 s let it back in (1.16 m stayed 1.27 m)
+    max_coast_s: float = float("inf")
     # without a witness a step breaks the recent motion only if it also differs by this share of the step's length:
     # a SLAM's jitter on a car's metre-long steps is centimetres, a person dragging a hand-held camera doubles them
     jump_share: float = 0.25
@@ -60,6 +62,7 @@ class RepairReport:
     static: int = 0  # no dynamic object in view for `hold_s`: the SLAM's step stands unchecked (its own ground)
     implausible: int = 0  # no trustworthy registration and the SLAM's step broke the recent motion: replaced
     coast_limit: int = 0  # ...but the motion model had carried `max_coast_s` already: the SLAM's step taken
+    outvoted: int = 0  # the registration disagreed, but the SLAM's step continued the recent motion and it did not
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
 
@@ -67,7 +70,7 @@ class RepairReport:
         return {"repair_steps": self.steps, "repair_overruled": self.overruled,
                 "repair_slam_missing": self.slam_missing, "repair_unchecked": self.unchecked,
                 "repair_implausible": self.implausible, "repair_static": self.static,
-                "repair_coast_limit": self.coast_limit}
+                "repair_coast_limit": self.coast_limit, "repair_outvoted": self.outvoted}
 
     def spans(self) -> list[tuple[int, int]]:
         """The overruled frames as [first, last] runs of consecutive ids: where the SLAM went wrong."""
@@ -139,7 +142,7 @@ class SlamRepair:
         if not (step is not None and bool(np.all(np.isfinite(step))) and fitness >= p.min_fitness
                 and float(np.linalg.norm(step[:3, 3])) <= p.max_step_m and _rotation_deg(step) <= p.max_step_deg):
             return False
-        if self.report.steps <= 1:
+        if self.report.steps <= 1 or scale <= 1.0:  # (at the gates' own rate the registration is the witness)
             return True
         dt, dr = step_difference(step, self._last_step)
         length = max(float(np.linalg.norm(step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
@@ -147,10 +150,15 @@ class SlamRepair:
                 and dr <= p.check_jump_gates * p.rotation_deg * scale)
 
     def _gate_scale(self, stamp: float | None) -> float:
-        """How much wider the gates are for this frame's interval than for one at `gate_rate_hz` (never narrower)."""
+        """How much wider the gates are for this frame's interval than for one at `gate_rate_hz`: 1 for a stream at
+        about that rate (a frame interval under 1.5 of the gates': a 30 Hz camera's jitter, a dropped frame), the
+        interval's ratio squared for a slower one (a car at 10 Hz: 9). Only a slower stream gets the rules for metre
+        steps (a registration that breaks the recent motion is no witness, two witnesses outvote it, a step may
+        differ from the last by `jump_share` of its length); at the gates' rate the registration is the witness."""
         if stamp is None or self._stamp is None or stamp <= self._stamp:
             return 1.0
-        return max(1.0, ((stamp - self._stamp) * self.params.gate_rate_hz) ** 2)
+        ratio = (stamp - self._stamp) * self.params.gate_rate_hz
+        return ratio**2 if ratio >= 1.5 else 1.0
 
     def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
                fitness: float = 1.0, dynamic_in_view: bool = True, stamp: float | None = None) -> np.ndarray:
@@ -189,18 +197,32 @@ class SlamRepair:
                 step = self._without_witness(frame_id, slam_step, stamp, scale)
             else:
                 dt, dr = step_difference(slam_step, check_step)
-                if dt > p.translation_m * scale or dr > p.rotation_deg * scale:
+                if dt <= p.translation_m * scale and dr <= p.rotation_deg * scale:
+                    step = slam_step
+                elif scale > 1.0 and self._continues(slam_step, scale) and not self._continues(check_step, scale):
+                    # two witnesses against one: the SLAM's step continues the camera's recent motion and the
+                    # registration's breaks it (KITTI 00 at 10 Hz: three registrations 1-3 deg off, on a slow car
+                    # in a street, turned a 1.3 m trajectory into 6.9 m)
+                    r.outvoted += 1
+                    step = slam_step
+                else:
                     r.overruled += 1
                     self._note(frame_id)
                     step = check_step
-                else:
-                    step = slam_step
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
         if stamp is not None:
             self._stamp = float(stamp)
         return self._pose.copy()
+
+    def _continues(self, step: np.ndarray, scale: float) -> bool:
+        """Does `step` continue the camera's recent motion (within the gates, scaled to the frame interval)?"""
+        if self.report.steps <= 1:
+            return False
+        p = self.params
+        dt, dr = step_difference(step, self._last_step)
+        return dt <= p.translation_m * scale and dr <= p.rotation_deg * scale
 
     def _without_witness(self, frame_id: int, slam_step: np.ndarray, stamp: float | None, scale: float) -> np.ndarray:
         """No witness of semmap's own: the SLAM's step still has to agree with the camera's recent motion (constant
@@ -211,7 +233,8 @@ class SlamRepair:
         dt, dr = step_difference(slam_step, self._last_step)
         length = max(float(np.linalg.norm(slam_step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
         first = r.steps <= 1  # no motion known yet (the identity is no witness of a camera at rest)
-        if first or (dt <= p.translation_m * scale or dt <= p.jump_share * length) and dr <= p.rotation_deg * scale:
+        share = scale > 1.0 and dt <= p.jump_share * length  # (a slower stream: a car's metre-long steps)
+        if first or (dt <= p.translation_m * scale or share) and dr <= p.rotation_deg * scale:
             r.unchecked += 1
             self._coast_since = None
             return slam_step
@@ -233,7 +256,7 @@ class SlamRepair:
         r = self.report
         return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
                 "counters": [r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static,
-                             r.coast_limit],
+                             r.coast_limit, r.outvoted],
                 "dynamic_seen": self._dynamic_seen, "stamp": self._stamp, "coast_since": self._coast_since,
                 "frames": list(r.overruled_frames)}
 
@@ -242,9 +265,10 @@ class SlamRepair:
         self._slam_prev = _unflat(state.get("slam_prev"), (4, 4))
         last = _unflat(state.get("last_step"), (4, 4))
         self._last_step = np.eye(4) if last is None else last
-        c = [*(state.get("counters") or []), 0, 0, 0, 0, 0, 0, 0][:7]  # (states saved before coast_limit: 6)
+        c = [*(state.get("counters") or []), 0, 0, 0, 0, 0, 0, 0, 0][:8]  # (states saved before coast_limit: 6)
         r = self.report
-        r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static, r.coast_limit = (int(v) for v in c)
+        (r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static, r.coast_limit,
+         r.outvoted) = (int(v) for v in c)
         self._dynamic_seen = state.get("dynamic_seen")
         self._stamp, self._coast_since = state.get("stamp"), state.get("coast_since")
         r.overruled_frames = [int(f) for f in state.get("frames", [])]
