@@ -13,7 +13,19 @@ import math
 
 import numpy as np
 
-from semmap.core.messages import Landmark
+from semmap.core.messages import Detections, Landmark
+from semmap.runtime.inprocess import ROBOT, Recording
+from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
+
+
+def orbit_recording(frames: int, spheres: list[Sphere]) -> Recording:
+    """The analytic orbit around `spheres` at 30 Hz as the in-process driver's recording (detections, truth)."""
+    dets, gt = [], []
+    for f in range(frames):
+        pose = orbit_pose(f / 30.0)
+        dets.append(Detections(ROBOT, f, f / 30.0, K_SMALL, 0.001, detections(pose, spheres)))
+        gt.append(pose)
+    return Recording("analytic orbit", dets, gt)
 
 
 def draw_session(rng: np.random.Generator) -> tuple[list[float], int]:

@@ -32,14 +32,13 @@ import pytest
 from semmap.algorithms.odometry.frontends import frame_offset
 from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.core.config import load_config
-from semmap.core.messages import Detections
 from semmap.datasets import open_dataset
 from semmap.datasets.synthetic import SyntheticConfig, _build_scene, changed_objects
 from semmap.datasets.trajectory_io import read_tum
-from semmap.runtime.inprocess import ROBOT, LoopResult, Recording, run_loop
+from semmap.runtime.inprocess import LoopResult, run_loop
 from semmap.runtime.map_store import read_map_json
-from tests.associator.helpers import K_SMALL, TABLE_SPHERES, Sphere, detections, orbit_pose
-from tests.maps.session_checks import draws, lined_up
+from tests.associator.helpers import TABLE_SPHERES, Sphere
+from tests.maps.session_checks import draws, lined_up, orbit_recording
 
 PROJECT = Path(__file__).resolve().parents[2]
 SCENE = "synthetic:frames=300,seed=0"
@@ -59,19 +58,10 @@ SPHERES = [
 SECOND_DAY = [s if s.class_name != "microwave" else Sphere(s.centre, s.radius, "laptop") for s in SPHERES]
 
 
-def _orbit(frames: int, spheres: list[Sphere]) -> Recording:
-    dets, gt = [], []
-    for f in range(frames):
-        pose = orbit_pose(f / 30.0)
-        dets.append(Detections(ROBOT, f, f / 30.0, K_SMALL, 0.001, detections(pose, spheres)))
-        gt.append(pose)
-    return Recording("analytic orbit", dets, gt)
-
-
 @pytest.fixture(scope="module")
 def first_day(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LoopResult]:
     out = tmp_path_factory.mktemp("spheres") / "day1"
-    day1 = run_loop(_orbit(200, SPHERES), load_config(None, ["odometry.mode=gt"]), "gt")
+    day1 = run_loop(orbit_recording(200, SPHERES), load_config(None, ["odometry.mode=gt"]), "gt")
     day1.write_outputs(out)  # map.sqlite: a prior map
     return out / "map.sqlite", day1
 
@@ -82,7 +72,7 @@ def test_sessions_line_up_on_any_offset(first_day: tuple[Path, LoopResult], offs
     (2.1-3.3 cm before issue 34), the microwave kept (before, a laptop in all three draws)."""
     prior_map, day1 = first_day
     config = load_config(None, ["odometry.mode=gt+drift", f"odometry.seed={seed}", f"odometry.frame_offset={offset}"])
-    day2 = run_loop(_orbit(240, SECOND_DAY), config, "gt+drift", prior_map=prior_map)
+    day2 = run_loop(orbit_recording(240, SECOND_DAY), config, "gt+drift", prior_map=prior_map)
     prior = day2.associator.prior
     assert prior is not None and prior.relocalised and prior.transform is not None
     error = np.linalg.inv(frame_offset(offset)) @ prior.transform

@@ -19,11 +19,11 @@ import pytest
 from semmap.algorithms.odometry.frontends import frame_offset
 from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.core.config import load_config
-from semmap.core.messages import Detections
 from semmap.runtime import inprocess
-from semmap.runtime.inprocess import ROBOT, Recording, run_loop
+from semmap.runtime.inprocess import run_loop
 from semmap.runtime.map_store import read_map_json
-from tests.associator.helpers import K_SMALL, TABLE_SPHERES, Sphere, detections, orbit_pose
+from tests.associator.helpers import TABLE_SPHERES, Sphere
+from tests.maps.session_checks import orbit_recording
 
 OFFSET = [1.5, -2.0, 0.3, 5.0, -3.0, 40.0]
 SPHERES = [
@@ -33,15 +33,6 @@ SPHERES = [
 ]
 
 
-def _orbit(frames: int) -> Recording:
-    dets, gt = [], []
-    for f in range(frames):
-        pose = orbit_pose(f / 30.0)
-        dets.append(Detections(ROBOT, f, f / 30.0, K_SMALL, 0.001, detections(pose, SPHERES)))
-        gt.append(pose)
-    return Recording("analytic orbit", dets, gt)
-
-
 def _close_to_the_offset(transform: np.ndarray) -> None:
     """The relocalisation's transform (session frame -> prior frame) undoes the session's frame offset."""
     error = np.linalg.inv(frame_offset(OFFSET)) @ transform
@@ -49,10 +40,10 @@ def _close_to_the_offset(transform: np.ndarray) -> None:
 
 
 def test_a_second_session_relocalises_against_the_first_in_process(tmp_path: Path) -> None:
-    day1 = run_loop(_orbit(360), load_config(None, ["odometry.mode=gt"]), "gt")
+    day1 = run_loop(orbit_recording(360, SPHERES), load_config(None, ["odometry.mode=gt"]), "gt")
     day1.write_outputs(tmp_path / "day1")  # map.sqlite: a prior map
     config = load_config(None, ["odometry.mode=gt", f"odometry.frame_offset={OFFSET}"])
-    day2 = run_loop(_orbit(200), config, "gt", prior_map=tmp_path / "day1" / "map.sqlite")
+    day2 = run_loop(orbit_recording(200, SPHERES), config, "gt", prior_map=tmp_path / "day1" / "map.sqlite")
     day2.write_outputs(tmp_path / "day2")
     prior = day2.associator.prior
     assert prior is not None and prior.relocalised and prior.fit is not None  # (measured: frame 30, 6 inliers)
@@ -84,7 +75,7 @@ def test_the_inprocess_command_runs_a_prior_map(tmp_path: Path) -> None:
 
 def test_the_inprocess_command_refuses_a_folder_without_a_map(tmp_path: Path, capsys: pytest.CaptureFixture,
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    recording = _orbit(3)  # (no rendering: the prior map is what fails)
+    recording = orbit_recording(3, SPHERES)  # (no rendering: the prior map is what fails)
     monkeypatch.setattr(inprocess, "detect_recording", lambda *args, **kwargs: recording)
     monkeypatch.setattr(inprocess, "_open", lambda *args, **kwargs: None)
     (tmp_path / "empty").mkdir()
