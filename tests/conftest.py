@@ -85,6 +85,32 @@ def _read_stats(out: Path) -> dict:
     return json.loads((out / "stats.json").read_text())
 
 
+def _run_or_fail(args: list[str], timeout: float = 1500) -> None:
+    result = _semmap_run(args, timeout=timeout)
+    assert result.returncode == 0, f"semmap run {' '.join(args)}: {result.stderr[-3000:]}"
+
+
+@pytest.fixture(scope="session")
+def kitchen_gt_run(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One lockstep `semmap run` of all 1000 7-Scenes frames on ground-truth odometry, no viewer.
+
+    Shared by every test folder that needs it (pipeline, sessions): each such run costs ~2 minutes of CI's 2 cores,
+    and the runs are deterministic, so computing it once loses nothing."""
+    out = tmp_path_factory.mktemp("kitchen_gt") / "run"
+    _run_or_fail([str(kitchen_dir), "--out", str(out), "--odometry", "gt", "--no-viz"])
+    return out
+
+
+@pytest.fixture(scope="session")
+def kitchen_drift_run(kitchen_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One lockstep `semmap run` of all 1000 7-Scenes frames on `gt+drift` (seed 1), viewer on (run.rrd written).
+
+    The outputs test and the drift-correction test read the same run (see `kitchen_gt_run` for why)."""
+    out = tmp_path_factory.mktemp("kitchen_drift") / "run"
+    _run_or_fail([str(kitchen_dir), "--out", str(out), "--odometry", "gt+drift", "--seed", "1", "--lockstep"])
+    return out
+
+
 @pytest.fixture
 def semmap_run():
     return _semmap_run

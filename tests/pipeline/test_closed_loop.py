@@ -19,10 +19,8 @@ import numpy as np
 import pytest
 
 from semmap.algorithms.evaluation import evaluate_run
-from semmap.datasets import find_data_root
 from semmap.datasets.trajectory_io import read_tum
 from semmap.runtime.inprocess import closed_loop
-from tests.conftest import _semmap_run
 
 PERSON = "person"
 
@@ -108,27 +106,14 @@ def test_synthetic_drift_with_walking_people(tmp_path: Path, semmap_run) -> None
 @pytest.mark.slow
 @pytest.mark.needs_data
 @pytest.mark.needs_model
-@pytest.mark.parametrize("seed", [1])
-def test_7scenes_drift_is_cut_by_at_least_30_percent(tmp_path: Path, data_root: Path, semmap_run,
-                                                      seed: int) -> None:
-    data = str(data_root / "7scenes-redkitchen")
-    ev = _run(semmap_run, data, tmp_path / "run", "--odometry", "gt+drift", "--seed", str(seed))
+def test_7scenes_drift_is_cut_by_at_least_30_percent(kitchen_drift_run: Path, kitchen_dir: Path) -> None:
+    data, seed = str(kitchen_dir), 1  # the seed `kitchen_drift_run` uses
+    ev = evaluate_run(kitchen_drift_run)
     assert ev["ate_odometry_m"] > 0.1  # measured 0.186 m
     assert ev["improvement_pct"] >= 30.0  # measured 77.8 % (0.0415 m)
     assert ev["ate_optimized_m"] < 0.045  # under the centroid floor (0.066 m without loop closures)
     offline, _ = closed_loop(data, "gt+drift", seed)  # cached detections under .cache/closed_loop
     assert offline.ate_optimized == pytest.approx(ev["ate_optimized_m"], abs=5e-3)  # measured equal to 1e-5
-
-
-@pytest.fixture(scope="module")
-def kitchen_gt_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One `semmap run` of all 1000 7-Scenes frames with ground-truth odometry, shared by the tests below."""
-    root = find_data_root()
-    if root is None or not (root / "7scenes-redkitchen").is_dir():
-        pytest.skip("7-Scenes redkitchen absent from the shared data")
-    out = tmp_path_factory.mktemp("kitchen_gt") / "run"
-    _run(_semmap_run, str(root / "7scenes-redkitchen"), out, "--odometry", "gt")
-    return out
 
 
 @pytest.mark.slow

@@ -138,8 +138,6 @@ def test_ctrl_c_stops_every_service_and_keeps_outputs(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.needs_data
-def test_full_7scenes_sequence(tmp_path: Path, data_root: Path, semmap_run) -> None:
-    result = semmap_run([str(data_root / "7scenes-redkitchen"), "--out", str(tmp_path), "--odometry", "gt+drift",
-                         "--lockstep"], timeout=1800)
-    assert result.returncode == 0, result.stderr[-3000:]
-    _assert_outputs(tmp_path, 1000)
+@pytest.mark.needs_model
+def test_full_7scenes_sequence(kitchen_drift_run: Path) -> None:
+    _assert_outputs(kitchen_drift_run, 1000)  # the run is shared with tests/pipeline/test_closed_loop.py
