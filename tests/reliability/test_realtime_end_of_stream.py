@@ -189,3 +189,46 @@ def test_a_service_that_fell_behind_follows_a_signed_stream_that_moved_on(tmp_pa
             bus.close()
         if proc.poll() is None:
             proc.kill()
+
+
+def test_backend_gives_up_a_pose_whose_observations_never_come_and_maps_the_rest(tmp_path: Path, router) -> None:  # noqa: ANN001
+    """Two detector replicas in real time: replica 2 answered frame 1 before replica 1 answered frame 0 (its first
+    inference), the tracker started at frame 1, and frame 0's observations never came. The poses (gt odometry,
+    fast) were all here first; the backend waited on frame 0 for ever and dropped every later frame's
+    observations as "unjoined": 0 frames mapped, a stall (`semmap run 7-Scenes --realtime --detectors 2`)."""
+    keys = Keys(ROBOT)
+    feeder = LockstepFeeder(router.endpoint, ROBOT, "backend", [keys.odometry, keys.observations])
+    odometry, observations = feeder.publishers[keys.odometry], feeder.publishers[keys.observations]
+    statuses: list[ServiceStatus] = []
+    feeder.bus.subscribe(keys.status_all, ServiceStatus, statuses.append)
+    proc = start_service("backend", router.endpoint, ROBOT, tmp_path, "--mode", "realtime",
+                         "--set", "loop_closure.enabled=false")
+    log = tmp_path / "backend.log"
+    try:
+        assert odometry.wait_matching(30) and observations.wait_matching(30), "the backend did not come up"
+        for i in range(FRAMES):  # the odometry runs ahead
+            odometry.put(_pose(i))
+            time.sleep(0.002)
+        time.sleep(0.5)
+        for i in range(1, FRAMES):  # frame 0's observations were lost upstream
+            observations.put(Observations(ROBOT, i, 0.1 * i))
+            time.sleep(0.005)
+        feeder.control.put(Control(ROBOT, "end_of_stream", LAST, FRAMES))
+        assert _wait(feeder.changed, lambda: feeder.done >= LAST, 20), log.read_text()[-3000:]
+        deadline = time.monotonic() + 20
+        while "finished (last frame" not in log.read_text() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert f"finished (last frame {LAST})" in log.read_text()
+        assert "frame 0: its observations never came" in log.read_text()
+        feeder.control.put(Control(ROBOT, "stop"))
+        assert proc.wait(timeout=30) == 0, log.read_text()[-3000:]
+        time.sleep(0.5)
+        final = statuses[-1]
+        assert final.counters["frames"] == FRAMES - 1, final.counters
+        assert final.counters["frames_without_observations"] == 1, final.counters
+        assert final.counters.get("observations_unjoined", 0) == 0, final.counters
+        assert len(np.loadtxt(tmp_path / "trajectory_optimized.tum")) == FRAMES - 1
+    finally:
+        feeder.close()
+        if proc.poll() is None:
+            proc.kill()

@@ -149,7 +149,12 @@ class BackendService(StageService):
     def _drain(self) -> None:
         """Handle frames in order, each once its odometry and its observations (and, in lockstep, a keyframe's
         depth) are here."""
-        while self.ready_odometry and self._ready(self.ready_odometry[0].frame_id):
+        while self.ready_odometry:
+            if not self._ready(self.ready_odometry[0].frame_id):
+                if not self._observations_passed(self.ready_odometry[0].frame_id):
+                    break
+                self._give_up_pose(self.ready_odometry.pop(0))
+                continue
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
             cloud = self.clouds.pop(pose.frame_id, None)
@@ -175,13 +180,32 @@ class BackendService(StageService):
             # journalled after the frame's closure (its extra): a frame journalled is a frame complete, so a crash
             # in between loses no closure; one before it means the frame is handled again
             self.complete_frame(pose.frame_id, [(self.pub, message)], (pose.encode(), obs.encode()))
-        # observations for frames before our first odometry can never be joined
-        first = self.inputs.next_id
-        for stale in [f for f in self.observations if first is not None and f < first - 1]:
+        # observations for frames before the oldest pose still waiting (or, none waiting, before the last pose
+        # handled) can never be joined: their pose never came or was given up. (Not before the next pose expected:
+        # poses run ahead of observations, and the observations of poses already queued must stay.)
+        waiting = self.ready_odometry[0].frame_id if self.ready_odometry else None
+        first = waiting if waiting is not None else (None if self.inputs.next_id is None else self.inputs.next_id - 1)
+        for stale in [f for f in self.observations if first is not None and f < first]:
             del self.observations[stale]
             self.metrics.count("observations_unjoined")
         for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
             del self.clouds[stale]
+
+    def _observations_passed(self, frame_id: int) -> bool:
+        """Real time: a later frame's observations are here, so this frame's never come (the associator sends in
+        frame order; its frame was lost upstream, e.g. a detector replica's answer for the stream's first frame
+        came after the other replica's for the second, and the tracker had started at the second). Lockstep loses
+        no frame: there the pose waits."""
+        return not self.lockstep and any(f > frame_id for f in self.observations)
+
+    def _give_up_pose(self, pose: OdometryPose) -> None:
+        """A pose whose frame's observations never come: counted and logged (the first few), its frame left out of
+        the graph like a frame without odometry, so that the frames after it go through."""
+        self.clouds.pop(pose.frame_id, None)
+        self.metrics.count("frames_without_observations")
+        if self.metrics.counters["frames_without_observations"] <= 3:
+            self.log.warning("frame %d: its observations never came (lost upstream); the frame is left out of the "
+                             "pose graph (counted: frames_without_observations)", pose.frame_id)
 
     def _count_refactorisation(self) -> None:
         """Say so when the pose graph had to leave Cholesky for QR (an ill-conditioned graph: a long street)."""
