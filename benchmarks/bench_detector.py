@@ -3,8 +3,11 @@
 Why: the pipeline's frame budget is set by detection; this measures what one detector replica costs per frame
 end to end (letterbox, inference, decode, NMS), after a warm-up, with the frames already decoded in memory.
 With --int8 it also builds an int8 copy (calibrated on other frames of the same sequence) and times it.
+With --openvino it times the network alone (same letterboxed input, same resized fp32 model) in onnxruntime and in
+OpenVINO's CPU runtime (`pip install openvino`; not a dependency: on the 2-core AVX2 EPYC it was slower, see
+docs/PERFORMANCE.md, issue 31); --input-size picks the letterbox (default 384x512, the real-time choice there).
 
-    .venv/bin/python benchmarks/bench_detector.py [--frames 50] [--int8] [--json-out out.json]
+    .venv/bin/python benchmarks/bench_detector.py [--frames 50] [--int8] [--openvino] [--json-out out.json]
 """
 
 from __future__ import annotations
@@ -77,6 +80,48 @@ def bench_onnx(model: Path, frames: list[np.ndarray], threads: int, warmup: int,
     }
 
 
+def bench_network_runtimes(model: Path, frames: list[np.ndarray], hw: tuple[int, int], threads: int,
+                           warmup: int) -> dict[str, dict[str, float]]:
+    """The network alone (no letterbox, decode or NMS) on the same blobs: onnxruntime vs OpenVINO, same model."""
+    import onnx
+    import onnxruntime as ort
+    import openvino as ov
+
+    from semmap.algorithms.detector.onnx_detector import letterbox
+    from semmap.algorithms.detector.yolov5_convert import resize_input
+
+    data = resize_input(onnx.load(str(model)), hw).SerializeToString()
+    blobs = [cv2.dnn.blobFromImage(letterbox(rgb, hw)[0], scalefactor=1.0 / 255.0) for rgb in frames]
+    so = ort.SessionOptions()
+    so.intra_op_num_threads, so.inter_op_num_threads = threads, 1
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    session = ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
+    name = session.get_inputs()[0].name
+    with tempfile.TemporaryDirectory(prefix="semmap-ov-") as tmp:
+        path = Path(tmp) / "model.onnx"
+        path.write_bytes(data)
+        compiled = ov.Core().compile_model(str(path), "CPU", {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1,
+                                                               "INFERENCE_NUM_THREADS": threads})
+    request = compiled.create_infer_request()
+    runners = {"onnxruntime": lambda b: session.run(None, {name: b})[0],
+               f"openvino {ov.__version__.split('-')[0]}": lambda b: request.infer({0: b})[0]}
+    outputs, results = {}, {}
+    for label, run in runners.items():
+        for b in blobs[:warmup]:
+            run(b)
+        times, cpu0 = [], time.process_time()
+        for b in blobs:
+            t0 = time.perf_counter()
+            run(b)
+            times.append(time.perf_counter() - t0)
+        cpu_ms = (time.process_time() - cpu0) / len(blobs) * 1e3
+        results[label] = {**stats_ms(times), "cpu_ms_per_frame": round(cpu_ms, 2)}
+        outputs[label] = np.asarray(run(blobs[0]))
+    a, b = outputs.values()
+    results["max_abs_output_difference"] = {"value": float(np.abs(a - b).max())}
+    return results
+
+
 def bench_oracle(n_frames: int = 1000, n_instances: int = 12) -> dict[str, float]:
     rng = np.random.default_rng(0)
     instances = []
@@ -117,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", default="1,2", help="thread counts to time (default 1,2)")
     ap.add_argument("--spin", action="store_true", help="let ORT threads busy-wait (faster only on an idle CPU)")
     ap.add_argument("--replicas", default="", help="also measure replica throughput through the bus, e.g. 1,2")
+    ap.add_argument("--openvino", action="store_true", help="also time the network in OpenVINO vs onnxruntime")
+    ap.add_argument("--input-size", default="384x512", help="letterbox HxW for --openvino (default 384x512)")
     ap.add_argument("--json-out", type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -159,6 +206,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"mean {r['mean_ms']:7.2f} ms  cpu {r['cpu_ms_per_frame']:7.2f} ms/frame  "
                   f"({r['detections_per_frame']} detections/frame)")  # fmt: skip
     tmp.cleanup()
+    if args.openvino:
+        hw = tuple(int(v) for v in args.input_size.lower().split("x"))
+        for threads in (int(t) for t in args.threads.split(",")):
+            runtimes = bench_network_runtimes(model, frames, hw, threads, args.warmup)  # type: ignore[arg-type]
+            results.setdefault("network_runtimes", {})[f"{args.input_size}_threads{threads}"] = runtimes  # type: ignore[union-attr]
+            for label, r in runtimes.items():
+                if "p50_ms" in r:
+                    print(f"network {args.input_size} threads={threads} {label:22s}: p50 {r['p50_ms']:7.2f} ms  "
+                          f"cpu {r['cpu_ms_per_frame']:7.2f} ms/frame")
+            print(f"  outputs differ by at most {runtimes['max_abs_output_difference']['value']:.1e}")
     r = bench_oracle()
     results["oracle"] = r
     print(f"oracle: p50 {r['p50_ms'] * 1e3:.0f} us  p95 {r['p95_ms'] * 1e3:.0f} us per frame "
