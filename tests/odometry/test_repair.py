@@ -129,6 +129,18 @@ def test_state_restores_the_same_continuation():
     rest = [second.update(i, slam[i], checks[i - 1]) for i in range(50, 80)]
     assert _error(rest, expected[50:]) < 1e-12
     assert second.report.counters() == whole.report.counters()
+    assert first.state()["counters"] == first.report.counters()  # saved by name, not by position
+
+
+def test_a_state_saved_with_positional_counters_still_restores():
+    """States journalled before the counters were named held a list (6 long before `coast_limit`, then 8)."""
+    repair = SlamRepair()
+    state = repair.state()
+    state["counters"] = [12, 3, 1, 2, 0, 4]
+    repair.restore(state)
+    counters = repair.report.counters()
+    assert (counters["repair_steps"], counters["repair_overruled"], counters["repair_static"]) == (12, 3, 4)
+    assert counters["repair_coast_limit"] == counters["repair_outvoted"] == 0
 
 
 def test_step_difference():

@@ -38,12 +38,17 @@ from .params import MapperParams
 
 def gate_radius(dt_s: float, size_m: float, p: MapperParams) -> float:
     """Validation gate: max(paper's sqrt(dt / u * s), the floor max(gate_min_m, gate_size_factor * s))."""
-    paper = math.sqrt(max(dt_s, 0.0) / p.gate_u * max(size_m, 0.0))
-    return max(paper, gate_floor(size_m, p))
+    return float(gate_radii(np.asarray(dt_s, dtype=np.float64), np.asarray(size_m, dtype=np.float64), p))
+
+
+def gate_radii(dt_s: np.ndarray, size_m: np.ndarray, p: MapperParams) -> np.ndarray:
+    """`gate_radius` over arrays (one gate per landmark): the one place the gate's formula is written."""
+    paper = np.sqrt(np.maximum(dt_s, 0.0) / p.gate_u * np.maximum(size_m, 0.0))
+    return np.maximum(paper, np.maximum(p.gate_min_m, p.gate_size_factor * size_m))
 
 
 def gate_floor(size_m: float, p: MapperParams) -> float:
-    return max(p.gate_min_m, p.gate_size_factor * size_m)
+    return float(gate_radii(np.zeros(()), np.asarray(size_m, dtype=np.float64), p))
 
 
 def trimmed_mean(values: np.ndarray, trim: float) -> float:
@@ -73,7 +78,7 @@ def near_enough(
     c = np.array([lm.centroid for lm in live], dtype=np.float64)
     s = np.maximum(np.array([lm.size for lm in live]), size)
     dt = np.maximum(stamp - np.array([lm.last_assoc for lm in live]), 0.0)
-    r = np.maximum(np.sqrt(dt / p.gate_u * s), np.maximum(p.gate_min_m, p.gate_size_factor * s))
+    r = gate_radii(dt, s, p)
     d = np.linalg.norm(c - centroid, axis=1)
     return [lm for lm, ok in zip(live, d <= r * (1.0 + 1e-9) + 1e-9, strict=True) if ok]
 

@@ -66,11 +66,18 @@ class RepairReport:
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
 
+    # the counted fields, in the order states saved before session 14 listed them (a list, not named)
+    COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted")
+
     def counters(self) -> dict[str, int]:
-        return {"repair_steps": self.steps, "repair_overruled": self.overruled,
-                "repair_slam_missing": self.slam_missing, "repair_unchecked": self.unchecked,
-                "repair_implausible": self.implausible, "repair_static": self.static,
-                "repair_coast_limit": self.coast_limit, "repair_outvoted": self.outvoted}
+        return {f"repair_{name}": getattr(self, name) for name in self.COUNTED}
+
+    def set_counters(self, saved: dict | list | None) -> None:
+        """From `counters()` as saved; a state saved before they were named (a list) is read by position."""
+        if isinstance(saved, list):
+            saved = {f"repair_{name}": v for name, v in zip(self.COUNTED, saved, strict=False)}
+        for name in self.COUNTED:
+            setattr(self, name, int((saved or {}).get(f"repair_{name}", 0)))
 
     def spans(self) -> list[tuple[int, int]]:
         """The overruled frames as [first, last] runs of consecutive ids: where the SLAM went wrong."""
@@ -255,8 +262,7 @@ class SlamRepair:
     def state(self) -> dict:
         r = self.report
         return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
-                "counters": [r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static,
-                             r.coast_limit, r.outvoted],
+                "counters": r.counters(),
                 "dynamic_seen": self._dynamic_seen, "stamp": self._stamp, "coast_since": self._coast_since,
                 "frames": list(r.overruled_frames)}
 
@@ -265,10 +271,8 @@ class SlamRepair:
         self._slam_prev = _unflat(state.get("slam_prev"), (4, 4))
         last = _unflat(state.get("last_step"), (4, 4))
         self._last_step = np.eye(4) if last is None else last
-        c = [*(state.get("counters") or []), 0, 0, 0, 0, 0, 0, 0, 0][:8]  # (states saved before coast_limit: 6)
         r = self.report
-        (r.steps, r.overruled, r.slam_missing, r.unchecked, r.implausible, r.static, r.coast_limit,
-         r.outvoted) = (int(v) for v in c)
+        r.set_counters(state.get("counters"))
         self._dynamic_seen = state.get("dynamic_seen")
         self._stamp, self._coast_since = state.get("stamp"), state.get("coast_since")
         r.overruled_frames = [int(f) for f in state.get("frames", [])]
