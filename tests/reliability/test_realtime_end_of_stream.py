@@ -44,6 +44,24 @@ def _pose(i: int) -> OdometryPose:
                         sigma_rotation=math.radians(0.3), source="gt")
 
 
+KEYS = Keys(ROBOT)
+
+
+def _realtime_backend(tmp_path: Path, router) -> tuple[LockstepFeeder, subprocess.Popen, list[ServiceStatus]]:  # noqa: ANN001
+    """A real-time backend process (no loop closure) fed by a test feeder; its status messages collected."""
+    feeder = LockstepFeeder(router.endpoint, ROBOT, "backend", [KEYS.odometry, KEYS.observations])
+    statuses: list[ServiceStatus] = []
+    feeder.bus.subscribe(KEYS.status_all, ServiceStatus, statuses.append)
+    proc = start_service("backend", router.endpoint, ROBOT, tmp_path, "--mode", "realtime",
+                         "--set", "loop_closure.enabled=false")
+    odometry, observations = feeder.publishers[KEYS.odometry], feeder.publishers[KEYS.observations]
+    if not (odometry.wait_matching(30) and observations.wait_matching(30)):
+        proc.kill()
+        feeder.close()
+        pytest.fail("the backend did not come up")
+    return feeder, proc, statuses
+
+
 def _wait(condition: threading.Condition, test, timeout: float) -> bool:  # noqa: ANN001
     with condition:
         return condition.wait_for(test, timeout=timeout)
@@ -52,16 +70,10 @@ def _wait(condition: threading.Condition, test, timeout: float) -> bool:  # noqa
 def test_backend_ends_a_realtime_stream_past_dropped_odometry_but_not_past_a_missing_last_frame(
         tmp_path: Path, router) -> None:  # noqa: ANN001
     assert LAST - max(DROPPED) < REALTIME_MAX_PENDING, "the late drop must be one the bounded buffer cannot release"
-    keys = Keys(ROBOT)
-    feeder = LockstepFeeder(router.endpoint, ROBOT, "backend", [keys.odometry, keys.observations])
-    odometry, observations = feeder.publishers[keys.odometry], feeder.publishers[keys.observations]
-    statuses: list[ServiceStatus] = []
-    feeder.bus.subscribe(keys.status_all, ServiceStatus, statuses.append)
-    proc = start_service("backend", router.endpoint, ROBOT, tmp_path, "--mode", "realtime",
-                         "--set", "loop_closure.enabled=false")
+    feeder, proc, statuses = _realtime_backend(tmp_path, router)
+    odometry, observations = feeder.publishers[KEYS.odometry], feeder.publishers[KEYS.observations]
     log = tmp_path / "backend.log"
     try:
-        assert odometry.wait_matching(30) and observations.wait_matching(30), "the backend did not come up"
         for i in range(FRAMES):
             observations.put(Observations(ROBOT, i, 0.1 * i))
             if i not in DROPPED and i != LAST:
@@ -196,16 +208,10 @@ def test_backend_gives_up_a_pose_whose_observations_never_come_and_maps_the_rest
     inference), the tracker started at frame 1, and frame 0's observations never came. The poses (gt odometry,
     fast) were all here first; the backend waited on frame 0 for ever and dropped every later frame's
     observations as "unjoined": 0 frames mapped, a stall (`semmap run 7-Scenes --realtime --detectors 2`)."""
-    keys = Keys(ROBOT)
-    feeder = LockstepFeeder(router.endpoint, ROBOT, "backend", [keys.odometry, keys.observations])
-    odometry, observations = feeder.publishers[keys.odometry], feeder.publishers[keys.observations]
-    statuses: list[ServiceStatus] = []
-    feeder.bus.subscribe(keys.status_all, ServiceStatus, statuses.append)
-    proc = start_service("backend", router.endpoint, ROBOT, tmp_path, "--mode", "realtime",
-                         "--set", "loop_closure.enabled=false")
+    feeder, proc, statuses = _realtime_backend(tmp_path, router)
+    odometry, observations = feeder.publishers[KEYS.odometry], feeder.publishers[KEYS.observations]
     log = tmp_path / "backend.log"
     try:
-        assert odometry.wait_matching(30) and observations.wait_matching(30), "the backend did not come up"
         for i in range(FRAMES):  # the odometry runs ahead
             odometry.put(_pose(i))
             time.sleep(0.002)
