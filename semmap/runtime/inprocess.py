@@ -422,7 +422,8 @@ def run_loop(
         if depth_frames is not None and backend.wants_cloud(i):
             frame = depth_frames[i]
             k = frame.intrinsics
-            cloud = backend.closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx, k.cy)
+            cloud = backend.closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx, k.cy,
+                                                    dynamic)
         done = backend.step(odo, obs_msg, cloud)
         backend_ms.append(done.update_ms + (done.loop_closure_ms or 0.0))
         # associator, after the backend's answer

@@ -192,6 +192,24 @@ def test_an_empty_depth_image_is_skipped() -> None:
     assert closer.counters["empty_clouds"] == 1 and not closer.keyframes
 
 
+def test_a_keyframes_dynamic_objects_are_left_out_of_its_cloud() -> None:
+    """A person in a keyframe's cloud is structure that is elsewhere by the next visit: its box's depth goes
+    (`box`: all of it; `range`: only its depth band, the wall behind stays; `none`: kept)."""
+    from semmap.core.messages import DynamicBox
+
+    depth = np.full((120, 160), 3000, np.uint16)  # a wall 3 m away
+    depth[20:100, 40:80] = 1500  # a person 1.5 m away, in a wider box
+    person = DynamicBox(7, "person", (30.0, 10.0, 90.0, 110.0), 1.3, 1.7, "class")
+    sizes = {}
+    for how in ("none", "box", "range"):
+        closer = LoopCloser(LoopClosureParams(dynamic_mask=how, depth_stride=1, voxel_m=0.01))
+        cloud = closer.cloud_from_depth(0, 0.0, depth, 0.001, 100.0, 100.0, 80.0, 60.0, [person])
+        near = int(np.sum(cloud.points[:, 2] < 2.0))
+        sizes[how] = (len(cloud.points), near)
+    assert sizes["none"][1] > 0 and sizes["box"][1] == 0 and sizes["range"][1] == 0
+    assert sizes["box"][0] < sizes["range"][0] < sizes["none"][0]  # `range` keeps the wall inside the box
+
+
 def test_memory_is_bounded_by_max_keyframes() -> None:
     closer = LoopCloser(LoopClosureParams(max_keyframes=3))
     for i in range(5):

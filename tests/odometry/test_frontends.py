@@ -131,7 +131,7 @@ def test_file_trajectory_on_another_clock_is_refused_and_an_offset_fixes_it(tmp_
 
 
 def test_dynamic_objects_are_left_out_of_the_depth() -> None:
-    from semmap.algorithms.odometry.frontends import mask_dynamic
+    from semmap.algorithms.dynamic_mask import mask_dynamic
     from semmap.core.messages import DynamicBox
 
     depth = np.full((40, 60), 2000, np.uint16)  # a wall at 2 m (units of 1 mm)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -24,11 +24,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from semmap.algorithms.associator.geometry import voxel_downsample  # (one voxel grid: the mean point per voxel)
+from semmap.algorithms.dynamic_mask import mask_dynamic
 from semmap.core.config import LoopClosureParams
 from semmap.core.stamps import reaches
 
 if TYPE_CHECKING:
     from semmap.algorithms.backend.pose_graph import PoseGraph
+    from semmap.core.messages import DynamicBox
 
 COARSE_SUBSAMPLE = 4
 MIN_POINTS = 200  # fewer than this after downsampling: not a cloud to register (a blank or missing depth image)
@@ -223,9 +225,17 @@ class LoopCloser:
         return self.params.enabled and int(frame_id) % self.params.every_n_frames == 0
 
     def cloud_from_depth(self, frame_id: int, stamp: float, depth: np.ndarray, depth_scale: float, fx: float,
-                         fy: float, cx: float, cy: float) -> KeyframeCloud:
-        """The keyframe's depth as a voxel-downsampled camera-frame cloud."""
+                         fy: float, cx: float, cy: float,
+                         dynamic: Sequence[DynamicBox] | None = None) -> KeyframeCloud:
+        """The keyframe's depth as a voxel-downsampled camera-frame cloud, the depth of its dynamic objects (the
+        tracker's boxes of the frame: people, things seen moving) left out as `params.dynamic_mask` says.
+
+        Why: a person in a keyframe's cloud is structure that is somewhere else by the next visit; registered
+        against it, ICP fits the people (Bonn crowd, in process, rgbd odometry: optimised ATE 0.061 / 0.063 /
+        0.063 m with people in the clouds, 0.059 / 0.058 / 0.058 m without, docs/RESULTS.md)."""
         p = self.params
+        if dynamic:
+            depth = mask_dynamic(depth, list(dynamic), depth_scale, p.dynamic_mask)
         points = depth_to_points(depth, depth_scale, fx, fy, cx, cy, p.depth_stride, p.depth_min_m, p.depth_max_m)
         return KeyframeCloud(int(frame_id), float(stamp), voxel_downsample(points, p.voxel_m).astype(np.float32))
 

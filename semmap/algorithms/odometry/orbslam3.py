@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from semmap.algorithms.dynamic_mask import dynamic_pixels
 from semmap.core.config import OdometryConfig
 from semmap.core.messages import DynamicBox
 
-from .frontends import FrontEnd, OdometryError, OdometryInput, PairRegistration, _flat, dynamic_pixels
+from .frontends import FrontEnd, OdometryError, OdometryInput, PairRegistration, _flat
 from .repair import RepairParams, SlamRepair
 
 MASKS = ("range", "box", "none")

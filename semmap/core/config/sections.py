@@ -351,6 +351,13 @@ class LoopClosureParams(Section):
     depth_min_m: NonNegative = 0.3
     depth_max_m: NonNegative = 4.0
     voxel_m: Positive = Field(0.02, description="one point per voxel")
+    dynamic_mask: Literal["box", "range", "none"] = Field(
+        "box",
+        description="leave the keyframe's dynamic objects (the tracker's boxes: people, things seen moving) out "
+        "of its cloud: box | range (only the object's depth band in its box) | none. Lockstep waits for each "
+        "keyframe's boxes (Bonn crowd, rgbd, in process: optimised ATE 0.061-0.063 m with people in the clouds, "
+        "0.058-0.059 m without)",
+    )
     normal_radius_m: Positive = 0.08
     coarse_distance_m: Positive = Field(0.1, description="ICP correspondence distance, coarse pass")
     fine_distance_m: Positive = Field(0.03, description="... and fine pass")

@@ -6,9 +6,11 @@ the associator uses to associate against the current optimised estimate (closed 
 consume the same key.
 
 Loop closures (`loop_closure:` config, on by default): the depth image of every n-th frame comes from the
-frames key; at a revisit the keyframe is registered to an earlier one by ICP (semmap/algorithms/backend/loop_closure.py)
-and the relative pose joins the graph before that frame's poses go out. In lockstep a keyframe waits for its
-depth too, so a replay closes the same loops. A session started from a prior map (`--prior-map`) also registers
+frames key; at a revisit the keyframe is registered to an earlier one by ICP
+(semmap/algorithms/backend/loop_closure.py) and the relative pose joins the graph before that frame's poses go out.
+In lockstep a keyframe waits for its depth too, so a replay closes the same loops; with
+`--await-keyframe-dynamic` (passed by `semmap run` when a tracker runs) it also waits for the keyframe's dynamic
+objects (`dynamic` key), left out of its cloud. A session started from a prior map (`--prior-map`) also registers
 its keyframes to the prior run's once it has relocalised (semmap/runtime/prior_keyframes.py, docs/MAPS.md).
 """
 
@@ -28,7 +30,7 @@ from semmap.algorithms.backend.loop_closure import (
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
 from semmap.algorithms.backend.prior_alignment import FinalAlignment
-from semmap.core.messages import Control, Frame, MessageError, Observations, OdometryPose
+from semmap.core.messages import Control, DynamicObjects, Frame, MessageError, Observations, OdometryPose
 from semmap.core.outputs import atomic_write_text
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
@@ -61,6 +63,13 @@ class BackendService(StageService):
             self._load_prior_keyframes(Path(prior_map))
         # keyframe clouds waiting for their frame's turn; None: the frame's depth could not be read
         self.clouds: dict[int, KeyframeCloud | None] = {}
+        # a keyframe's depth waiting for its dynamic objects (to leave out of its cloud), and those that came first
+        self.key_depth: dict[int, Frame] = {}
+        self.key_dynamic: dict[int, DynamicObjects] = {}
+        self.mask_dynamic = self.config.loop_closure.dynamic_mask != "none"
+        # lockstep, a tracker running: a keyframe's cloud waits for its boxes (real time: what is here by then)
+        self.await_dynamic = (self.mask_dynamic and self.lockstep
+                              and bool(getattr(self.args, "await_keyframe_dynamic", False)))
         self.pub = self.publisher(self.bus.keys.corrected_poses)
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
@@ -74,6 +83,8 @@ class BackendService(StageService):
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
         if self.closer.params.enabled:
             self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
+            if self.mask_dynamic:
+                self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
 
     def _load_prior_keyframes(self, map_db: Path) -> None:
         """The prior run's keyframes, to register this session's to once it has relocalised."""
@@ -98,10 +109,37 @@ class BackendService(StageService):
         return self.stage.closer
 
     def on_frame(self, frame: Frame) -> None:
-        """Keep a keyframe's depth cloud until its frame is handled (other frames are not looked at)."""
+        """Keep a keyframe's depth until its frame is handled (other frames are not looked at): as a cloud at once,
+        or, where its dynamic objects are to be left out, once they are here too."""
         fid = frame.frame_id
+        if (not self.closer.wants(fid) or fid <= self.last_frame_id or fid in self.clouds
+                or fid in self.key_depth):
+            return
+        if self.mask_dynamic:
+            self.key_depth[fid] = frame
+            self._bounded(self.key_depth, "keyframe_depth_dropped")
+            self._cloud_when_ready(fid)
+        else:
+            self._make_cloud(frame, None)
+        self._drain()
+
+    def on_dynamic(self, message: DynamicObjects) -> None:
+        fid = message.frame_id
         if not self.closer.wants(fid) or fid <= self.last_frame_id or fid in self.clouds:
             return
+        self.key_dynamic[fid] = message
+        self._bounded(self.key_dynamic, "keyframe_dynamic_dropped")
+        self._cloud_when_ready(fid)
+        self._drain()
+
+    def _cloud_when_ready(self, fid: int) -> None:
+        if fid in self.key_depth and fid in self.key_dynamic:
+            self._make_cloud(self.key_depth.pop(fid), self.key_dynamic.pop(fid))
+
+    def _make_cloud(self, frame: Frame, dynamic: DynamicObjects | None) -> None:
+        """The keyframe's cloud, its dynamic objects left out (`loop_closure.dynamic_mask`); None if its depth
+        cannot be read (no closure from it)."""
+        fid = frame.frame_id
         try:
             depth = frame.depth()
         except MessageError as exc:
@@ -112,11 +150,14 @@ class BackendService(StageService):
             k = frame.intrinsics
             with self.metrics.timer("keyframe_cloud_ms"):
                 self.clouds[fid] = self.closer.cloud_from_depth(fid, frame.stamp, depth, frame.depth_scale, k.fx,
-                                                                k.fy, k.cx, k.cy)
-        while len(self.clouds) > MAX_PENDING_CLOUDS:  # frames without odometry: bounded, the oldest go
-            del self.clouds[min(self.clouds)]
-            self.metrics.count("keyframe_clouds_dropped")
-        self._drain()
+                                                                k.fy, k.cx, k.cy, None if dynamic is None else
+                                                                dynamic.boxes)
+        self._bounded(self.clouds, "keyframe_clouds_dropped")
+
+    def _bounded(self, pending: dict, counter: str) -> None:
+        while len(pending) > MAX_PENDING_CLOUDS:  # frames without odometry: bounded, the oldest go
+            del pending[min(pending)]
+            self.metrics.count(counter)
 
     def on_resent(self, pose: OdometryPose) -> None:
         """A pose of a frame handled or waiting already: counted only (the backend answers a resent frame when
@@ -133,6 +174,8 @@ class BackendService(StageService):
     def on_frame_unreadable(self, frame_id: int) -> None:
         self.observations.pop(frame_id, None)
         self.clouds.pop(frame_id, None)
+        self.key_depth.pop(frame_id, None)
+        self.key_dynamic.pop(frame_id, None)
         super().on_frame_unreadable(frame_id)
 
     def handle(self, pose: OdometryPose) -> None:
@@ -157,6 +200,9 @@ class BackendService(StageService):
                 continue
             pose = self.ready_odometry.pop(0)
             obs = self.observations.pop(pose.frame_id)
+            if pose.frame_id in self.key_depth:  # real time, its boxes not here (yet): its cloud with none left out
+                self.metrics.count("keyframe_clouds_unmasked")
+                self._make_cloud(self.key_depth.pop(pose.frame_id), None)
             cloud = self.clouds.pop(pose.frame_id, None)
             if self.write_odometry:
                 self.input_trajectory.append((pose.stamp, pose.pose))
@@ -188,8 +234,9 @@ class BackendService(StageService):
         for stale in [f for f in self.observations if first is not None and f < first]:
             del self.observations[stale]
             self.metrics.count("observations_unjoined")
-        for stale in [f for f in self.clouds if f <= self.last_frame_id]:  # its frame was skipped or dropped
-            del self.clouds[stale]
+        for pending in (self.clouds, self.key_depth, self.key_dynamic):  # its frame was skipped or dropped
+            for stale in [f for f in pending if f <= self.last_frame_id]:
+                del pending[stale]
 
     def _observations_passed(self, frame_id: int) -> bool:
         """Real time: a later frame's observations are here, so this frame's never come (the associator sends in
@@ -229,7 +276,8 @@ class BackendService(StageService):
             return False
         # lockstep: a keyframe waits for its depth so that a replay closes the same loops; in real time the
         # depth arrives long before the observations, and a dropped one only means no closure from that frame
-        return not (self.lockstep and self.closer.wants(frame_id)) or frame_id in self.clouds
+        return (not (self.lockstep and self.closer.wants(frame_id)) or frame_id in self.clouds
+                or (frame_id in self.key_depth and not self.await_dynamic))
 
     def _loop_closed(self, cloud: KeyframeCloud, closure: LoopClosure | None, ms: float) -> None:
         """Journal and count a keyframe's loop-closure search (the stage ran it)."""
@@ -314,6 +362,9 @@ class BackendService(StageService):
 def _arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--write-odometry", action="store_true",
                         help="also write the odometry it received as trajectory_odometry.tum (external runs)")
+    parser.add_argument("--await-keyframe-dynamic", action="store_true",
+                        help="lockstep: a keyframe's cloud waits for the frame's dynamic objects, left out of it "
+                             "(a tracker must run)")
     parser.add_argument("--prior-map", default=None, metavar="MAP_SQLITE",
                         help="the associator starts from this prior map: keep the frames handled until it "
                         "relocalises, to rebuild the graph in the map's frame, then register keyframes to the "
