@@ -230,9 +230,8 @@ class LoopCloser:
         """The keyframe's depth as a voxel-downsampled camera-frame cloud, the depth of its dynamic objects (the
         tracker's boxes of the frame: people, things seen moving) left out as `params.dynamic_mask` says.
 
-        Why: a person in a keyframe's cloud is structure that is somewhere else by the next visit; registered
-        against it, ICP fits the people (Bonn crowd, in process, rgbd odometry: optimised ATE 0.061 / 0.063 /
-        0.063 m with people in the clouds, 0.059 / 0.058 / 0.058 m without, docs/RESULTS.md)."""
+        Why: a person in a keyframe's cloud is structure that is elsewhere by the next visit, and ICP may fit
+        it. Off by default (`none`): on Bonn crowd it gave no reliable gain (docs/RESULTS.md, session 14)."""
         p = self.params
         if dynamic:
             depth = mask_dynamic(depth, list(dynamic), depth_scale, p.dynamic_mask)

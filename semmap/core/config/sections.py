@@ -352,11 +352,11 @@ class LoopClosureParams(Section):
     depth_max_m: NonNegative = 4.0
     voxel_m: Positive = Field(0.02, description="one point per voxel")
     dynamic_mask: Literal["box", "range", "none"] = Field(
-        "box",
+        "none",
         description="leave the keyframe's dynamic objects (the tracker's boxes: people, things seen moving) out "
-        "of its cloud: box | range (only the object's depth band in its box) | none. Lockstep waits for each "
-        "keyframe's boxes (Bonn crowd, rgbd, in process: optimised ATE 0.061-0.063 m with people in the clouds, "
-        "0.058-0.059 m without)",
+        "of its cloud: box | range (only the object's depth band in its box) | none. Lockstep then waits for each "
+        "keyframe's boxes. Off by default: measured on Bonn crowd (rgbd, in process) it gave no reliable gain "
+        "(box: 0.058 / 0.058 / 0.087 / 0.087 m optimised ATE; none: 0.061 / 0.063 / 0.063 m; docs/RESULTS.md)",
     )
     normal_radius_m: Positive = 0.08
     coarse_distance_m: Positive = Field(0.1, description="ICP correspondence distance, coarse pass")
