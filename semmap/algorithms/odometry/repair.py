@@ -205,6 +205,7 @@ class SlamRepair:
         # the SLAM's steps against the trusted registrations: the declared sigmas (0: the fixed ones, always)
         self.agreement = StepAgreement(max(1, measured_sigmas_after))
         self.measured_sigmas = measured_sigmas_after > 0
+        self.took_slam_step = False  # this frame's step is the SLAM's own (not semmap's, not the motion model's)
 
     def copy(self, frame_id: int, slam_pose: np.ndarray | None) -> np.ndarray:
         """No check (`odometry.repair` off): the SLAM's steps as they are; a frame without a SLAM pose repeats the
@@ -226,10 +227,11 @@ class SlamRepair:
         return self._pose.copy()
 
     def declared_sigmas(self, fixed: tuple[float, float]) -> tuple[float, float]:
-        """The per-frame (translation m, rotation rad) sigmas to declare: measured from the SLAM's consistency
-        (`StepAgreement`) once enough steps were seen, never looser than `fixed` (the settings': what a trajectory
-        of unknown quality is declared), else `fixed`."""
-        measured = self.agreement.sigmas() if self.measured_sigmas else None
+        """This frame's (translation m, rotation rad) sigmas to declare: where its step is the SLAM's own, measured
+        from the SLAM's consistency (`StepAgreement`) once enough steps were seen, never looser than `fixed` (the
+        settings': what a trajectory of unknown quality is declared); else `fixed` (a step semmap's registration or
+        the motion model gave says nothing of the SLAM's precision: Bonn crowd, 85 % of the steps overruled)."""
+        measured = self.agreement.sigmas() if self.measured_sigmas and self.took_slam_step else None
         return fixed if measured is None else (min(fixed[0], measured[0]), min(fixed[1], measured[1]))
 
     def _note(self, frame_id: int) -> None:
@@ -283,6 +285,7 @@ class SlamRepair:
         r.steps += 1
         scale = self._gate_scale(stamp)
         trusted = self._trusted(check_step, fitness, scale)
+        slam_step = None
         if slam_pose is None or self._slam_prev is None:
             # no SLAM step (lost, or the first pose after it was lost: a new map's origin says nothing)
             r.slam_missing += 1
@@ -312,6 +315,7 @@ class SlamRepair:
                     r.overruled += 1
                     self._note(frame_id)
                     step = check_step
+        self.took_slam_step = slam_step is not None and step is slam_step
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
