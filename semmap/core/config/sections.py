@@ -239,10 +239,10 @@ class OdometryConfig(Section):
     file_sigma_rotation_deg: Positive = 0.5
     file_sigma_measured: bool = Field(
         True,
-        description="file:PATH and external, with repair: declare per-frame sigmas measured from the SLAM's own "
-        "consistency, never looser than file_sigma_*: per axis, the larger of its steps' roughness (second "
-        "difference) and their disagreement with semmap's trusted registrations (90th percentile / 2.5; repair.py, "
-        "StepAgreement); false: file_sigma_* always",
+        description="file:PATH and external, with repair: a frame whose step is the SLAM's own declares sigmas "
+        "measured from the SLAM's consistency, never looser than file_sigma_*: per axis, the larger of its steps' "
+        "roughness (second difference) and their disagreement with semmap's trusted registrations (90th percentile "
+        "/ 2.5; repair.py, StepAgreement; KITTI 00 ORB: 7.3 mm, 0.071 deg); false: file_sigma_* always",
     )
     file_sigma_measured_after: AtLeastOne = Field(
         50, description="...once this many of the SLAM's steps were witnessed (file_sigma_* until then)"
