@@ -119,7 +119,8 @@ def _file(c: OdometryConfig, path: str) -> FrontEnd:
     from .frontends import FileOdometry
 
     return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s,
-                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c), rate_hz=c.file_rate_hz)
+                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c), rate_hz=c.file_rate_hz,
+                        measured_sigmas_after=_measured(c))
 
 
 def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams
@@ -133,7 +134,12 @@ def _external(c: OdometryConfig, _: str) -> FrontEnd:
     from .frontends import ExternalSlamOdometry
 
     return ExternalSlamOdometry(c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.repair, c.dynamic_mask,
-                                _gates(c))
+                                _gates(c), measured_sigmas_after=_measured(c))
+
+
+def _measured(c: OdometryConfig) -> int:
+    """Steps semmap must have witnessed before the SLAM's declared sigmas are measured ones (0: never)."""
+    return c.file_sigma_measured_after if c.file_sigma_measured else 0
 
 
 def _orbslam3(c: OdometryConfig, _: str) -> FrontEnd:

@@ -317,17 +317,18 @@ class FileOdometry(FrontEnd):
 
     def __init__(self, path: str | Path, sigma_translation_m: float, sigma_rotation_deg: float,
                  time_offset_s: float = 0.0, repair: bool = False, dynamic_mask: str = "box",
-                 repair_gates: RepairParams | None = None, rate_hz: float = KITTI_RATE_HZ) -> None:
+                 repair_gates: RepairParams | None = None, rate_hz: float = KITTI_RATE_HZ,
+                 measured_sigmas_after: int = 0) -> None:
         poses = sorted(read_trajectory(path, rate_hz=rate_hz), key=lambda p: p[0])
         if not poses:
             raise OdometryError(f"trajectory file {path} holds no poses")
         self.stamps = np.array([t for t, _ in poses])
         self.poses = [p for _, p in poses]
-        self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
+        self.sigmas = self.fixed_sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self.time_offset_s = float(time_offset_s)
         self.far_matches = 0
         self.check = PairRegistration(dynamic_mask) if repair else None
-        self.repair = SlamRepair(repair_gates) if repair else None
+        self.repair = SlamRepair(repair_gates, measured_sigmas_after=measured_sigmas_after) if repair else None
         self.needs_images = self.uses_dynamic = repair
         self.counters: dict[str, int] = {}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the file's poses matched to frames
@@ -344,7 +345,8 @@ class FileOdometry(FrontEnd):
         step, fitness = self.check.register(frame)
         repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness,
                                       bool(frame.dynamic), float(frame.stamp))
-        self.counters = self.repair.report.counters()
+        self.sigmas = self.repair.declared_sigmas(self.fixed_sigmas)
+        self.counters = {**self.repair.report.counters(), **_declared_counters(self.sigmas)}
         return repaired
 
     def overruled(self) -> list[tuple[int, int]]:
@@ -370,10 +372,11 @@ class ExternalSlamOdometry(FrontEnd):
     needs_slam = True
 
     def __init__(self, sigma_translation_m: float, sigma_rotation_deg: float, repair: bool = True,
-                 dynamic_mask: str = "box", repair_gates: RepairParams | None = None) -> None:
-        self.sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
+                 dynamic_mask: str = "box", repair_gates: RepairParams | None = None,
+                 measured_sigmas_after: int = 0) -> None:
+        self.sigmas = self.fixed_sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self.check = PairRegistration(dynamic_mask) if repair else None
-        self.repair = SlamRepair(repair_gates)
+        self.repair = SlamRepair(repair_gates, measured_sigmas_after=measured_sigmas_after if repair else 0)
         self.counters: dict[str, int] = {}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []
 
@@ -388,7 +391,8 @@ class ExternalSlamOdometry(FrontEnd):
         else:
             step, fitness = self.check.register(frame)
             pose = self.repair.update(frame.frame_id, slam, step, fitness, bool(frame.dynamic), float(frame.stamp))
-        self.counters = self.repair.report.counters()
+        self.sigmas = self.repair.declared_sigmas(self.fixed_sigmas)
+        self.counters = {**self.repair.report.counters(), **_declared_counters(self.sigmas)}
         return pose
 
     def overruled(self) -> list[tuple[int, int]]:
@@ -402,6 +406,12 @@ class ExternalSlamOdometry(FrontEnd):
             self.repair.restore(state["repair"])
         if self.check is not None:
             self.check.reset()
+
+
+def _declared_counters(sigmas: tuple[float, float]) -> dict[str, int]:
+    """The per-frame sigmas a SLAM's front end declares now (measured or fixed), as counters (stats.json)."""
+    return {"declared_sigma_translation_um": round(sigmas[0] * 1e6),
+            "declared_sigma_rotation_mdeg": round(math.degrees(sigmas[1]) * 1e3)}
 
 
 def make_frontend(mode: str, config: OdometryConfig) -> FrontEnd:

@@ -21,6 +21,7 @@ Everything here is pure: steps in, poses and counters out (the front ends in fro
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,6 +91,93 @@ class RepairReport:
         return out
 
 
+# the 90th percentile of the length of a 3-vector of independent N(0, s^2) components is 2.50 s (chi, 3 degrees)
+CHI3_Q90 = 2.500
+# a second difference s[i+1] - 2 s[i] + s[i-1] of steps with independent noise s has sqrt(1 + 4 + 1) times its sigma
+SECOND_DIFFERENCE_GAIN = math.sqrt(6.0)
+
+
+class StepAgreement:
+    """The SLAM's declared uncertainty measured, not assumed: how consistent its steps are.
+
+    A trajectory file (or a live SLAM's poses) comes without a covariance; `file:` declared a fixed 1 cm and 0.5 deg
+    a frame for any of them, six times looser in rotation than KITTI 00's ORB estimate, so landmark factors biased
+    by metres (a street's partly seen parked cars) bent a trajectory that had closed its own loops (ATE 1.30 m ->
+    42.99 m). Two witnesses of the SLAM's step noise, each per axis from the 90th percentile of a 3-vector's length
+    / 2.50 (what it is for a Gaussian 3-vector: robust to a tenth of outliers, not blind to a heavy tail as a median
+    would be), over the last `window` samples, once there are `min_samples`:
+
+    - **roughness**: the second difference of the SLAM's consecutive steps (rotation vectors, translations) / sqrt 6.
+      True motion is smooth at a frame's scale (a car's), the SLAM's step noise is not: it shows. A lower bound: a
+      smooth drift (scale, a slow bias) does not show, nor is a shaking hand told from noise (it only loosens).
+    - **agreement**: where semmap's registration witnessed the step (trusted: enough fitness, no jump; on static
+      scenes too, whatever the repair's scope), the difference between the two measurements of the same motion.
+      An upper bound (it holds the registration's noise too); a car at 10 Hz gets none (its metre steps are beyond
+      what the registration is trusted with, `max_step_m`), a hand-held camera many.
+
+    `sigmas` is the larger of the two that are known (the upper bound where there is one): None before
+    `min_samples` of either (the fixed sigmas stand)."""
+
+    def __init__(self, min_samples: int = 50, window: int = 2000) -> None:
+        self.min_samples = max(1, int(min_samples))
+        self.window = window
+        self.agreement: tuple[deque[float], deque[float]] = (deque(maxlen=window), deque(maxlen=window))
+        self.roughness: tuple[deque[float], deque[float]] = (deque(maxlen=window), deque(maxlen=window))
+        self._steps: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=3)  # the SLAM's last steps (rotvec, t)
+        self._restored: tuple[float, float] | None = None  # the sigmas before a restart, until the windows refill
+
+    def add_slam_step(self, slam_step: np.ndarray | None) -> None:
+        """The SLAM's step of this frame (None: it had none, the chain of consecutive steps breaks)."""
+        if slam_step is None:
+            self._steps.clear()
+            return
+        self._steps.append((_rotvec(slam_step), np.asarray(slam_step[:3, 3], float).copy()))
+        if len(self._steps) == 3:
+            (r0, t0), (r1, t1), (r2, t2) = self._steps
+            self.roughness[0].append(float(np.linalg.norm(t2 - 2.0 * t1 + t0)) / SECOND_DIFFERENCE_GAIN)
+            self.roughness[1].append(float(np.linalg.norm(r2 - 2.0 * r1 + r0)) / SECOND_DIFFERENCE_GAIN)
+
+    def add_witnessed(self, slam_step: np.ndarray, check_step: np.ndarray) -> None:
+        """A step semmap's registration witnessed: the two measurements of the same motion."""
+        dt, dr = step_difference(slam_step, check_step)
+        self.agreement[0].append(dt)
+        self.agreement[1].append(math.radians(dr))
+
+    def _measured(self, samples: tuple[deque[float], deque[float]]) -> tuple[float, float] | None:
+        if len(samples[0]) < self.min_samples:
+            return None
+        t, r = (float(np.quantile(np.fromiter(q, float), 0.9)) / CHI3_Q90 for q in samples)
+        return max(t, 1e-4), max(r, math.radians(1e-3))
+
+    def sigmas(self) -> tuple[float, float] | None:
+        """Per-axis (translation m, rotation rad) sigmas of one step, or None before `min_samples`."""
+        known = [m for m in (self._measured(self.agreement), self._measured(self.roughness)) if m is not None]
+        if not known:
+            return self._restored
+        return max(m[0] for m in known), max(m[1] for m in known)
+
+    def state(self) -> list[float] | None:
+        """The measured sigmas only (the front end's state is journalled every frame: no window of samples)."""
+        sigmas = self.sigmas()
+        return None if sigmas is None else [float(v) for v in sigmas]
+
+    def restore(self, state: list[float] | None) -> None:
+        for q in (*self.agreement, *self.roughness):
+            q.clear()
+        self._steps.clear()
+        self._restored = None if not state else (float(state[0]), float(state[1]))
+
+
+def _rotvec(step: np.ndarray) -> np.ndarray:
+    """The rotation vector (rad) of a step's rotation (the log map)."""
+    r = np.asarray(step[:3, :3], float)
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if angle < 1e-9:
+        return 0.5 * axis
+    return angle / (2.0 * math.sin(angle)) * axis
+
+
 def step_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation m, rotation deg) between two relative motions."""
     d = np.linalg.inv(a) @ b
@@ -110,7 +198,8 @@ class SlamRepair:
     starts at the first SLAM pose (or at `start`), in the SLAM's world frame.
     """
 
-    def __init__(self, params: RepairParams | None = None, start: np.ndarray | None = None) -> None:
+    def __init__(self, params: RepairParams | None = None, start: np.ndarray | None = None,
+                 measured_sigmas_after: int = 0) -> None:
         self.params = params or RepairParams()
         self.report = RepairReport()
         self._start = None if start is None else np.asarray(start, float)
@@ -120,6 +209,10 @@ class SlamRepair:
         self._dynamic_seen: float | None = None  # stamp of the last frame with a dynamic object in view
         self._stamp: float | None = None  # of the previous frame (the gates scale with the frame interval)
         self._coast_since: float | None = None  # stamp where the motion model began to carry the chain
+        # the SLAM's steps against the trusted registrations: the declared sigmas (0: the fixed ones, always)
+        self.agreement = StepAgreement(max(1, measured_sigmas_after))
+        self.measured_sigmas = measured_sigmas_after > 0
+        self.took_slam_step = False  # this frame's step is the SLAM's own (not semmap's, not the motion model's)
 
     def copy(self, frame_id: int, slam_pose: np.ndarray | None) -> np.ndarray:
         """No check (`odometry.repair` off): the SLAM's steps as they are; a frame without a SLAM pose repeats the
@@ -139,6 +232,14 @@ class SlamRepair:
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
         return self._pose.copy()
+
+    def declared_sigmas(self, fixed: tuple[float, float]) -> tuple[float, float]:
+        """This frame's (translation m, rotation rad) sigmas to declare: where its step is the SLAM's own, measured
+        from the SLAM's consistency (`StepAgreement`) once enough steps were seen, never looser than `fixed` (the
+        settings': what a trajectory of unknown quality is declared); else `fixed` (a step semmap's registration or
+        the motion model gave says nothing of the SLAM's precision: Bonn crowd, 85 % of the steps overruled)."""
+        measured = self.agreement.sigmas() if self.measured_sigmas and self.took_slam_step else None
+        return fixed if measured is None else (min(fixed[0], measured[0]), min(fixed[1], measured[1]))
 
     def _note(self, frame_id: int) -> None:
         if len(self.report.overruled_frames) < self.report.max_listed:
@@ -191,12 +292,17 @@ class SlamRepair:
         r.steps += 1
         scale = self._gate_scale(stamp)
         trusted = self._trusted(check_step, fitness, scale)
+        slam_step = None
         if slam_pose is None or self._slam_prev is None:
             # no SLAM step (lost, or the first pose after it was lost: a new map's origin says nothing)
             r.slam_missing += 1
+            self.agreement.add_slam_step(None)
             step = check_step if trusted else self._last_step
         else:
             slam_step = np.linalg.inv(self._slam_prev) @ slam_pose
+            self.agreement.add_slam_step(slam_step)
+            if trusted:  # (in scope or not: the SLAM's consistency is measured wherever semmap witnessed it)
+                self.agreement.add_witnessed(slam_step, check_step)
             if not in_scope:
                 r.static += 1
                 step = slam_step
@@ -216,6 +322,7 @@ class SlamRepair:
                     r.overruled += 1
                     self._note(frame_id)
                     step = check_step
+        self.took_slam_step = slam_step is not None and step is slam_step
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
@@ -264,7 +371,7 @@ class SlamRepair:
         return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
                 "counters": r.counters(),
                 "dynamic_seen": self._dynamic_seen, "stamp": self._stamp, "coast_since": self._coast_since,
-                "frames": list(r.overruled_frames)}
+                "frames": list(r.overruled_frames), "agreement": self.agreement.state()}
 
     def restore(self, state: dict) -> None:
         self._pose = _unflat(state.get("pose"), (4, 4))
@@ -276,6 +383,7 @@ class SlamRepair:
         self._dynamic_seen = state.get("dynamic_seen")
         self._stamp, self._coast_since = state.get("stamp"), state.get("coast_since")
         r.overruled_frames = [int(f) for f in state.get("frames", [])]
+        self.agreement.restore(state.get("agreement"))
 
 
 def _flat(a: np.ndarray | None) -> list[float] | None:

@@ -234,9 +234,19 @@ class OdometryConfig(Section):
         10.0, description="lockstep: longest wait for a frame's dynamic objects, then without them"
     )
     file_sigma_translation_m: Positive = Field(
-        0.01, description="what `file:PATH` declares for a trajectory of unknown quality"
+        0.01, description="what `file:PATH` (and `external`) declares for a trajectory of unknown quality"
     )
     file_sigma_rotation_deg: Positive = 0.5
+    file_sigma_measured: bool = Field(
+        True,
+        description="file:PATH and external, with repair: a frame whose step is the SLAM's own declares sigmas "
+        "measured from the SLAM's consistency, never looser than file_sigma_*: per axis, the larger of its steps' "
+        "roughness (second difference) and their disagreement with semmap's trusted registrations (90th percentile "
+        "/ 2.5; repair.py, StepAgreement; KITTI 00 ORB: 7.3 mm, 0.071 deg); false: file_sigma_* always",
+    )
+    file_sigma_measured_after: AtLeastOne = Field(
+        50, description="...once this many of the SLAM's steps were witnessed (file_sigma_* until then)"
+    )
     file_time_offset_s: Float = Field(
         0.0, description="added to a `file:PATH` trajectory's stamps before matching (--time-offset)"
     )
