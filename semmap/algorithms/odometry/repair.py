@@ -25,6 +25,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -125,23 +126,28 @@ class StepAgreement:
         self.roughness: tuple[deque[float], deque[float]] = (deque(maxlen=window), deque(maxlen=window))
         self._steps: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=3)  # the SLAM's last steps (rotvec, t)
         self._restored: tuple[float, float] | None = None  # the sigmas before a restart, until the windows refill
+        self._added = 0  # samples taken so far: `sigmas` is computed once per new sample (it is read twice a frame)
+        self._cached: tuple[int, tuple[float, float] | None] | None = None
 
     def add_slam_step(self, slam_step: np.ndarray | None) -> None:
         """The SLAM's step of this frame (None: it had none, the chain of consecutive steps breaks)."""
         if slam_step is None:
             self._steps.clear()
             return
-        self._steps.append((_rotvec(slam_step), np.asarray(slam_step[:3, 3], float).copy()))
+        rotvec = Rotation.from_matrix(np.asarray(slam_step[:3, :3], float)).as_rotvec()  # (the log map)
+        self._steps.append((rotvec, np.asarray(slam_step[:3, 3], float).copy()))
         if len(self._steps) == 3:
             (r0, t0), (r1, t1), (r2, t2) = self._steps
             self.roughness[0].append(float(np.linalg.norm(t2 - 2.0 * t1 + t0)) / SECOND_DIFFERENCE_GAIN)
             self.roughness[1].append(float(np.linalg.norm(r2 - 2.0 * r1 + r0)) / SECOND_DIFFERENCE_GAIN)
+            self._added += 1
 
     def add_witnessed(self, slam_step: np.ndarray, check_step: np.ndarray) -> None:
         """A step semmap's registration witnessed: the two measurements of the same motion."""
         dt, dr = step_difference(slam_step, check_step)
         self.agreement[0].append(dt)
         self.agreement[1].append(math.radians(dr))
+        self._added += 1
 
     def _measured(self, samples: tuple[deque[float], deque[float]]) -> tuple[float, float] | None:
         if len(samples[0]) < self.min_samples:
@@ -151,10 +157,11 @@ class StepAgreement:
 
     def sigmas(self) -> tuple[float, float] | None:
         """Per-axis (translation m, rotation rad) sigmas of one step, or None before `min_samples`."""
-        known = [m for m in (self._measured(self.agreement), self._measured(self.roughness)) if m is not None]
-        if not known:
-            return self._restored
-        return max(m[0] for m in known), max(m[1] for m in known)
+        if self._cached is None or self._cached[0] != self._added:
+            known = [m for m in (self._measured(self.agreement), self._measured(self.roughness)) if m is not None]
+            value = (max(m[0] for m in known), max(m[1] for m in known)) if known else None
+            self._cached = (self._added, value)
+        return self._restored if self._cached[1] is None else self._cached[1]
 
     def state(self) -> list[float] | None:
         """The measured sigmas only (the front end's state is journalled every frame: no window of samples)."""
@@ -165,17 +172,8 @@ class StepAgreement:
         for q in (*self.agreement, *self.roughness):
             q.clear()
         self._steps.clear()
+        self._cached = None
         self._restored = None if not state else (float(state[0]), float(state[1]))
-
-
-def _rotvec(step: np.ndarray) -> np.ndarray:
-    """The rotation vector (rad) of a step's rotation (the log map)."""
-    r = np.asarray(step[:3, :3], float)
-    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * axis
-    return angle / (2.0 * math.sin(angle)) * axis
 
 
 def step_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
