@@ -48,7 +48,8 @@ from semmap.datasets.ros_convert import (
     transform_matrix,
 )
 
-from .base import Dataset, DatasetError, FrameData, Intrinsics
+from .base import Dataset, DatasetError, EncodedImage, FrameData, Intrinsics
+from .images import jpeg_size
 from .tum import associate
 
 log = logging.getLogger("semmap.datasets.rosbag")
@@ -443,9 +444,10 @@ class RosbagDataset(Dataset):
         ci, di = self._pairs[index]
         colour = self._message(self._colour, ci)
         depth = self._message(self._depth, di)
+        k = self.intrinsics
         try:
             if self._colour.msgtype == COMPRESSED:
-                rgb = compressed_to_rgb(str(colour.format), colour.data)
+                rgb = self._compressed(index, str(colour.format), bytes(memoryview(colour.data).cast("B")))
             else:
                 rgb = colour_to_rgb(
                     str(colour.encoding), int(colour.height), int(colour.width), int(colour.step), colour.data
@@ -460,10 +462,10 @@ class RosbagDataset(Dataset):
             )
         except ConversionError as exc:
             raise DatasetError(f"{self.path}: frame {index} ({self._stamps[index]:.3f} s): {exc}") from None
-        k = self.intrinsics
-        if rgb.shape[:2] != (k.height, k.width) or mm.shape != rgb.shape[:2]:
+        width, height = rgb.size if isinstance(rgb, EncodedImage) else (rgb.shape[1], rgb.shape[0])
+        if (height, width) != (k.height, k.width) or mm.shape != (height, width):
             raise DatasetError(
-                f"{self.path}: frame {index}: colour {rgb.shape[1]}x{rgb.shape[0]}, depth "
+                f"{self.path}: frame {index}: colour {width}x{height}, depth "
                 f"{mm.shape[1]}x{mm.shape[0]} and camera info {k.width}x{k.height} differ "
                 "(depth must be aligned to colour)"
             )
@@ -477,6 +479,21 @@ class RosbagDataset(Dataset):
             intrinsics=k,
             gt_pose=None if truth is None else truth.copy(),
         )
+
+    def _compressed(self, index: int, fmt: str, data: bytes) -> np.ndarray | EncodedImage:
+        """A CompressedImage's colour: a complete-looking JPEG stays encoded (decoded where needed, and sent as it
+        was recorded); anything else is decoded now."""
+        size = jpeg_size(data) if "compressedDepth" not in fmt else None
+        if size is None:
+            return compressed_to_rgb(fmt, data)
+
+        def decode() -> np.ndarray:
+            try:
+                return compressed_to_rgb(fmt, data)
+            except ConversionError as exc:
+                raise DatasetError(f"{self.path}: frame {index} ({self._stamps[index]:.3f} s): {exc}") from None
+
+        return EncodedImage(data, "jpeg", size, decode)
 
     @property
     def has_groundtruth(self) -> bool:

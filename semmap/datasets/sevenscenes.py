@@ -14,13 +14,12 @@ import numpy as np
 
 from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .calibration import CameraSource
-from .images import image_size, read_depth_u16, read_rgb
+from .images import image_size, read_depth_file, read_rgb_file
 from .trajectory_io import orthonormalize_pose
 
 _FRAME_RE = re.compile(r"^frame-(\d+)\.color\.(?:jpg|png)$")
 # The published 7-Scenes calibration, used when a folder has no camera-intrinsics.txt (the original zips have none).
 DEFAULT_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
-INVALID_DEPTH = 65535  # the Kinect "no reading" marker in 7-Scenes; mapped to 0 like every other reader
 
 
 def is_sevenscenes_dir(path: Path) -> bool:
@@ -112,11 +111,11 @@ class SevenScenesDataset(Dataset):
             raise IndexError(f"frame index {index} out of range 0..{len(self) - 1}")
         index %= len(self)
         stem = self._stem(index)
-        rgb = read_rgb(self.root / self._color_names[index])
-        depth = read_depth_u16(self.root / f"{stem}.depth.png")
-        if depth.shape != rgb.shape[:2]:
-            raise DatasetError(f"{stem}: depth {depth.shape} and colour {rgb.shape[:2]} sizes differ in {self.root}")
-        depth[depth == INVALID_DEPTH] = 0
+        rgb = read_rgb_file(self.root / self._color_names[index])  # kept encoded until needed (and sent so)
+        depth = read_depth_file(self.root / f"{stem}.depth.png")  # 65535 (no reading) reads as 0
+        if depth.size != rgb.size:
+            raise DatasetError(f"{stem}: depth {depth.size[::-1]} and colour {rgb.size[::-1]} sizes differ in "
+                               f"{self.root}")
         return FrameData(
             index=index,
             stamp=self.stamp(index),

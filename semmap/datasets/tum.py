@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .calibration import CameraSource
-from .images import image_size, read_depth_u16, read_rgb
+from .images import image_size, read_depth_file, read_rgb_file
 from .trajectory_io import read_tum
 
 # Published TUM calibrations (fx, fy, cx, cy) of the colour camera; depth is registered to it.
@@ -276,11 +276,11 @@ class TumDataset(Dataset):
         if not -len(self) <= index < len(self):
             raise IndexError(f"frame index {index} out of range 0..{len(self) - 1}")
         index %= len(self)
-        rgb = read_rgb(self.root / self._rgb_files[index])
-        depth = read_depth_u16(self.root / self._depth_files[index])
-        if depth.shape != rgb.shape[:2]:
+        rgb = read_rgb_file(self.root / self._rgb_files[index])  # kept encoded until needed (and sent so)
+        depth = read_depth_file(self.root / self._depth_files[index])
+        if depth.size != rgb.size:
             raise DatasetError(
-                f"depth {self._depth_files[index]} {depth.shape} and colour {rgb.shape[:2]} sizes differ"
+                f"depth {self._depth_files[index]} {depth.size[::-1]} and colour {rgb.size[::-1]} sizes differ"
             )
         pose = self._poses[index]
         return FrameData(

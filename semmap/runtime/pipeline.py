@@ -48,6 +48,7 @@ from semmap.core.messages import (
     MessageError,
     Observations,
     OdometryPose,
+    PngImage,
 )
 from semmap.datasets.base import FrameData
 from semmap.runtime.map_store import MapStore
@@ -75,22 +76,19 @@ def combined(a: MapperStep, b: MapperStep) -> MapperStep:
 
 
 def frame_message(robot: str, data: FrameData, depth_png: bool = False) -> Frame:
-    """A dataset frame as a bus message (depth as 16-bit PNG: ~3.5x smaller, ~10 ms more, for slow links)."""
-    frame = Frame.from_arrays(
-        robot,
-        data.index,
-        data.stamp,
-        data.rgb,
-        data.depth,
-        data.depth_scale,
-        data.intrinsics,
-        data.gt_pose,
-        [
-            GroundTruthInstance(i.instance_id, i.class_name, tuple(i.box), i.visible_pixels, i.moving)
-            for i in data.instances
-        ],
-    )
-    if depth_png:
+    """A dataset frame as a bus message. A JPEG colour file and a 16-bit PNG depth file of the camera's size travel
+    as the dataset stores them (no decode and re-encode: ~6.5 ms less a frame for the player, and 140 KB instead
+    of 690 KB for each subscriber on 7-Scenes); other images are encoded here (colour as JPEG; depth raw, or as a
+    16-bit PNG with `depth_png`: ~3.5x smaller, ~10 ms more, for slow links)."""
+    size = (data.intrinsics.width, data.intrinsics.height)
+    rgb_file, depth_file = data.rgb_file, data.depth_file
+    rgb = rgb_file.data if rgb_file is not None and rgb_file.fmt == "jpeg" and rgb_file.size == size else data.rgb
+    as_png = depth_file is not None and depth_file.fmt == "png16" and depth_file.size == size
+    frame = Frame.from_arrays(robot, data.index, data.stamp, rgb, PngImage(depth_file.data) if as_png else data.depth,
+                              data.depth_scale, data.intrinsics, data.gt_pose,
+                              [GroundTruthInstance(i.instance_id, i.class_name, tuple(i.box), i.visible_pixels,
+                                                   i.moving) for i in data.instances])
+    if depth_png and not as_png:
         frame.depth_as_png()
     return frame
 

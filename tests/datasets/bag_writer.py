@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from semmap.datasets.base import FrameData
@@ -75,7 +76,7 @@ def write_bag(
             conn, msgtype = conns[topic]
             writer.write(conn, int(round(stamp * 1e9)) + 1_000_000, serialize(msg, msgtype))
 
-        connect(COLOR, "sensor_msgs/msg/Image")
+        connect(COLOR, "sensor_msgs/msg/CompressedImage" if colour_encoding == "jpeg" else "sensor_msgs/msg/Image")
         if depth:
             connect(DEPTH, "sensor_msgs/msg/Image")
         connect(INFO, "sensor_msgs/msg/CameraInfo")
@@ -87,20 +88,27 @@ def write_bag(
         body_to_optical = np.array([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
         for n, f in enumerate(frames):
             h, w = f.rgb.shape[:2]
-            rgb = f.rgb if colour_encoding == "rgb8" else f.rgb[:, :, ::-1]
-            put(
-                COLOR,
-                T["sensor_msgs/msg/Image"](
-                    header=_header(ts, f.stamp, OPTICAL, ros1),
-                    height=h,
-                    width=w,
-                    encoding=colour_encoding,
-                    is_bigendian=0,
-                    step=w * 3,
-                    data=np.ascontiguousarray(rgb).reshape(-1),
-                ),
-                f.stamp,
-            )
+            if colour_encoding == "jpeg":  # the frame's own JPEG file where it has one, as a camera driver sends it
+                jpeg = f.rgb_file.data if f.rgb_file is not None and f.rgb_file.fmt == "jpeg" else \
+                    cv2.imencode(".jpg", f.rgb[:, :, ::-1])[1].tobytes()
+                put(COLOR, T["sensor_msgs/msg/CompressedImage"](header=_header(ts, f.stamp, OPTICAL, ros1),
+                                                                 format="jpeg",
+                                                                 data=np.frombuffer(jpeg, np.uint8)), f.stamp)
+            else:
+                rgb = f.rgb if colour_encoding == "rgb8" else f.rgb[:, :, ::-1]
+                put(
+                    COLOR,
+                    T["sensor_msgs/msg/Image"](
+                        header=_header(ts, f.stamp, OPTICAL, ros1),
+                        height=h,
+                        width=w,
+                        encoding=colour_encoding,
+                        is_bigendian=0,
+                        step=w * 3,
+                        data=np.ascontiguousarray(rgb).reshape(-1),
+                    ),
+                    f.stamp,
+                )
             if depth == "16UC1":
                 put(
                     DEPTH,

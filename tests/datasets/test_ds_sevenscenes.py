@@ -123,3 +123,51 @@ def test_not_a_sevenscenes_folder(tmp_path: Path) -> None:
     assert cv2.imwrite(str(tmp_path / "frame-000000.color.jpg"), np.zeros((8, 8, 3), np.uint8))
     with pytest.raises(DatasetError, match="expected 9 numbers"):
         SevenScenesDataset(tmp_path)
+
+
+@pytest.mark.needs_data
+def test_frames_travel_as_their_files(kitchen_dir: Path, tmp_path: Path) -> None:
+    """The player sends a JPEG colour file and a 16-bit PNG depth file as stored (no decode and re-encode per
+    frame); a receiver decodes the same pixels the reader gives, the "no reading" marker as 0."""
+    from semmap.core.messages import Frame
+    from semmap.runtime.pipeline import frame_message
+
+    root = tmp_path / "seq"
+    _copy_frames(kitchen_dir, root, 2)
+    depth_path = root / "frame-000001.depth.png"
+    depth = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
+    depth[:8, :8] = 65535  # 7-Scenes' "no reading"
+    cv2.imwrite(str(depth_path), depth)
+    data = SevenScenesDataset(root)[1]
+    wire = frame_message("r", data).encode()
+    assert len(wire) < 200_000  # ~690 KB with the depth raw
+    frame = Frame.decode(wire)
+    assert frame.rgb_jpeg == (root / "frame-000001.color.jpg").read_bytes()
+    assert bytes(frame.depth_raw) == depth_path.read_bytes()
+    np.testing.assert_array_equal(frame.rgb(), data.rgb)
+    np.testing.assert_array_equal(frame.depth(), data.depth)
+    assert np.all(frame.depth()[:8, :8] == 0) and not np.any(frame.depth() == 65535)
+
+
+@pytest.mark.needs_data
+def test_damaged_files_are_caught_where_they_are_read(kitchen_dir: Path, tmp_path: Path) -> None:
+    """Frames stay encoded until needed, yet a damaged file is still the reader's DatasetError (the player counts
+    and announces it), not a surprise in some service: a PNG's chunk CRCs and a JPEG's markers are checked."""
+    from semmap.datasets.images import jpeg_size, png16_size
+
+    root = tmp_path / "seq"
+    _copy_frames(kitchen_dir, root, 3)
+    png = bytearray((root / "frame-000001.depth.png").read_bytes())
+    assert png16_size(bytes(png)) == (640, 480)
+    png[len(png) // 2] ^= 0xFF  # one flipped byte inside the image data
+    (root / "frame-000001.depth.png").write_bytes(bytes(png))
+    jpeg = (root / "frame-000002.color.jpg").read_bytes()
+    assert jpeg_size(jpeg) == (640, 480)
+    assert jpeg_size(jpeg[:2] + jpeg[2:][::-1]) is None and png16_size(jpeg) is None
+    (root / "frame-000002.color.jpg").write_bytes(jpeg[:300] + jpeg[-2:])  # headers cut off mid-way
+    ds = SevenScenesDataset(root)
+    assert ds[0].rgb_file is not None and ds[0].rgb_file.fmt == "jpeg" and ds[0].depth_file.fmt == "png16"
+    with pytest.raises(DatasetError, match="frame-000001.depth.png"):
+        ds[1]
+    with pytest.raises(DatasetError, match="frame-000002.color.jpg"):
+        ds[2]

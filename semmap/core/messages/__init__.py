@@ -31,6 +31,7 @@ from .control import Control, Progress, ServiceStatus
 from .detections import DepthPatch, Detection, Detections
 from .frames import (
     DEFAULT_IMAGE_CODEC,
+    DEPTH_NO_READING,
     Frame,
     GroundTruthInstance,
     ImageCodec,
@@ -57,7 +58,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
 )
 
 __all__ = [
-    "ALL_MESSAGES", "DEFAULT_IMAGE_CODEC", "LANDMARK_STATUSES", "MAX_MESSAGE_BYTES", "ROBOT_NAME",
+    "ALL_MESSAGES", "DEFAULT_IMAGE_CODEC", "DEPTH_NO_READING", "LANDMARK_STATUSES", "MAX_MESSAGE_BYTES", "ROBOT_NAME",
     "CandidateUpdate", "Control", "CorrectedPoses", "DepthPatch", "Detection", "Detections", "DynamicBox",
     "DynamicObjects", "Frame", "GroundTruthInstance", "ImageCodec", "Intrinsics", "Landmark", "MapAlignment",
     "MapUpdate", "Measurement", "Message", "MessageError", "Observation", "Observations", "OdometryPose", "Part",

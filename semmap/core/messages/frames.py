@@ -115,6 +115,11 @@ DEPTH_SCHEMA = {
 DepthField = Annotated[Any, msgspec.Meta(extra_json_schema=DEPTH_SCHEMA)]
 
 
+# 65535, the saturated value of 16-bit depth, is 7-Scenes' "no reading" marker: a depth PNG's 65535 reads as 0
+# (invalid), so a dataset's depth files can travel as they are stored (semmap.datasets.images.read_depth_file)
+DEPTH_NO_READING = 65535
+
+
 class Frame(Message, tag="semmap.frame/1"):
     """One RGB-D frame. Images stay encoded until a consumer asks (`rgb()`, `depth()`), then are cached."""
 
@@ -153,18 +158,27 @@ class Frame(Message, tag="semmap.frame/1"):
             self.gt_pose = validate_pose(self.gt_pose, "gt_pose")
 
     @classmethod
-    def from_arrays(cls, robot: str, frame_id: int, stamp: float, rgb: np.ndarray, depth: np.ndarray,
-                    depth_scale: float, intrinsics: Intrinsics, gt_pose: np.ndarray | None = None,
-                    instances: list[GroundTruthInstance] | None = None, jpeg_quality: int = 90) -> Frame:
-        """Build a frame from an RGB uint8 image and a uint16 depth image (what a SLAM front end has)."""
-        if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-            raise MessageError("rgb must be an HxWx3 uint8 array")
-        if depth.dtype != np.uint16 or depth.shape != rgb.shape[:2]:
-            raise MessageError("depth must be a uint16 array of the RGB image's size")
-        frame = cls(robot, frame_id, stamp, cls.encode_rgb(rgb, jpeg_quality), np.ascontiguousarray(depth),
-                    depth_scale, intrinsics, None if gt_pose is None else np.asarray(gt_pose, np.float64),
-                    list(instances or []))
-        frame._rgb = rgb
+    def from_arrays(cls, robot: str, frame_id: int, stamp: float, rgb: np.ndarray | bytes,
+                    depth: np.ndarray | PngImage, depth_scale: float, intrinsics: Intrinsics,
+                    gt_pose: np.ndarray | None = None, instances: list[GroundTruthInstance] | None = None,
+                    jpeg_quality: int = 90) -> Frame:
+        """Build a frame from an RGB uint8 image and a uint16 depth image (what a SLAM front end has). Either may
+        instead be a file's bytes to send as they are: `rgb` a JPEG, `depth` a 16-bit PNG (`PngImage`); their
+        size is the caller's to have checked against `intrinsics` (receivers check it when they decode)."""
+        if isinstance(rgb, bytes):
+            jpeg, size = rgb, (intrinsics.height, intrinsics.width)
+        else:
+            if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+                raise MessageError("rgb must be an HxWx3 uint8 array")
+            jpeg, size = cls.encode_rgb(rgb, jpeg_quality), rgb.shape[:2]
+        if not isinstance(depth, PngImage):
+            if depth.dtype != np.uint16 or depth.shape != size:
+                raise MessageError("depth must be a uint16 array of the RGB image's size")
+            depth = np.ascontiguousarray(depth)
+        frame = cls(robot, frame_id, stamp, jpeg, depth, depth_scale, intrinsics,
+                    None if gt_pose is None else np.asarray(gt_pose, np.float64), list(instances or []))
+        if not isinstance(rgb, bytes):
+            frame._rgb = rgb
         return frame
 
     @staticmethod
@@ -196,10 +210,11 @@ class Frame(Message, tag="semmap.frame/1"):
         return self._rgb
 
     def depth(self) -> np.ndarray:
-        """The HxW uint16 depth image (0 = invalid)."""
+        """The HxW uint16 depth image (0 = invalid; a PNG's `DEPTH_NO_READING` reads as 0 too)."""
         if isinstance(self.depth_raw, bytes):
             img = image_codec().decode_png16(bytes(self.depth_raw))
             if img is None or img.dtype != np.uint16 or img.shape != (self.intrinsics.height, self.intrinsics.width):
                 raise MessageError(f"frame {self.frame_id}: depth is not a 16-bit PNG of the stated size")
+            img[img == DEPTH_NO_READING] = 0
             self.depth_raw = img
         return self.depth_raw

@@ -182,6 +182,7 @@ class VizService(Service):
         self.optimized_drawn_at = 0.0
         self.correction: tuple[np.ndarray, np.ndarray] | None = None  # (corrected, odometry) of one frame
         self.map_frame = -1
+        self.pinhole = None  # the intrinsics last logged
         self.rejected: set[int] = set()  # track ids of rejected candidates
         self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=8)
         self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
@@ -218,8 +219,10 @@ class VizService(Service):
         rr = self.rr
         self._at(frame.frame_id)
         k = frame.intrinsics
-        rr.log("world/camera", rr.Pinhole(focal_length=[k.fx, k.fy], principal_point=[k.cx, k.cy],
-                                          resolution=[k.width, k.height], image_plane_distance=0.3))
+        if k != self.pinhole:  # the camera's model: logged when it changes, not with every frame
+            self.pinhole = k
+            rr.log("world/camera", rr.Pinhole(focal_length=[k.fx, k.fy], principal_point=[k.cx, k.cy],
+                                              resolution=[k.width, k.height], image_plane_distance=0.3))
         if self.images:
             rr.log("world/camera/image", rr.EncodedImage(contents=frame.rgb_jpeg, media_type="image/jpeg"))
         if self.depth_every and frame.frame_id % self.depth_every == 0:
