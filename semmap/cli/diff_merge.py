@@ -86,14 +86,15 @@ def _registered(
     in A's frame where B's run holds its backend journal (semmap/runtime/map_refit.py), else B moved rigidly."""
     from semmap.algorithms.map_merge import register as register_maps
     from semmap.algorithms.map_merge import transform_landmark
-    from semmap.algorithms.relocalize import apply
+    from semmap.algorithms.relocalize import RelocParams, apply
     from semmap.core.messages import MessageError
 
     a, clouds_a = load_map(args.a)
     b, clouds_b = load_map(args.b)
     if args.same_frame:
         return a, b, None, clouds_a, clouds_b
-    attempt = register_maps(a, b, clouds_a, clouds_b)
+    b_db = _map_db(args.b) if refit else None
+    attempt = register_maps(a, b, clouds_a, clouds_b, refit=b_db is not None)
     if attempt.result is None:
         raise MessageError(
             f"cannot register {args.b} to {args.a} by their objects: {attempt.reason} "
@@ -102,8 +103,7 @@ def _registered(
     T = attempt.result.transform
     moved = {i: apply(T, c) for i, c in clouds_b.items()}
     rigid = [transform_landmark(lm, T) for lm in b]
-    b_db = _map_db(args.b)
-    if not refit or b_db is None:
+    if b_db is None:
         return a, rigid, attempt.result, clouds_a, moved
     from msgspec.structs import replace
 
@@ -111,6 +111,13 @@ def _registered(
 
     result = refit_run(b_db, _map_db(args.a), attempt.result, a)
     if isinstance(result, str):
+        limit = RelocParams().max_rotation_sigma_deg
+        if attempt.result.rotation_sigma_deg > limit:  # what the re-optimisation would have settled: not certain
+            raise MessageError(
+                f"cannot register {args.b} to {args.a} by their objects alone: the fit's rotation is uncertain by "
+                f"{attempt.result.rotation_sigma_deg:.1f} deg (> {limit} deg) and B's trajectory could not be "
+                f"re-optimised in A's frame ({result}); (--same-frame if they share a frame)"
+            )
         print(f"B moved by the objects' fit alone (its trajectory not re-optimised: {result})", file=sys.stderr)
         return a, rigid, attempt.result, clouds_a, moved
     print(f"B's trajectory re-optimised in A's frame: {result.frames} frames, {result.closures_to_a} of its "

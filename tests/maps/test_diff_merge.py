@@ -73,6 +73,24 @@ def test_register_diff_and_merge() -> None:
     assert chair.observations == 20 and abs(chair.centroid[0] - a[0].centroid[0]) < 0.03
 
 
+def test_a_refitted_merge_pairs_objects_a_rigid_one_would_not_trust() -> None:
+    """B's drift inflates the centres' residual and so the rotation uncertainty: where B's trajectory is then
+    re-optimised from the fit, the fit only has to pair the objects (a looser rotation guard); moved rigidly, the
+    relocalisation's guard holds."""
+    a = _room()[:8]
+    centre = np.mean([lm.centroid for lm in a], axis=0)
+    close = [replace(lm, centroid=tuple(float(v) for v in centre + 0.3 * (np.array(lm.centroid) - centre)))
+             for lm in a]  # the objects within ~1 m: centres pin the rotation less
+    rng = np.random.default_rng(7)
+    b = [transform_landmark(replace(lm, id=100 + lm.id, centroid=tuple(float(v) for v in np.array(lm.centroid)
+                                                                         + rng.normal(0, 0.06, 3))), _frame())
+         for lm in close]
+    rigid, refit = register(close, b), register(close, b, refit=True)
+    assert rigid.result is None and rigid.reason.startswith("weak geometry"), rigid.reason
+    assert refit.result is not None and 1.5 < refit.result.rotation_sigma_deg <= 3.0
+    assert len(refit.result.matches) == len(a)
+
+
 def test_statuses_of_a_relocalised_session() -> None:
     """B made from A with --map: `prior` landmarks were never looked at (unseen), `missing` ones were."""
     a = _room()
