@@ -21,6 +21,7 @@ from semmap.datasets import open_dataset
 from semmap.datasets.ros_convert import quaternion_matrix
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.client import SemmapClient
+from tests.ros2.recordings import raw_recording
 
 pytest.importorskip("rclpy", reason="ROS 2 wheels absent: ./dev.sh setup installs the ros2 extra (semmap[ros2])")
 
@@ -158,7 +159,7 @@ def test_bridge_maps_like_the_folder_and_skips_bad_messages(
     folder = tmp_path / "folder"
     result = semmap_run(
         [
-            str(kitchen_dir),
+            str(raw_recording(tmp_path, kitchen_dir, FRAMES)),
             "--out",
             str(folder),
             "--odometry",

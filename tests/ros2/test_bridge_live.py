@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.ros2.recordings import raw_recording
+
 pytest.importorskip("rclpy", reason="ROS 2 wheels absent: ./dev.sh setup installs the ros2 extra (semmap[ros2])")
 
 PROJECT = Path(__file__).resolve().parents[2]
@@ -136,10 +138,12 @@ def test_lockstep_with_the_documented_settings_processes_every_frame_the_camera_
 ) -> None:
     """A reliable camera at 30 Hz that never waits (a recording played as it was recorded); the bridge with
     `lockstep:=true reliable_input:=true` and nothing else: all frames processed, the last one included, and the
-    landmarks equal those of `semmap run FOLDER --odometry gt --lockstep` (ids, classes, centroids to 1 mm)."""
+    landmarks equal those of `semmap run --odometry gt --lockstep` on the same raw images recorded in a bag (ids,
+    classes, centroids to 1 mm)."""
     folder = tmp_path / "folder"
     result = semmap_run(
-        [str(kitchen_dir), "--out", str(folder), "--odometry", "gt", "--lockstep", "--no-viz"]
+        [str(raw_recording(tmp_path, kitchen_dir, LOCKSTEP_FRAMES)), "--out", str(folder), "--odometry", "gt",
+         "--lockstep", "--no-viz"]
         + ["--max-frames", str(LOCKSTEP_FRAMES)],
         timeout=500,
     )
