@@ -72,17 +72,29 @@ def between_factor(key_a: int, key_b: int, relative: np.ndarray, sigma_translati
 
 
 def observation_factor(pose_key: int, point_key: int, point_camera: np.ndarray, sigma: float, kernel: str,
-                       k: float) -> gtsam.NonlinearFactor:
+                       k: float, range_sigma: float | None = None) -> gtsam.NonlinearFactor:
     """A camera-frame 3D point as a native `BearingRangeFactor3D` (no Python callback: fast in iSAM2).
 
     An isotropic sigma at range r is a bearing sigma of sigma / r rad (small-angle) and a range sigma of sigma,
-    which is the same Gaussian to first order as a point-to-point factor.
+    which is the same Gaussian to first order as a point-to-point factor. `range_sigma` (never below `sigma`)
+    loosens the range alone: an object's visible surface lies in front of its centre along the ray, by up to its
+    depth, while the bearing to it is hardly biased (`observation_information`).
     """
     p = np.asarray(point_camera, dtype=np.float64)
     rng = float(np.linalg.norm(p))
     bearing_sigma = sigma / rng
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([bearing_sigma, bearing_sigma, sigma]))
+    range_sigma = sigma if range_sigma is None else max(float(range_sigma), sigma)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([bearing_sigma, bearing_sigma, range_sigma]))
     return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(p / rng), rng, robust(noise, kernel, k))
+
+
+def observation_information(ray_world: np.ndarray, sigma: float, range_sigma: float) -> np.ndarray:
+    """The 3x3 information of an `observation_factor` in the world frame (first order): 1 / sigma^2 across the
+    ray, 1 / range_sigma^2 along it (`ray_world`, any length)."""
+    u = np.asarray(ray_world, dtype=np.float64)
+    u = u / max(float(np.linalg.norm(u)), 1e-12)
+    along = np.outer(u, u)
+    return (np.eye(3) - along) / sigma**2 + along / max(range_sigma, sigma) ** 2
 
 
 def merge_factor(key_a: int, key_b: int, sigma: float) -> gtsam.NonlinearFactor:
@@ -94,7 +106,11 @@ def merge_factor(key_a: int, key_b: int, sigma: float) -> gtsam.NonlinearFactor:
     return gtsam.BetweenFactorPoint3(key_a, key_b, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
 
 
-def point_prior_factor(key: int, point: np.ndarray, sigma: float) -> gtsam.NonlinearFactor:
+def point_prior_factor(key: int, point: np.ndarray, sigma: float | np.ndarray) -> gtsam.NonlinearFactor:
     """A landmark variable held near `point`: what keeps a retired landmark (its observation factors dropped)
-    determined without it pulling any pose."""
-    return gtsam.PriorFactorPoint3(key, np.asarray(point, dtype=np.float64), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
+    determined without it pulling any pose. `sigma`: isotropic (m), or a 3x3 information matrix."""
+    if np.ndim(sigma) == 2:
+        noise = gtsam.noiseModel.Gaussian.Information(np.asarray(sigma, dtype=np.float64))
+    else:
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(sigma))
+    return gtsam.PriorFactorPoint3(key, np.asarray(point, dtype=np.float64), noise)

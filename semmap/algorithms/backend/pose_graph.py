@@ -173,10 +173,12 @@ class PoseGraph:
         self._obs_tags: dict[int, set[Hashable]] = {}  # root -> tags of its observation factors (to retire them)
         self._obs_seq = 0
         # what settling needs to turn a factor on a settled node into a prior on what stays (see _settle_oldest)
-        self._obs_records: dict[Hashable, tuple[int, int, int, np.ndarray, float]] = {}  # frame, root, var, pt, sigma
+        # frame, root, var, point, sigma, range sigma
+        self._obs_records: dict[Hashable, tuple[int, int, int, np.ndarray, float, float]] = {}
         self._rel_records: dict[Hashable, tuple[int, int, np.ndarray, float, float, str]] = {}
         self._rel_seq = 0
-        self._settled_points: dict[int, tuple[float, np.ndarray]] = {}  # var -> (information, information * point)
+        # var -> (information 3x3, information @ point), summed over its observations from settled frames
+        self._settled_points: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # the first _n_settled entries of _isam_nodes are settled: their estimate is kept, they are not in iSAM2,
         # and no factor touches a frame up to _settled_horizon any more
         self._n_settled = 0
@@ -493,9 +495,9 @@ class PoseGraph:
                 if relative is not None:
                     self._push(tag, relative)
             elif kind == "obs":
-                frame_id, root, var, point, sigma = self._obs_records.pop(tag)
+                frame_id, root, var, point, sigma, range_sigma = self._obs_records.pop(tag)
                 self._obs_tags.get(self._root(root), set()).discard(tag)
-                self._settle_observation(frame_id, root, var, point, sigma, estimate.atPoint3(L(var)))
+                self._settle_observation(frame_id, root, var, point, sigma, range_sigma, estimate.atPoint3(L(var)))
                 touched[var] = root
             elif kind != "prior":  # (every factor on a pose node is tagged: this would be a bookkeeping bug)
                 raise PoseGraphError(f"cannot settle an untagged factor on keys {factor.keys()}")
@@ -520,16 +522,23 @@ class PoseGraph:
         return np.asarray(self._isam.calculateEstimatePoint3(key), dtype=np.float64)
 
     def _settle_observation(self, frame_id: int, root: int, var: int, point: np.ndarray, sigma: float,
-                            landmark: np.ndarray) -> None:
-        """Fold one observation from a settled frame into its landmark variable's settled prior."""
+                            range_sigma: float, landmark: np.ndarray) -> None:
+        """Fold one observation from a settled frame into its landmark variable's settled prior (its information
+        in the world frame, weighted by the robust kernel at its whitened residual)."""
         if self._root(root) in self._retired:
             return
         pose = self._frame_pose(frame_id)
         world = pose[:3, :3] @ point + pose[:3, 3]
-        residual = float(np.linalg.norm(world - np.asarray(landmark, dtype=np.float64))) / sigma
-        information = factors.robust_weight(self.params.robust_kernel, self.params.robust_k, residual) / sigma**2
-        total, weighted = self._settled_points.get(var, (0.0, np.zeros(3)))
-        self._settled_points[var] = (total + information, weighted + information * world)
+        r = world - np.asarray(landmark, dtype=np.float64)
+        if range_sigma > sigma:  # looser along the ray (`observation_range_sigma_size_factor`)
+            info = factors.observation_information(pose[:3, :3] @ point, sigma, range_sigma)
+            residual = math.sqrt(max(float(r @ info @ r), 0.0))
+        else:
+            info = np.eye(3) / sigma**2
+            residual = float(np.linalg.norm(r)) / sigma
+        info = factors.robust_weight(self.params.robust_kernel, self.params.robust_k, residual) * info
+        total, weighted = self._settled_points.get(var, (np.zeros((3, 3)), np.zeros(3)))
+        self._settled_points[var] = (total + info, weighted + info @ world)
         self.counters["observations_settled"] += 1
 
     def _push_settled_prior(self, var: int, root: int) -> None:
@@ -538,7 +547,12 @@ class PoseGraph:
         total, weighted = self._settled_points[var]
         tag = ("settled", var)
         self._drop(tag)
-        self._push(tag, factors.point_prior_factor(L(var), weighted / total, 1.0 / math.sqrt(total)))
+        diagonal = total[0, 0]
+        if not np.any(total - np.diag(np.diag(total))) and total[1, 1] == diagonal == total[2, 2]:  # isotropic
+            prior = factors.point_prior_factor(L(var), weighted / diagonal, 1.0 / math.sqrt(diagonal))
+        else:
+            prior = factors.point_prior_factor(L(var), np.linalg.solve(total, weighted), total)
+        self._push(tag, prior)
         self._obs_tags.setdefault(self._root(root), set()).add(tag)
 
     # ------------------------------------------------------------------------------------------ outputs
@@ -810,20 +824,32 @@ class PoseGraph:
                  + p.observation_sigma_size_factor * max(float(obs.size), 0.0))
         return max(float(obs.sigma), model, 1e-4)
 
+    def _observation_range_sigma(self, obs: Observation, sigma: float) -> float:
+        """Along the ray: the visible surface's centre lies in front of the object's by up to its depth, which
+        the view cannot see (a parked car seen from its side: half its width; from one end: half its length), and
+        every view from that side shares the offset, so it does not average out over the views: the range is
+        loosened by the object's size, the bearing keeps `sigma` (`observation_range_sigma_size_factor`). On the
+        street world along KITTI 00 the car views' centres lay 1.09 m (0.33 x size) in front of the cars' along the
+        ray, 3.5 of the isotropic sigmas, and 1.1 sigmas across it; with ORB-SLAM's estimate as odometry the
+        isotropic model bent it (ATE 1.30 -> 1.51 m), this one does not (-> 1.21 m)."""
+        unseen = self.params.observation_range_sigma_size_factor * max(float(obs.size), 0.0)
+        return math.hypot(sigma, unseen) if unseen > 0.0 else sigma
+
     def _add_observation_factor(self, frame_id: int, obs: Observation, root: int) -> None:
         var, point, sigma = self._var[root], np.asarray(obs.point_camera, float), self._observation_sigma(obs)
+        range_sigma = self._observation_range_sigma(obs, sigma)
         if frame_id <= self._settled_horizon:  # seen from a settled frame (a late message): straight into the prior
-            self._settle_observation(frame_id, root, var, point, sigma, self._landmark_estimate(var))
+            self._settle_observation(frame_id, root, var, point, sigma, range_sigma, self._landmark_estimate(var))
             self._push_settled_prior(var, root)
             return
         self._ensure_node(frame_id)
         factor = factors.observation_factor(X(frame_id), L(var), point, sigma, self.params.robust_kernel,
-                                            self.params.robust_k)
+                                            self.params.robust_k, range_sigma)
         tag = ("obs", self._obs_seq)
         self._obs_seq += 1
         self._push(tag, factor)
         self._obs_tags.setdefault(root, set()).add(tag)
-        self._obs_records[tag] = (frame_id, root, var, point, sigma)
+        self._obs_records[tag] = (frame_id, root, var, point, sigma, range_sigma)
         self.counters["observation_factors"] += 1
 
     def _activate(self, root: int) -> None:
