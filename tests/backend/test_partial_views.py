@@ -56,7 +56,7 @@ def drive_past_parked_cars(params: BackendParams, bias: float = NEAR_SIDE, noise
 def test_near_side_views_of_parked_cars_do_not_bend_a_straight_drive() -> None:
     isotropic = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=0.0))
     assert isotropic[0] > 0.5 and isotropic[1] > 0.4  # measured 0.61 m, 0.48 deg: the isotropic model bends it
-    loosened = drive_past_parked_cars(BackendParams())  # range sigma: the car's size
+    loosened = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0))  # range sigma: size
     assert loosened[0] < 0.3 and loosened[1] < 0.25, loosened  # measured 0.18 m, 0.14 deg
     bearings = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=3.0))
     assert bearings[0] < 0.05 and bearings[1] < 0.05, bearings  # the bearings alone: 3 cm, 0.02 deg
@@ -65,15 +65,15 @@ def test_near_side_views_of_parked_cars_do_not_bend_a_straight_drive() -> None:
 def test_loosened_range_keeps_what_unbiased_views_say() -> None:
     """Centred views with 20 cm noise: the bearings still hold the trajectory as the isotropic model did."""
     isotropic = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=0.0), bias=0.0, noise=0.2)
-    loosened = drive_past_parked_cars(BackendParams(), bias=0.0, noise=0.2)
+    loosened = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0), bias=0.0, noise=0.2)
     assert loosened[0] < isotropic[0] + 0.02 and loosened[1] < isotropic[1] + 0.02, (loosened, isotropic)
 
 
 def test_settled_near_side_views_keep_their_loose_range() -> None:
     """Settling folds observations into a landmark prior with their (anisotropic) information: the result stays
     close to the whole graph's."""
-    whole = drive_past_parked_cars(BackendParams())
-    settled = drive_past_parked_cars(BackendParams(), active_window_nodes=6)
+    whole = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0))
+    settled = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0), active_window_nodes=6)
     assert settled[0] < whole[0] + 0.1 and settled[1] < whole[1] + 0.1, (settled, whole)
 
 

@@ -302,7 +302,7 @@ class BackendParams(Section):
     """The backend's pose graph (semmap/algorithms/backend/pose_graph.py). Sigmas are 1-sigma; the observation
     sigma used is max(message sigma, floor + per_m_depth * depth + size_factor * size), because per-view object
     centroids scatter 3-14 cm with the viewpoint (more for big objects) whatever the associator believes; along the
-    ray (the range) it is loosened further by the object's size (`observation_range_sigma_size_factor`)."""
+    ray (the range) it may be loosened further by the object's size (`observation_range_sigma_size_factor`)."""
 
     prior_sigma_translation_m: Positive = 0.001
     prior_sigma_rotation_deg: Positive = 0.01
@@ -312,11 +312,13 @@ class BackendParams(Section):
     observation_sigma_per_m_depth: NonNegative = 0.01
     observation_sigma_size_factor: NonNegative = 0.05
     observation_range_sigma_size_factor: NonNegative = Field(
-        1.0,
-        description="range sigma = hypot(sigma, factor * size); the bearing's stays sigma / range. A view's centre "
-        "is its visible surface's, in front of the object's centre along the ray (street world, KITTI 00's parked "
-        "cars: by 0.33 x size on average, 0.19 x size scatter; across the ray the sigma holds), and every view from "
-        "that side shares the offset: its range says little. 0: isotropic (the model before)",
+        0.0,
+        description="range sigma = hypot(sigma, factor * size); the bearing's stays sigma / range; 0: isotropic. A "
+        "view's centre is its visible surface's, in front of the object's centre along the ray (street world, KITTI "
+        "00's parked cars: by 0.33 x size on average, 0.19 x size scatter; across the ray the sigma holds), and every "
+        "view from that side shares the offset. 1.0 takes the KITTI 00 ORB row 1.51 -> 1.21 m, but on Bonn crowd "
+        "(ORB-SLAM3 run 1 as file:) 0.058 -> 0.068-0.076 m: rooms' objects need their range (docs/RESULTS.md); off "
+        "by default, for street-scale runs",
     )
     observation_min_range_m: NonNegative = 0.05
     robust_kernel: RobustKernel = Field(
