@@ -199,7 +199,7 @@ def detect_recording(
             boxes = [b for b in boxes if (not allow or b.class_name in allow) and b.class_name not in deny]
         else:
             boxes = onnx.detect(frame.rgb())
-        # depth travels raw: the dataset's array is what the subscriber decodes
+        # the dataset's depth is what a subscriber decodes (the same file or array; 65535 read as 0 either way)
         detections = make_detections(data_i, boxes, stride, det_cfg["depth_min_m"], det_cfg["depth_max_m"])
         dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, detections))
         if verbose and (i + 1) % 100 == 0:
