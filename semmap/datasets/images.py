@@ -17,33 +17,31 @@ PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC: the last 8 bytes o
 JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
 
 
-def _read_bytes(path: Path, what: str) -> np.ndarray:
+def _read_bytes(path: Path, what: str) -> bytes:
     try:
-        return np.frombuffer(path.read_bytes(), dtype=np.uint8)
+        return path.read_bytes()
     except FileNotFoundError as exc:
         raise DatasetError(f"{what} missing: {path}") from exc
     except OSError as exc:
         raise DatasetError(f"cannot read {what} {path}: {exc}") from exc
 
 
-def decode_rgb(data: np.ndarray | bytes, path: str | Path) -> np.ndarray:
+def decode_rgb(data: bytes, path: str | Path) -> np.ndarray:
     """HxWx3 uint8 in RGB order from a colour file's bytes (OpenCV reads BGR); DatasetError when undecodable or
     truncated. A truncated JPEG decodes "successfully" with a grey lower part (libjpeg only warns), so JPEGs
     must also end with the end-of-image marker."""
-    data = np.frombuffer(data, np.uint8) if isinstance(data, bytes) else data
-    if data[:2].tobytes() == JPEG_START and JPEG_END not in data[-64:].tobytes():
+    if data[:2] == JPEG_START and JPEG_END not in data[-64:]:
         raise DatasetError(f"truncated JPEG (no end-of-image marker): {path}")
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
     if image is None or image.ndim != 3 or image.shape[2] != 3 or image.size == 0:
         raise DatasetError(f"cannot decode colour image (corrupt or not an image): {path}")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def decode_depth_u16(data: np.ndarray | bytes, path: str | Path, no_reading: int | None = None) -> np.ndarray:
+def decode_depth_u16(data: bytes, path: str | Path, no_reading: int | None = None) -> np.ndarray:
     """HxW uint16 depth from a depth file's bytes as stored (`no_reading`, a dataset's "no reading" marker, set to
     0); DatasetError when undecodable or not 16-bit single channel."""
-    data = np.frombuffer(data, np.uint8) if isinstance(data, bytes) else data
-    depth = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    depth = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if depth is None or depth.size == 0:
         raise DatasetError(f"cannot decode depth image (corrupt or not an image): {path}")
     if depth.ndim != 2 or depth.dtype != np.uint16:
@@ -117,20 +115,11 @@ def png16_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def _read_raw(path: Path, what: str) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError as exc:
-        raise DatasetError(f"{what} missing: {path}") from exc
-    except OSError as exc:
-        raise DatasetError(f"cannot read {what} {path}: {exc}") from exc
-
-
 def read_rgb_file(path: str | Path) -> EncodedImage:
     """A colour image file, kept encoded: a JPEG whose header and end marker check out is decoded only when its
     pixels are needed (and may travel as is); any other file is decoded now (DatasetError if it cannot be)."""
     path = Path(path)
-    data = _read_raw(path, "colour image")
+    data = _read_bytes(path, "colour image")
     size = jpeg_size(data)
     if size is not None:
         return EncodedImage(data, "jpeg", size, lambda: decode_rgb(data, path))
@@ -143,7 +132,7 @@ def read_depth_file(path: str | Path) -> EncodedImage:
     needed (and may travel as is); any other file is decoded now (DatasetError if it cannot be). Either way its
     `DEPTH_NO_READING` (65535, 7-Scenes' marker) reads as 0, as a receiver of the PNG reads it."""
     path = Path(path)
-    data = _read_raw(path, "depth image")
+    data = _read_bytes(path, "depth image")
     size = png16_size(data)
     if size is not None:
         return EncodedImage(data, "png16", size, lambda: decode_depth_u16(data, path, DEPTH_NO_READING))

@@ -85,6 +85,12 @@ def write_bag(
         elif pose == "tf":
             connect("/tf", "tf2_msgs/msg/TFMessage")
             connect("/tf_static", "tf2_msgs/msg/TFMessage")
+        def raw_image(stamp: float, encoding: str, pixels: np.ndarray):  # noqa: ANN202 - a sensor_msgs/Image
+            h, w = pixels.shape[:2]
+            return T["sensor_msgs/msg/Image"](header=_header(ts, stamp, OPTICAL, ros1), height=h, width=w,
+                                              encoding=encoding, is_bigendian=0, step=pixels.strides[0],
+                                              data=pixels.view(np.uint8).reshape(-1))
+
         body_to_optical = np.array([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
         for n, f in enumerate(frames):
             h, w = f.rgb.shape[:2]
@@ -96,49 +102,13 @@ def write_bag(
                                                                  data=np.frombuffer(jpeg, np.uint8)), f.stamp)
             else:
                 rgb = f.rgb if colour_encoding == "rgb8" else f.rgb[:, :, ::-1]
-                put(
-                    COLOR,
-                    T["sensor_msgs/msg/Image"](
-                        header=_header(ts, f.stamp, OPTICAL, ros1),
-                        height=h,
-                        width=w,
-                        encoding=colour_encoding,
-                        is_bigendian=0,
-                        step=w * 3,
-                        data=np.ascontiguousarray(rgb).reshape(-1),
-                    ),
-                    f.stamp,
-                )
+                put(COLOR, raw_image(f.stamp, colour_encoding, np.ascontiguousarray(rgb)), f.stamp)
             if depth == "16UC1":
-                put(
-                    DEPTH,
-                    T["sensor_msgs/msg/Image"](
-                        header=_header(ts, f.stamp, OPTICAL, ros1),
-                        height=h,
-                        width=w,
-                        encoding="16UC1",
-                        is_bigendian=0,
-                        step=w * 2,
-                        data=np.ascontiguousarray(f.depth).view(np.uint8).reshape(-1),
-                    ),
-                    f.stamp,
-                )
+                put(DEPTH, raw_image(f.stamp, "16UC1", np.ascontiguousarray(f.depth)), f.stamp)
             elif depth == "32FC1":
                 metres = f.depth.astype(np.float32) * np.float32(f.depth_scale)
                 metres[f.depth == 0] = np.nan
-                put(
-                    DEPTH,
-                    T["sensor_msgs/msg/Image"](
-                        header=_header(ts, f.stamp, OPTICAL, ros1),
-                        height=h,
-                        width=w,
-                        encoding="32FC1",
-                        is_bigendian=0,
-                        step=w * 4,
-                        data=metres.view(np.uint8).reshape(-1),
-                    ),
-                    f.stamp,
-                )
+                put(DEPTH, raw_image(f.stamp, "32FC1", metres), f.stamp)
             k = f.intrinsics
             kmat = np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1], float)
             pmat = np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0], float)
