@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -82,7 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, metavar="PRIOR",
                    help="start from a saved map (a run directory or its map.sqlite): relocalise against its objects, "
                         "then map in its frame (docs/MAPS.md)")
-    p.add_argument("--detectors", type=int, default=1, help="detector replicas")
+    p.add_argument("--detectors", type=int, default=None,
+                   help="detector replicas (default 1; in real time, as many as this machine's measured layout "
+                        "detects most often with: `semmap models doctor`)")
     p.add_argument("--connect", default=None, help="join a Zenoh router (e.g. tcp/127.0.0.1:7447) instead of "
                    "hosting the bus; env SEMMAP_ZENOH_CONNECT")
     p.add_argument("--zenoh-mode", default=None, choices=("peer", "client"))
@@ -171,7 +174,7 @@ def _run(args: argparse.Namespace) -> int:
         if opened is None:
             return 2
         dataset, dataset_camera = opened
-    if args.detectors < 1:
+    if args.detectors is not None and args.detectors < 1:
         print("error: --detectors must be at least 1", file=sys.stderr)
         return 2
     mode = config.odometry.mode
@@ -193,13 +196,15 @@ def _run(args: argparse.Namespace) -> int:
 
     realtime = (args.mode or config.run.mode) == "realtime"
     with_detector = "detector" in (only or PIPELINE)
-    budget = detector_budget(config, dataset, args.data, overrides) if realtime and with_detector else None
+    budget = (detector_budget(config, dataset, args.data, overrides, args.detectors)
+              if realtime and with_detector else None)  # fmt: skip
     if config.detector.kind == "auto":  # decided here, for this dataset, once for every process of the run
         from semmap.algorithms.detector import AUTO, resolve_kind
 
         synthetic = args.data == "synthetic" or args.data.startswith("synthetic:")
         overrides.append(f"detector.kind={resolve_kind(AUTO, synthetic)}")
-    specs = pipeline_specs(args.data, config, args.detectors, not args.no_viz, only, args.serve, prior_map,
+    detectors = args.detectors or int((budget or {}).get("replicas", 1))
+    specs = pipeline_specs(args.data, config, detectors, not args.no_viz, only, args.serve, prior_map,
                            args.check_slam)
     run = config.run
     deadline = args.deadline if args.deadline is not None else run.deadline_s
@@ -375,10 +380,12 @@ def check_detector_classes(config: Config, data: str, mode: str) -> None:
         return  # (an unreadable model or names file: the detector says so when it starts, naming the file)
 
 
-def detector_budget(config: Config, dataset: Dataset | None, data: str, overrides: list[str]) -> dict | None:
+def detector_budget(config: Config, dataset: Dataset | None, data: str, overrides: list[str],
+                    detectors: int | None = None) -> dict | None:  # fmt: skip
     """Real time with the packaged detector: this machine's measured configuration (measured now if this machine
     never was) and the detection cadence the frame budget allows; printed now, in stats.json at the end. Adds
-    `detector.every_n_frames=N` to `overrides` when the cadence is auto (0)."""
+    `detector.every_n_frames=N` to `overrides` when the cadence is auto (0), and where this machine's measured
+    layout is single-thread replicas (`detectors` not set), `detector.threads` and the budget's `replicas`."""
     from semmap.algorithms.detector import AUTO, resolve_kind
     from semmap.runtime import detector_choice as dc
 
@@ -397,7 +404,9 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
         print(f"semmap: no frame budget: {exc}", file=sys.stderr)
         return None
     fps = float(getattr(dataset, "rate_hz", 30.0) or 30.0) * float(config.run.speed)
-    plan, source = dc.setup_plan(setup, fps, config.odometry.mode)
+    # replicas by measurement unless they or the cadence were set by hand
+    plan, source = dc.setup_plan(setup, fps, config.odometry.mode,
+                                 replicas=detectors is None and not det.every_n_frames)
     budget: dict = {"detector": setup.label(), "origin": setup.origin, "odometry": config.odometry.mode}
     if plan is None:
         print(f"semmap: real time, detector {setup.label()} ({setup.origin}); its cost was not measured here: "
@@ -406,11 +415,17 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     every_n = det.every_n_frames or plan.every_n
     if det.every_n_frames == 0:
         overrides.append(f"detector.every_n_frames={plan.every_n}")
+    if plan.replicas > 1:
+        setup = dataclasses.replace(setup, threads=plan.threads)
+        budget["detector"] = f"{setup.label()} x {plan.replicas} replicas"
+        budget["replicas"] = plan.replicas
+        overrides.append(f"detector.threads={plan.threads}")
     expected = plan.detections_per_s if every_n == plan.every_n else min(fps / every_n, 1e3 / plan.interval_ms)
     budget["planned"] = {**plan.to_dict(), "every_n_frames": every_n, "expected_detections_per_s": round(expected, 2)}
-    print(f"semmap: real time, detector {setup.label()} ({setup.origin}); frame budget: "
-          f"{dc.describe_plan(plan, source)}" + (f"; every_n_frames set to {every_n}" if det.every_n_frames else ""),
-          file=sys.stderr)
+    last = dc.last_achieved(config.odometry.mode, budget["detector"])
+    print(f"semmap: real time, detector {budget['detector']} ({setup.origin}); frame budget: "
+          f"{dc.describe_plan(plan, source)}" + (f"; every_n_frames set to {every_n}" if det.every_n_frames else "")
+          + (f" (the last real-time run here with it achieved {last:.1f}/s)" if last else ""), file=sys.stderr)
     return budget
 
 

@@ -28,7 +28,7 @@ from semmap.runtime.model_store import INT8_FILENAME, default_model_path, get_mo
 log = logging.getLogger(__name__)
 
 CHOICE_FILENAME = "detector_choice.json"
-CHOICE_VERSION = 1
+CHOICE_VERSION = 2  # 2: with the layouts (replicas x threads) of the choice
 AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
 TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
 IOU_MATCH = 0.5
@@ -287,6 +287,109 @@ def measure_configs(
     return rows
 
 
+# ----------------------------------------------------------------------------------------------------------
+# Layouts: one detector with several threads, or several single-thread replicas, beside the others' load
+
+LAYOUT_SECONDS = 6.0  # timed per layout, after every process has loaded its model and warmed up
+MAX_REPLICAS = 2  # each replica holds its own copy of the network (~350 MB resident with YOLOv5s)
+BURN_PERIOD_S = 1.0 / 30.0  # the other services work once a frame
+
+
+@dataclass(frozen=True)
+class Layout:
+    """`replicas` detector processes of `threads` intra-op threads each, and what they achieved together while a
+    stand-in for the other services (`load_cores` of CPU, spread over every core) ran beside them."""
+
+    replicas: int
+    threads: int
+    detections_per_s: float
+    load_cores: float
+
+    def label(self) -> str:
+        return f"{self.replicas} x {self.threads} thread{'s' if self.threads != 1 else ''}"
+
+
+def candidate_layouts(cores: int) -> list[tuple[int, int]]:
+    """(replicas, threads): the single detector as `candidate_configs` times it, and single-thread replicas."""
+    layouts = [(1, min(2, max(1, cores)))]
+    if cores >= 2:
+        layouts.append((min(MAX_REPLICAS, cores), 1))
+    return layouts
+
+
+def _burn(share: float, start: Any, seconds: float) -> None:  # a child process: the stand-in load
+    start.wait()
+    stop = time.monotonic() + seconds
+    while time.monotonic() < stop:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < share * BURN_PERIOD_S:
+            pass
+        time.sleep(BURN_PERIOD_S * (1.0 - share))
+
+
+def _detect_flat_out(blob: bytes, threads: int, images: list[Any], start: Any, seconds: float, out: Any) -> None:
+    from semmap.algorithms.detector.onnx_detector import OnnxDetector  # a child process: one replica
+
+    det = OnnxDetector(blob, threads=threads)
+    det.detect(images[0])
+    out.put("ready")
+    start.wait()
+    count, stop = 0, time.monotonic() + seconds
+    while time.monotonic() < stop:
+        det.detect(images[count % len(images)])
+        count += 1
+    out.put(count)
+
+
+def measure_layouts(blob: bytes, images: Sequence[Any], cores: int, load_cores: float,
+                    seconds: float = LAYOUT_SECONDS) -> list[Layout]:  # fmt: skip
+    """Detections per second of each layout of the model `blob` (serialized ONNX: the chosen precision and
+    letterbox, `model_bytes`), flat out, while `load_cores` of CPU burn
+    beside it in short duty cycles (the other services of a real-time run, as `record_pipeline_cost` measured them).
+
+    Why: an intra-op thread pool waits at every operator for its slowest thread, so when the other services take
+    a core from it now and then, both threads stall; single-thread replicas do not wait for each other. On the
+    2-core AVX2 EPYC a real-time 7-Scenes run detected 10.8 frames a second with one 2-thread detector and 12.9
+    with two 1-thread replicas, where the cost model (CPU time over free cores) predicts the same for both: only a
+    measurement tells them apart, and it differs by machine."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")  # (onnxruntime's thread pools do not survive a fork)
+    frames = list(images[: max(1, min(8, len(images)))])
+    share = min(1.0, max(0.0, load_cores / max(1, cores)))
+    layouts = []
+    for replicas, threads in candidate_layouts(cores):
+        start, out = ctx.Event(), ctx.Queue()
+        workers = [ctx.Process(target=_detect_flat_out, args=(blob, threads, frames, start, seconds, out),
+                               daemon=True) for _ in range(replicas)]  # fmt: skip
+        burners = [ctx.Process(target=_burn, args=(share, start, seconds + 0.5), daemon=True)
+                   for _ in range(cores if share > 0 else 0)]  # fmt: skip
+        for proc in workers + burners:
+            proc.start()
+        try:
+            ready = [out.get(timeout=120.0) for _ in workers]
+            assert ready == ["ready"] * replicas
+            start.set()
+            count = sum(int(out.get(timeout=seconds + 120.0)) for _ in workers)
+        finally:
+            for proc in workers + burners:
+                proc.join(timeout=seconds + 5.0)
+                if proc.is_alive():
+                    proc.kill()
+        layouts.append(Layout(replicas, threads, count / seconds, round(load_cores, 2)))
+    return layouts
+
+
+def best_layout(layouts: Sequence[Layout]) -> Layout | None:
+    """The layout that detected most often; replicas only where they beat the single detector by 5 % (each costs
+    its memory)."""
+    single = [lay for lay in layouts if lay.replicas == 1]
+    if not single:
+        return None
+    best = max(layouts, key=lambda lay: lay.detections_per_s)
+    return best if best.detections_per_s > 1.05 * single[0].detections_per_s else single[0]
+
+
 def calibration_images(source: str | Path | None, count: int = 24) -> tuple[list[Any], str]:
     """`count` RGB frames evenly spread over a dataset (7-Scenes under ../shared/data when none is given and it is
     there, else the synthetic scene); returns (images, where they came from)."""
@@ -311,7 +414,8 @@ def choice_path(model_dir: Path | None = None) -> Path:
     return (Path(model_dir) if model_dir is not None else get_model_dir()) / CHOICE_FILENAME
 
 
-def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, model_dir: Path | None = None) -> Path:
+def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, model_dir: Path | None = None,
+                layouts: Sequence[Layout] = ()) -> Path:  # fmt: skip
     best = choose(rows, int(key.get("cores", 1)))
     doc = {
         "version": CHOICE_VERSION,
@@ -323,10 +427,12 @@ def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, mode
         "confidence threshold count as agreement), then the shortest time per detection in a real-time run",
         "rows": [r.to_dict() for r in rows],
         "choice": best.to_dict() if best is not None else None,
+        "layouts": [asdict(lay) for lay in layouts],  # of the choice (`measure_layouts`)
     }
     before = load_choice(model_dir, key)  # the same machine measured again: keep what its runs measured
-    if before and before.get("pipeline_cpu_ms_per_frame"):
-        doc["pipeline_cpu_ms_per_frame"] = before["pipeline_cpu_ms_per_frame"]
+    for kept in ("pipeline_cpu_ms_per_frame", "achieved_detections_per_s"):
+        if before and before.get(kept):
+            doc[kept] = before[kept]
     path = choice_path(model_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
@@ -367,7 +473,18 @@ def measure_and_save(
     images, where = calibration_images(source, frames)
     configs = candidate_configs((directory / INT8_FILENAME).is_file(), int(key["cores"]), sizes)
     rows = measure_configs(images, configs, model_dir=directory, progress=progress)
-    save_choice(rows, key, where, directory)
+    best = choose(rows, int(key["cores"]))
+    layouts: list[Layout] = []
+    if best is not None and int(key["cores"]) >= 2:
+        before = load_choice(directory, key)
+        load = others_cpu_ms("gt", before)[0] * 30.0 / 1e3  # the others' cores in a 30 fps run
+        blob = model_bytes(best.config.precision, best.config.hw, directory)
+        layouts = measure_layouts(blob, images, int(key["cores"]), load)
+        if progress is not None:
+            for lay in layouts:
+                progress(f"{best.config.label()} as {lay.label()}: {lay.detections_per_s:.1f} detections/s "
+                         f"beside {lay.load_cores:.2f} cores of load")
+    save_choice(rows, key, where, directory, layouts)
     doc = load_choice(directory, key)
     assert doc is not None
     return doc
@@ -399,8 +516,14 @@ def format_table(doc: dict[str, Any]) -> str:
     lines.append(f"(in run: expected ms per detection in a real-time run at 30 fps, the other services taking "
                  f"{others:.0f} ms of CPU per frame of the {cores} cores)")
     best = doc.get("choice")
+    layouts = [Layout(**d) for d in doc.get("layouts") or []]
+    if best and layouts:
+        lines.append(f"{Measured.from_dict(best).config.label()} flat out beside {layouts[0].load_cores:.2f} cores "
+                     "of stand-in load (the other services of a 30 fps run): "
+                     + ", ".join(f"{lay.label()} {lay.detections_per_s:.1f} detections/s" for lay in layouts))
     if best:
-        lines.append(f"choice (detector.precision auto, real time): {Measured.from_dict(best).config.label()}")
+        lines.append(f"choice (detector.precision auto, real time): {Measured.from_dict(best).config.label()}"
+                     + (f", {chosen.label()}" if (chosen := best_layout(layouts)) is not None else ""))
     else:
         lines.append("choice: none agrees with fp32; real time runs fp32 at full size")
     return "\n".join(lines)
@@ -427,15 +550,20 @@ class CadencePlan:
     others_cpu_ms: float  # the other services' CPU per frame of video
     fps: float
     threads: int = 1
+    replicas: int = 1  # detector processes sharing the frames by rank (`measure_layouts`)
+    layout_note: str = ""  # why this many replicas: what `measure_layouts` measured
 
     @property
     def flat_out(self) -> bool:
         """Its threads fit in the cores the others leave: it may take the next frame as soon as it is free (its
-        queue keeps the newest) without starving them. Otherwise its cadence is held to its share."""
-        return self.threads <= self.free_cores
+        queue keeps the newest) without starving them. Otherwise its cadence is held to its share. Replicas chosen
+        by `measure_layouts` were measured flat out beside the others' load: they take their frames flat out."""
+        return self.replicas > 1 or self.threads <= self.free_cores
 
     @property
     def every_n(self) -> int:
+        if self.replicas > 1:  # each replica takes the newest frame of its share whenever it is free
+            return 1
         ratio = self.interval_ms * self.fps / 1e3  # frames of video per detection
         if self.flat_out:
             return max(1, math.floor(ratio + 0.05))
@@ -448,7 +576,7 @@ class CadencePlan:
     def to_dict(self) -> dict[str, float]:
         return {"detect_alone_ms": round(self.detect_alone_ms, 1), "interval_ms": round(self.interval_ms, 1),
                 "free_cores": round(self.free_cores, 2), "others_cpu_ms_per_frame": round(self.others_cpu_ms, 1),
-                "fps": self.fps, "every_n_frames": self.every_n,
+                "fps": self.fps, "every_n_frames": self.every_n, "replicas": self.replicas, "threads": self.threads,
                 "expected_detections_per_s": round(self.detections_per_s, 2)}  # fmt: skip
 
 
@@ -461,6 +589,12 @@ def plan_cadence(row: Measured, cores: int, fps: float, others_cpu_ms: float) ->
     return CadencePlan(row.alone_ms, interval, free, others_cpu_ms, fps, row.config.threads)
 
 
+def last_achieved(odometry: str, detector: str, model_dir: Path | None = None) -> float | None:
+    """Detections per second of video the last real-time run here achieved with this odometry and detector."""
+    doc = load_choice(model_dir) or {}
+    return (doc.get("achieved_detections_per_s") or {}).get(f"{odometry.split(':', 1)[0]} {detector}")
+
+
 def others_cpu_ms(odometry: str, doc: dict[str, Any] | None) -> tuple[float, str]:
     """(CPU ms per frame the other services take, where the figure comes from) for this odometry mode."""
     mode = odometry.split(":", 1)[0]
@@ -470,12 +604,17 @@ def others_cpu_ms(odometry: str, doc: dict[str, Any] | None) -> tuple[float, str
     return DEFAULT_OTHERS_CPU_MS.get(mode, DEFAULT_OTHERS_FALLBACK_MS), "default estimate"
 
 
-def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path | None = None) -> bool:
-    """Keep the other services' CPU per frame measured by a real-time run (only in this machine's cache)."""
+def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path | None = None,
+                         detector: str = "", detections_per_s: float = 0.0) -> bool:  # fmt: skip
+    """Keep the other services' CPU per frame measured by a real-time run (only in this machine's cache), and what
+    the run's detector (`detector`: its label) achieved, shown beside the next plan's expectation."""
     doc = load_choice(model_dir)
     if doc is None or cpu_ms_per_frame <= 0:
         return False
-    doc.setdefault("pipeline_cpu_ms_per_frame", {})[odometry.split(":", 1)[0]] = round(cpu_ms_per_frame, 1)
+    mode = odometry.split(":", 1)[0]
+    doc.setdefault("pipeline_cpu_ms_per_frame", {})[mode] = round(cpu_ms_per_frame, 1)
+    if detector and detections_per_s > 0:
+        doc.setdefault("achieved_detections_per_s", {})[f"{mode} {detector}"] = round(detections_per_s, 2)
     atomic_write_bytes(choice_path(model_dir), (json.dumps(doc, indent=1) + "\n").encode())
     return True
 
@@ -489,6 +628,9 @@ def rank_for_realtime(rows: Sequence[Measured], cores: int, fps: float = 30.0,
 
 # ----------------------------------------------------------------------------------------------------------
 # What a detector of a run uses
+
+
+MEASURED_HERE = "measured on this machine"
 
 
 @dataclass(frozen=True)
@@ -530,7 +672,8 @@ def resolve_setup(precision: str, threads: int, input_size: str, realtime: bool,
         if best is not None:
             c = best.config
             return DetectorSetup(c.precision, threads or c.threads, hw or (c.height, c.width),
-                                 "measured on this machine", best)  # fmt: skip
+                                 MEASURED_HERE if not threads else "measured on this machine, threads set",
+                                 best)  # fmt: skip
         return DetectorSetup("fp32", threads or 2, hw, "not measured on this machine (`semmap models doctor`)")
     fixed = "fp32" if precision == "auto" else precision
     row = None
@@ -543,9 +686,10 @@ def resolve_setup(precision: str, threads: int, input_size: str, realtime: bool,
 
 
 def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path | None = None,
-               cores: int | None = None) -> tuple[CadencePlan | None, str]:  # fmt: skip
+               cores: int | None = None, replicas: bool = False) -> tuple[CadencePlan | None, str]:  # fmt: skip
     """The real-time cadence for `setup` (None when its cost was never measured here) and where the other
-    services' cost comes from."""
+    services' cost comes from; replicas=True: single-thread replicas where this machine measured them better
+    (`replica_plan`)."""
     if setup.measured is None:
         return None, ""
     doc = load_choice(model_dir)
@@ -554,7 +698,34 @@ def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path 
     m = setup.measured
     row = Measured(DetectorConfigChoice(setup.precision, setup.threads, *(setup.hw or FULL_HW)), m.p50_ms,
                    m.p90_ms, m.cpu_ms, m.f1, m.recall, m.precision, min_ms=m.min_ms)  # fmt: skip
-    return plan_cadence(row, n, fps, others), source
+    plan = plan_cadence(row, n, fps, others)
+    replicated = replica_plan(plan, setup, doc) if replicas else None
+    return (replicated or plan), source
+
+
+def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None) -> CadencePlan | None:
+    """Single-thread replicas instead of `plan`'s one detector, where `measure_layouts` found them to detect more
+    often beside the others' load on this machine. Only for the measured choice itself (explicit settings are
+    kept), and only where the run's other services take no more than the load it was measured beside (+25 %):
+    under a heavier front end (`rgbd`) flat-out replicas could starve it, and the single detector's cadence,
+    held to its share, stays."""
+    if setup.origin != MEASURED_HERE or not doc or not doc.get("layouts") or not doc.get("choice"):
+        return None
+    choice = Measured.from_dict(doc["choice"]).config
+    if (choice.precision, choice.hw, choice.threads) != (setup.precision, setup.hw or FULL_HW, setup.threads):
+        return None
+    layouts = [Layout(**d) for d in doc["layouts"]]
+    best = best_layout(layouts)
+    if best is None or best.replicas == 1:
+        return None
+    others_cores = plan.others_cpu_ms * plan.fps / 1e3
+    if others_cores > 1.25 * best.load_cores + 0.05:
+        return None
+    single = next(lay for lay in layouts if lay.replicas == 1)
+    note = (f"{best.label()} detected {best.detections_per_s:.1f}/s beside {best.load_cores:.2f} cores of load, "
+            f"1 x {single.threads} threads {single.detections_per_s:.1f}/s (`semmap models doctor`)")
+    return CadencePlan(plan.detect_alone_ms, 1e3 / best.detections_per_s, plan.free_cores, plan.others_cpu_ms,
+                       plan.fps, best.threads, best.replicas, note)  # fmt: skip
 
 
 def load_detector_model(setup: DetectorSetup, model_dir: Path | None = None) -> Path | bytes:
@@ -573,6 +744,11 @@ def ordinal(n: int) -> str:  # "every 3rd frame"
 
 def describe_plan(plan: CadencePlan, source: str) -> str:
     """One line: what a real-time run will achieve with this plan."""
+    if plan.replicas > 1:
+        return (f"{plan.replicas} replicas of {plan.threads} thread{'s' if plan.threads > 1 else ''}, each taking "
+                f"the newest frame of its share ({plan.layout_note}; the other services take "
+                f"{plan.others_cpu_ms:.0f} ms CPU per frame, {source}); expected {plan.detections_per_s:.1f} "
+                "detections/s")
     return (f"detector {plan.detect_alone_ms:.0f} ms alone, ~{plan.interval_ms:.0f} ms in the run (the other services "
             f"take {plan.others_cpu_ms:.0f} ms CPU per frame, {source}: {plan.free_cores:.1f} cores left), "
             f"{ordinal(plan.every_n)} at {plan.fps:g} fps"

@@ -142,6 +142,12 @@ def detect_recording(
         precision = "fp32" if det_cfg["precision"] == "auto" else det_cfg["precision"]  # (lockstep: fp32's figures)
         model = Path(det_cfg["model"] or packaged_model(precision))
     model_id = None if model is None else (str(model), model.stat().st_size, int(model.stat().st_mtime))
+    setup = None
+    if kind == "onnx" and not det_cfg["model"]:  # the packaged model, resized to `detector.input_size` as the
+        from semmap.runtime.detector_choice import resolve_setup  # detector service resizes it
+
+        setup = resolve_setup(det_cfg["precision"], int(det_cfg["threads"]), det_cfg["input_size"], realtime=False)
+        model_id = (*model_id, "letterbox", setup.hw)  # (before: detections at the model's own size whatever was set)
     # the model file stands for `precision`; threads and queueing do not change detections
     key = _cache_key(
         CACHE_VERSION,
@@ -170,18 +176,12 @@ def detect_recording(
             confusion_rate=det_cfg["oracle_confusion_rate"],
         )
         onnx = None
-    else:
-        from semmap.algorithms.detector.onnx_detector import OnnxDetector
+    else:  # built as the detector service builds it: the packaged model resized to `detector.input_size`
+        from semmap.algorithms.detector import create_detector
+        from semmap.runtime.detector_choice import load_detector_model
 
-        onnx = OnnxDetector(
-            model,
-            conf=det_cfg["confidence"],
-            iou=det_cfg["iou"],
-            threads=int(det_cfg["threads"]),
-            allow=set(det_cfg["classes"]) or None,
-            deny=set(det_cfg["exclude"]) or None,
-            names=det_cfg["names"] or None,
-        )
+        assert model is not None
+        onnx = create_detector("onnx", config.detector, load_detector_model(setup) if setup is not None else model)
     allow, deny = set(det_cfg["classes"]), set(det_cfg["exclude"])
     every = max(1, int(det_cfg["every_n_frames"]))
     stride = max(1, int(det_cfg["depth_patch_stride"]))
@@ -198,7 +198,7 @@ def detect_recording(
             boxes = oracle.detect(frame.frame_id, frame.instances, frame.intrinsics.width, frame.intrinsics.height)
             boxes = [b for b in boxes if (not allow or b.class_name in allow) and b.class_name not in deny]
         else:
-            boxes = onnx.detect(frame.rgb())
+            boxes = onnx.detect_frame(frame)
         # the dataset's depth is what a subscriber decodes (the same file or array; 65535 read as 0 either way)
         detections = make_detections(data_i, boxes, stride, det_cfg["depth_min_m"], det_cfg["depth_max_m"])
         dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, detections))

@@ -530,7 +530,9 @@ class Orchestrator:
             try:
                 from semmap.runtime.detector_choice import record_pipeline_cost
 
-                record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame)
+                record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame,
+                                     detector=str(budget.get("detector", "")),
+                                     detections_per_s=float(budget["achieved"]["detections_per_s"]))
             except (OSError, ValueError):
                 pass
         return budget

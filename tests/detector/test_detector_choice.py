@@ -166,6 +166,9 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert plan.others_cpu_ms == 50.0 and source.startswith("measured")
     dc.save_choice([_row("fp32", 1, (384, 512), 95, 95, 0.93)], dc.hardware_key(), "again", tmp_path)
     assert dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)[0].others_cpu_ms == 50.0  # kept when re-measured
+    assert dc.record_pipeline_cost("gt", 18.0, tmp_path, detector="fp32 512x384 1 thread", detections_per_s=9.4)
+    assert dc.last_achieved("gt", "fp32 512x384 1 thread", tmp_path) == 9.4  # shown beside the next expectation
+    assert dc.last_achieved("rgbd", "fp32 512x384 1 thread", tmp_path) is None
 
 
 # --- semmap models doctor ----------------------------------------------------------------------------------
@@ -199,3 +202,58 @@ def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) ->
     text = run_summary(tmp_path, stats)
     assert ("  detection   planned: fp32 512x384 1 thread, every 3 frame(s), 10.0/s; achieved 9.4/s of video, "
             "detector 97 ms p50 in the run") in text.splitlines()
+
+
+# --- layouts: one detector of several threads, or single-thread replicas ----------------------------------
+
+
+def test_layouts_are_measured_flat_out_beside_a_stand_in_load() -> None:
+    """Real processes, a real (tiny) network: each layout detects, and the figures are per second."""
+    blob, _ = convert_checkpoint(tiny_checkpoint(nc=3, seed=0), (64, 96))
+    images = [np.random.default_rng(i).integers(0, 255, (48, 64, 3), dtype=np.uint8) for i in range(3)]
+    layouts = dc.measure_layouts(blob, images, cores=2, load_cores=0.5, seconds=0.5)
+    assert [(lay.replicas, lay.threads) for lay in layouts] == [(1, 2), (2, 1)]
+    assert all(lay.detections_per_s > 4 and lay.load_cores == 0.5 for lay in layouts)
+    assert dc.candidate_layouts(1) == [(1, 1)]  # one core: nothing to share
+    assert dc.candidate_layouts(16) == [(1, 2), (2, 1)]  # (each replica holds its own network)
+
+
+def test_replicas_only_where_measured_better_and_for_the_load_measured(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    rows = [_row("fp32", 2, (384, 512), 50, 97, 0.93), _row("fp32", 1, (384, 512), 92, 93, 0.93)]
+    layouts = [dc.Layout(1, 2, 14.7, 0.55), dc.Layout(2, 1, 16.8, 0.55)]
+    dc.save_choice(rows, dc.hardware_key(), "test", tmp_path, layouts)
+    dc.record_pipeline_cost("gt", 18.0, tmp_path)  # 0.54 cores at 30 fps: the load the layouts were measured at
+    dc.record_pipeline_cost("rgbd", 37.0, tmp_path)  # 1.1 cores: heavier than that
+    setup = dc.resolve_setup("auto", 0, "auto", realtime=True)
+    single, _ = dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2)
+    assert single.replicas == 1  # (unless asked for)
+    plan, _ = dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2, replicas=True)
+    assert (plan.replicas, plan.threads, plan.every_n) == (2, 1, 1) and plan.detections_per_s == pytest.approx(16.8)
+    assert "2 replicas of 1 thread" in dc.describe_plan(plan, "x") and "1 x 2 threads 14.7/s" in plan.layout_note
+    assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 1
+    threads_set = dc.resolve_setup("auto", 2, "auto", realtime=True)
+    assert dc.setup_plan(threads_set, 30.0, "gt", tmp_path, cores=2, replicas=True)[0].replicas == 1
+    assert dc.best_layout([dc.Layout(1, 2, 14.7, 0.5), dc.Layout(2, 1, 15.0, 0.5)]).replicas == 1  # < 5 % better
+    doc = dc.load_choice(tmp_path)
+    assert "2 x 1 thread 16.8 detections/s" in dc.format_table(doc)
+    assert dc.format_table(doc).endswith("fp32 512x384 2t, 2 x 1 thread")
+
+
+def test_a_run_starts_the_replicas_its_budget_chose(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    from semmap.cli.run import detector_budget
+    from semmap.core.config import load_config
+
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    rows = [_row("fp32", 2, (384, 512), 50, 97, 0.93), _row("fp32", 1, (384, 512), 92, 93, 0.93)]
+    layouts = [dc.Layout(1, 2, 14.7, 0.55), dc.Layout(2, 1, 16.8, 0.55)]
+    dc.save_choice(rows, dc.hardware_key(), "test", tmp_path, layouts)
+    dc.record_pipeline_cost("gt", 18.0, tmp_path)
+    config = load_config(None, ["odometry.mode=gt"])
+    overrides: list[str] = []
+    budget = detector_budget(config, None, "some/folder", overrides)
+    assert budget["replicas"] == 2 and "detector.threads=1" in overrides and "detector.every_n_frames=1" in overrides
+    assert budget["detector"] == "fp32 512x384 1 thread x 2 replicas"
+    overrides = []
+    budget = detector_budget(config, None, "some/folder", overrides, detectors=1)  # --detectors 1: one
+    assert "replicas" not in budget and not any(o.startswith("detector.threads") for o in overrides)
