@@ -185,6 +185,22 @@ def test_a_wrong_registration_is_rejected(room: SyntheticDataset) -> None:
     assert closer.counters["registered"] == 1 and closer.counters["accepted"] == 0
 
 
+def test_when_the_nearest_keyframe_fails_the_next_nearest_are_tried(room: SyntheticDataset) -> None:
+    """The estimate puts frame 30 (a quarter round the table) right where the revisit is, and frame 0 (the same
+    place) a little further: the nearest fails its tests, the next one closes the loop, within `candidates`."""
+    gt0, gt1 = room.camera_pose(0), room.camera_pose(FRAMES - 1)
+    ids = np.array([0, 30, FRAMES - 1])
+    poses = np.stack([gt0, _drifted(gt1), _drifted(gt1)])  # frame 30 placed exactly at the revisit's estimate
+    for candidates, expected in [(1, None), (3, 0)]:
+        closer = LoopCloser(LoopClosureParams(min_gap_s=0.5, candidates=candidates))
+        closer.process(_cloud(closer, room, 0), ids, poses)
+        closer.process(_cloud(closer, room, 30), ids, poses)
+        closure = closer.process(_cloud(closer, room, FRAMES - 1), ids, poses)
+        assert (closure.frame_a if closure is not None else None) == expected
+        # (frame 30 searched too, against frame 0, and failed: 1 registration; then the revisit's 1 or 2)
+        assert closer.counters["registered"] == {1: 2, 3: 3}[candidates]
+
+
 def test_an_empty_depth_image_is_skipped() -> None:
     closer = LoopCloser()
     cloud = closer.cloud_from_depth(0, 0.0, np.zeros((48, 64), np.uint16), 0.001, 50.0, 50.0, 32.0, 24.0)
