@@ -1,8 +1,9 @@
 """Partly seen objects: a depth camera sees an object's near surface, whose centre lies in front of the object's
 centre along the ray (a parked car seen from the street: by a third of its size on average, in the street world
 along KITTI 00), and every view from that side shares the offset. The backend loosens the range of an observation
-by the object's size (`observation_range_sigma_size_factor`) and keeps its bearing, so those views locate the object
-without pulling the trajectory towards it."""
+by the depth the view may not have seen (`observation_range_sigma_unseen_factor` x the associator's `depth_unseen`;
+messages without it: `observation_range_sigma_size_factor` x size) and keeps its bearing, so those views locate the
+object without pulling the trajectory towards it."""
 
 from __future__ import annotations
 
@@ -21,10 +22,12 @@ NEAR_SIDE = 0.33  # the visible surface's centre in front of the object's, along
 
 
 def drive_past_parked_cars(params: BackendParams, bias: float = NEAR_SIDE, noise: float = 0.0,
-                           active_window_nodes: int | None = None) -> tuple[float, float]:
+                           active_window_nodes: int | None = None,
+                           unseen: float | None = None) -> tuple[float, float]:
     """A 120 m straight drive at 10 Hz (exact odometry, declared as a good SLAM's: 7 mm, 0.07 deg a frame) past a
-    row of parked cars on its right, each observed every 5 frames from its near side. (max position error m,
-    max rotation error deg) of the optimised trajectory."""
+    row of parked cars on its right, each observed every 5 frames from its near side; `unseen`: the depth_unseen
+    the observations carry (None: none). (max position error m, max rotation error deg) of the optimised
+    trajectory."""
     rng = np.random.default_rng(0)
     if active_window_nodes is not None:
         params = params.model_copy(update={"active_window_nodes": active_window_nodes, "settle_batch_nodes": 4})
@@ -37,14 +40,14 @@ def drive_past_parked_cars(params: BackendParams, bias: float = NEAR_SIDE, noise
         poses.append(pose)
         graph.add_odometry(k, k / 10.0, pose, 0.0073, math.radians(0.071), keyframe=k % 10 == 0)
         if k % 5 == 0:
-            seen = []
+            views = []
             for j, centre in enumerate(cars):
                 p = centre - pose[:3, 3]
                 if p[2] < 2.0 or np.linalg.norm(p) > 30.0 or abs(p[0] / p[2]) > 1.0:
                     continue
                 near = p - bias * CAR * p / np.linalg.norm(p) + rng.normal(0.0, noise, 3)
-                seen.append(Observation(j, "car", tuple(near.tolist()), 0.05, CAR))
-            graph.add_observations(k, seen)
+                views.append(Observation(j, "car", tuple(near.tolist()), 0.05, CAR, unseen))
+            graph.add_observations(k, views)
         graph.update()
     _, _, est = graph.corrected_poses()
     position = max(float(np.linalg.norm(e[:3, 3] - p[:3, 3])) for e, p in zip(est, poses, strict=True))
@@ -53,8 +56,11 @@ def drive_past_parked_cars(params: BackendParams, bias: float = NEAR_SIDE, noise
     return position, rotation
 
 
+OFF = {"observation_range_sigma_size_factor": 0.0, "observation_range_sigma_unseen_factor": 0.0}
+
+
 def test_near_side_views_of_parked_cars_do_not_bend_a_straight_drive() -> None:
-    isotropic = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=0.0))
+    isotropic = drive_past_parked_cars(BackendParams(**OFF))
     assert isotropic[0] > 0.5 and isotropic[1] > 0.4  # measured 0.61 m, 0.48 deg: the isotropic model bends it
     loosened = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0))  # range sigma: size
     assert loosened[0] < 0.3 and loosened[1] < 0.25, loosened  # measured 0.18 m, 0.14 deg
@@ -62,9 +68,25 @@ def test_near_side_views_of_parked_cars_do_not_bend_a_straight_drive() -> None:
     assert bearings[0] < 0.05 and bearings[1] < 0.05, bearings  # the bearings alone: 3 cm, 0.02 deg
 
 
+def test_the_depth_not_seen_loosens_the_range() -> None:
+    """A car's side shows 4.5 m across the ray and 0.3 m along it: its range is loosened by the 4.2 m not seen; an
+    object that shows about all of its depth (a chair in a room) keeps the isotropic sigma."""
+    params = BackendParams(observation_range_sigma_unseen_factor=1.0)
+    loosened = drive_past_parked_cars(params, unseen=CAR - 0.3)
+    assert loosened[0] < 0.3 and loosened[1] < 0.25, loosened
+    graph = PoseGraph(params)
+    chair = Observation(0, "chair", (0.0, 0.0, 3.0), 0.1, 1.3, 0.0)
+    car = Observation(1, "car", (0.0, 0.0, 8.0), 0.1, 4.8, 4.2)
+    old = Observation(2, "car", (0.0, 0.0, 8.0), 0.1, 4.8)  # an older sender: no depth_unseen
+    assert graph._observation_range_sigma(chair, 0.1) == 0.1
+    assert math.isclose(graph._observation_range_sigma(car, 0.1), math.hypot(0.1, 4.2))
+    assert graph._observation_range_sigma(old, 0.1) == 0.1  # observation_range_sigma_size_factor: 0 by default
+    assert PoseGraph(BackendParams())._observation_range_sigma(car, 0.1) == 0.1  # off by default
+
+
 def test_loosened_range_keeps_what_unbiased_views_say() -> None:
     """Centred views with 20 cm noise: the bearings still hold the trajectory as the isotropic model did."""
-    isotropic = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=0.0), bias=0.0, noise=0.2)
+    isotropic = drive_past_parked_cars(BackendParams(**OFF), bias=0.0, noise=0.2)
     loosened = drive_past_parked_cars(BackendParams(observation_range_sigma_size_factor=1.0), bias=0.0, noise=0.2)
     assert loosened[0] < isotropic[0] + 0.02 and loosened[1] < isotropic[1] + 0.02, (loosened, isotropic)
 

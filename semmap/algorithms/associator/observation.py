@@ -30,14 +30,48 @@ def observation(lm: LandmarkState, frame_id: int, stamp: float, p: MapperParams)
     if view is None:
         return None
     point = measure_centre(lm, view, p) if p.observation_register else None
+    points = view.points if point is None else inverse_transform(view.pose, lm.cloud)  # what the centre comes from
     if point is None:
         point = view.centroid
+    unseen = depth_unseen(points, inverse_transform(view.pose, lm.cloud), point, p.extent_percentile)
     depth = float(np.linalg.norm(point))
     sigma = math.hypot(p.obs_sigma_base_m + p.obs_sigma_depth_factor * depth, p.obs_sigma_size_factor * lm.size)
     if view.truncated:
         sigma *= p.obs_truncated_sigma_factor
     lm.last_obs_sent = stamp
-    return Observation(lm.id, lm.class_name, (float(point[0]), float(point[1]), float(point[2])), sigma, float(lm.size))
+    return Observation(lm.id, lm.class_name, (float(point[0]), float(point[1]), float(point[2])), sigma,
+                       float(lm.size), unseen)
+
+
+def extent_along_across(points_camera: np.ndarray, centre: np.ndarray, q: float) -> tuple[float, float]:
+    """How deep along the ray to `centre` the points lie, and how wide across it, horizontally (camera frame, y
+    down): each the spread between the q and 100-q percentiles, scaled as `robust_box` scales an extent (a
+    uniformly covered length L reports L)."""
+    norm = float(np.linalg.norm(centre))
+    if len(points_camera) < 2 or norm <= 0.0:
+        return 0.0, 0.0
+    ray = np.asarray(centre, float) / norm
+    across = np.cross(np.array([0.0, 1.0, 0.0]), ray)  # horizontal, perpendicular to the ray
+    across_norm = float(np.linalg.norm(across))
+    pts = np.asarray(points_camera, float)
+    scale = 1.0 - 2.0 * q / 100.0
+    lo, hi = np.percentile(pts @ ray, (q, 100.0 - q))
+    depth = float(hi - lo) / scale
+    if across_norm < 1e-6:  # looking straight up or down: no horizontal direction across the ray
+        return depth, 0.0
+    lo, hi = np.percentile(pts @ (across / across_norm), (q, 100.0 - q))
+    return depth, float(hi - lo) / scale
+
+
+def depth_unseen(points: np.ndarray, cloud: np.ndarray, centre: np.ndarray, q: float) -> float:
+    """How much of the object's depth along the ray the view may not have seen (metres; camera frame): the object
+    taken to be as deep as its footprint is long (the largest horizontal extent, along or across the ray, of the
+    view's points and of the landmark's fused cloud), less what the view shows of it in both horizontal directions
+    (the smaller of its depth along the ray and its width across it). A car's side, 4.5 m long and 0.3 m deep
+    in view: 4.2 m; a chair in a room that shows about as much depth as width: ~0.1 m."""
+    depth, width = extent_along_across(points, centre, q)
+    along, across = extent_along_across(cloud, centre, q) if len(cloud) >= 4 else (0.0, 0.0)
+    return max(depth, width, along, across) - min(depth, width)
 
 
 def measure_centre(lm: LandmarkState, view: View, p: MapperParams) -> np.ndarray | None:

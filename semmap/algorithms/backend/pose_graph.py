@@ -825,14 +825,19 @@ class PoseGraph:
         return max(float(obs.sigma), model, 1e-4)
 
     def _observation_range_sigma(self, obs: Observation, sigma: float) -> float:
-        """Along the ray: the visible surface's centre lies in front of the object's by up to its depth, which
-        the view cannot see (a parked car seen from its side: half its width; from one end: half its length), and
-        every view from that side shares the offset, so it does not average out over the views: the range is
-        loosened by the object's size, the bearing keeps `sigma` (`observation_range_sigma_size_factor`). On the
-        street world along KITTI 00 the car views' centres lay 1.09 m (0.33 x size) in front of the cars' along the
-        ray, 3.5 of the isotropic sigmas, and 1.1 sigmas across it; with ORB-SLAM's estimate as odometry the
-        isotropic model bent it (ATE 1.30 -> 1.51 m), this one does not (-> 1.21 m)."""
-        unseen = self.params.observation_range_sigma_size_factor * max(float(obs.size), 0.0)
+        """Along the ray: the visible surface's centre lies in front of the object's by up to half the depth the
+        view could not see, and every view from that side shares the offset, so it does not average out over the
+        views; the bearing keeps `sigma`. With `depth_unseen` (the associator's estimate: the object's footprint
+        length less what the view shows of it, observation.py `depth_unseen`) the range is loosened by
+        `observation_range_sigma_unseen_factor` x that; without (an older sender), by
+        `observation_range_sigma_size_factor` x size. On the street world along KITTI 00 the car views' centres lay
+        1.09 m (0.33 x size) in front of the cars' along the ray, 3.5 of the isotropic sigmas, and 1.1 sigmas
+        across it (docs/RESULTS.md)."""
+        p = self.params
+        if obs.depth_unseen is not None and p.observation_range_sigma_unseen_factor > 0.0:
+            unseen = p.observation_range_sigma_unseen_factor * max(float(obs.depth_unseen), 0.0)
+        else:
+            unseen = p.observation_range_sigma_size_factor * max(float(obs.size), 0.0)
         return math.hypot(sigma, unseen) if unseen > 0.0 else sigma
 
     def _add_observation_factor(self, frame_id: int, obs: Observation, root: int) -> None:

@@ -320,6 +320,13 @@ class BackendParams(Section):
         "(ORB-SLAM3 run 1 as file:) 0.058 -> 0.068-0.076 m: rooms' objects need their range (docs/RESULTS.md); off "
         "by default, for street-scale runs",
     )
+    observation_range_sigma_unseen_factor: NonNegative = Field(
+        0.0,
+        description="range sigma = hypot(sigma, factor * depth_unseen) for an observation that carries the "
+        "associator's depth_unseen (the object's footprint length less what the view shows of it in both horizontal "
+        "directions: a car's side ~4 m, a chair in a room ~0.1 m); 0: observation_range_sigma_size_factor applies. "
+        "Measured, not the default: docs/RESULTS.md (KITTI 00 at street scale)",
+    )
     observation_min_range_m: NonNegative = 0.05
     robust_kernel: RobustKernel = Field(
         "cauchy",

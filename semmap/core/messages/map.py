@@ -67,6 +67,9 @@ class Observation(Part):
     point_camera: Vector3
     sigma: Positive  # 1-sigma isotropic, metres
     size: Finite
+    # how much of the object's depth along the ray this view may not have seen, metres (None: not measured, an older
+    # sender); the backend loosens the range by it (pose_graph.py `_observation_range_sigma`)
+    depth_unseen: Finite | None = None
 
     def __post_init__(self) -> None:
         self.point_camera = as_vector3(self.point_camera)
