@@ -69,8 +69,8 @@ def test_near_side_views_of_parked_cars_do_not_bend_a_straight_drive() -> None:
 
 
 def test_the_depth_not_seen_loosens_the_range() -> None:
-    """A car's side shows 4.5 m across the ray and 0.3 m along it: its range is loosened by the 4.2 m not seen; an
-    object that shows about all of its depth (a chair in a room) keeps the isotropic sigma."""
+    """A car's side: its range is loosened by the depth the view may not have seen (up to its footprint); an
+    observation that says it saw all there is keeps the isotropic sigma; one from an older sender too."""
     params = BackendParams(observation_range_sigma_unseen_factor=1.0)
     loosened = drive_past_parked_cars(params, unseen=CAR - 0.3)
     assert loosened[0] < 0.3 and loosened[1] < 0.25, loosened
@@ -81,7 +81,8 @@ def test_the_depth_not_seen_loosens_the_range() -> None:
     assert graph._observation_range_sigma(chair, 0.1) == 0.1
     assert math.isclose(graph._observation_range_sigma(car, 0.1), math.hypot(0.1, 4.2))
     assert graph._observation_range_sigma(old, 0.1) == 0.1  # observation_range_sigma_size_factor: 0 by default
-    assert PoseGraph(BackendParams())._observation_range_sigma(car, 0.1) == 0.1  # off by default
+    assert math.isclose(PoseGraph(BackendParams())._observation_range_sigma(car, 0.1), math.hypot(0.1, 4.2))
+    assert PoseGraph(BackendParams(**OFF))._observation_range_sigma(car, 0.1) == 0.1
 
 
 def test_loosened_range_keeps_what_unbiased_views_say() -> None:

@@ -64,14 +64,15 @@ def extent_along_across(points_camera: np.ndarray, centre: np.ndarray, q: float)
 
 
 def depth_unseen(points: np.ndarray, cloud: np.ndarray, centre: np.ndarray, q: float) -> float:
-    """How much of the object's depth along the ray the view may not have seen (metres; camera frame): the object
-    taken to be as deep as its footprint is long (the largest horizontal extent, along or across the ray, of the
-    view's points and of the landmark's fused cloud), less what the view shows of it in both horizontal directions
-    (the smaller of its depth along the ray and its width across it). A car's side, 4.5 m long and 0.3 m deep
-    in view: 4.2 m; a chair in a room that shows about as much depth as width: ~0.1 m."""
+    """How much of the object's depth along the ray the view may not have seen (metres; camera frame), bounded by
+    the object's footprint: its largest horizontal extent, along or across the ray, in the view's points and in
+    the landmark's fused cloud. A view cannot tell how deep an object is behind what it shows, so the bound is the
+    whole footprint: a parked car 4.5 m, a chair 0.6-0.8 m. (Less what the view shows of it was tried and was not
+    enough: cars along a street are mostly seen at a slant, whose visible side spans metres of depth while their
+    centre is still behind it; docs/RESULTS.md, session 16.)"""
     depth, width = extent_along_across(points, centre, q)
     along, across = extent_along_across(cloud, centre, q) if len(cloud) >= 4 else (0.0, 0.0)
-    return max(depth, width, along, across) - min(depth, width)
+    return max(depth, width, along, across)
 
 
 def measure_centre(lm: LandmarkState, view: View, p: MapperParams) -> np.ndarray | None:
