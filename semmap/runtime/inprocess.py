@@ -166,23 +166,12 @@ def detect_recording(
         gt = [None if g is None else np.array(g, dtype=np.float64).reshape(4, 4) for g in raw["gt"]]
         return Recording(raw["name"], dets, gt, objects)
 
-    if kind == "oracle":
-        from semmap.algorithms.detector.oracle import OracleDetector
+    # built as the detector service builds it (the oracle with the allow / deny lists; the packaged model resized
+    # to `detector.input_size`)
+    from semmap.algorithms.detector import create_detector
+    from semmap.runtime.detector_choice import load_detector_model
 
-        oracle = OracleDetector(
-            seed=int(det_cfg["oracle_seed"]),
-            miss_rate=det_cfg["oracle_miss_rate"],
-            false_positive_rate=det_cfg["oracle_false_positive_rate"],
-            confusion_rate=det_cfg["oracle_confusion_rate"],
-        )
-        onnx = None
-    else:  # built as the detector service builds it: the packaged model resized to `detector.input_size`
-        from semmap.algorithms.detector import create_detector
-        from semmap.runtime.detector_choice import load_detector_model
-
-        assert model is not None
-        onnx = create_detector("onnx", config.detector, load_detector_model(setup) if setup is not None else model)
-    allow, deny = set(det_cfg["classes"]), set(det_cfg["exclude"])
+    detector = create_detector(kind, config.detector, load_detector_model(setup) if setup is not None else model)
     every = max(1, int(det_cfg["every_n_frames"]))
     stride = max(1, int(det_cfg["depth_patch_stride"]))
     dets, gt = [], []
@@ -194,11 +183,7 @@ def detect_recording(
         if i % every:
             dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, [], "stride"))
             continue
-        if onnx is None:
-            boxes = oracle.detect(frame.frame_id, frame.instances, frame.intrinsics.width, frame.intrinsics.height)
-            boxes = [b for b in boxes if (not allow or b.class_name in allow) and b.class_name not in deny]
-        else:
-            boxes = onnx.detect_frame(frame)
+        boxes = detector.detect_frame(frame)
         # the dataset's depth is what a subscriber decodes (the same file or array; 65535 read as 0 either way)
         detections = make_detections(data_i, boxes, stride, det_cfg["depth_min_m"], det_cfg["depth_max_m"])
         dets.append(Detections(ROBOT, i, frame.stamp, frame.intrinsics, frame.depth_scale, detections))

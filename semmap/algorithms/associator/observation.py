@@ -30,10 +30,11 @@ def observation(lm: LandmarkState, frame_id: int, stamp: float, p: MapperParams)
     if view is None:
         return None
     point = measure_centre(lm, view, p) if p.observation_register else None
-    points = view.points if point is None else inverse_transform(view.pose, lm.cloud)  # what the centre comes from
+    cloud = inverse_transform(view.pose, lm.cloud)  # the landmark's fused cloud in this camera's frame
+    points = view.points if point is None else cloud  # what the centre comes from
     if point is None:
         point = view.centroid
-    unseen = depth_unseen(points, inverse_transform(view.pose, lm.cloud), point, p.extent_percentile)
+    unseen = depth_unseen(points, cloud, point, p.extent_percentile)
     depth = float(np.linalg.norm(point))
     sigma = math.hypot(p.obs_sigma_base_m + p.obs_sigma_depth_factor * depth, p.obs_sigma_size_factor * lm.size)
     if view.truncated:

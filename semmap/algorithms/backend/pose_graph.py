@@ -827,8 +827,8 @@ class PoseGraph:
     def _observation_range_sigma(self, obs: Observation, sigma: float) -> float:
         """Along the ray: the visible surface's centre lies in front of the object's by up to half the depth the
         view could not see, and every view from that side shares the offset, so it does not average out over the
-        views; the bearing keeps `sigma`. With `depth_unseen` (the associator's estimate: the object's footprint
-        length less what the view shows of it, observation.py `depth_unseen`) the range is loosened by
+        views; the bearing keeps `sigma`. With `depth_unseen` (the associator's estimate, bounded by the object's
+        footprint: observation.py `depth_unseen`) the range is loosened by
         `observation_range_sigma_unseen_factor` x that; without (an older sender), by
         `observation_range_sigma_size_factor` x size. On the street world along KITTI 00 the car views' centres lay
         1.09 m (0.33 x size) in front of the cars' along the ray, 3.5 of the isotropic sigmas, and 1.1 sigmas

@@ -317,8 +317,8 @@ class BackendParams(Section):
         "view's centre is its visible surface's, in front of the object's centre along the ray (street world, KITTI "
         "00's parked cars: by 0.33 x size on average, 0.19 x size scatter; across the ray the sigma holds), and every "
         "view from that side shares the offset. 1.0 takes the KITTI 00 ORB row 1.51 -> 1.21 m, but on Bonn crowd "
-        "(ORB-SLAM3 run 1 as file:) 0.058 -> 0.068-0.076 m: rooms' objects need their range (docs/RESULTS.md); off "
-        "by default, for street-scale runs",
+        "(ORB-SLAM3 run 1 as file:) 0.058 -> 0.068-0.076 m (docs/RESULTS.md); off by default. Only for observations "
+        "without depth_unseen (older senders): observation_range_sigma_unseen_factor takes its place",
     )
     observation_range_sigma_unseen_factor: NonNegative = Field(
         1.0,
