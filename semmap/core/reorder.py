@@ -10,9 +10,11 @@ T = TypeVar("T")
 class FrameReorderBuffer(Generic[T]):
     """Releases items strictly in frame-id order, each frame once.
 
-    Frame ids start wherever the first item starts (a consumer may join a running stream). `max_pending` bounds
-    memory: when that many later frames are waiting, the missing ones are given up; `gaps` counts the frames
-    given up (there or in `give_up_before`), not frames announced as skipped.
+    Frame ids start wherever the first item starts (a consumer may join a running stream, and a stream's first
+    frames may have been dropped upstream): `stream_began_at` counts, once the stream says where it began, the
+    frames before the first one heard that never came. `max_pending` bounds memory: when that many later frames
+    are waiting, the missing ones are given up; `gaps` counts the frames given up (there, in `give_up_before` or
+    before the first one heard), not frames announced as skipped.
     """
 
     def __init__(self, max_pending: int = 256) -> None:
@@ -21,11 +23,14 @@ class FrameReorderBuffer(Generic[T]):
         self.max_pending = max_pending
         self.gaps = 0
         self.skipped: set[int] = set()  # frames that will never come (e.g. unreadable in the dataset)
+        self.joined_at: int | None = None  # the first frame heard (None: none yet, or resumed by `mark_done`)
+        self.skipped_before_join: set[int] = set()  # announced frames before `joined_at`: not gaps
+        self.counted_before_join = False
 
     def push(self, frame_id: int, item: T) -> bool:
         """Queue an item; False for a duplicate or an already released frame."""
         if self.next_id is None:
-            self.next_id = frame_id
+            self.next_id = self.joined_at = frame_id
         if frame_id < self.next_id or frame_id in self.pending or frame_id in self.skipped:
             return False
         self.pending[frame_id] = item
@@ -34,6 +39,7 @@ class FrameReorderBuffer(Generic[T]):
     def mark_done(self, frame_id: int) -> None:
         """Frames up to `frame_id` were handled elsewhere (e.g. replayed from a journal): expect the next one."""
         self.next_id = max(self.next_id or 0, frame_id + 1)
+        self.joined_at = None  # (the frames before were handled before a restart, not lost)
         for old in [f for f in self.pending if f <= frame_id]:
             del self.pending[old]
 
@@ -43,6 +49,19 @@ class FrameReorderBuffer(Generic[T]):
         self.pending.pop(frame_id, None)
         if self.next_id is None or frame_id >= self.next_id:
             self.skipped.add(frame_id)
+        elif self.joined_at is not None and frame_id < self.joined_at:
+            self.skipped_before_join.add(frame_id)
+
+    def stream_began_at(self, first_id: int) -> int:
+        """The stream began at frame `first_id` (its end says so): the frames before the first one heard that
+        never came, and were not announced as skipped, are gaps (counted once); returns how many."""
+        if self.counted_before_join or self.joined_at is None or first_id >= self.joined_at:
+            return 0
+        self.counted_before_join = True
+        announced = {f for f in self.skipped | self.skipped_before_join if first_id <= f < self.joined_at}
+        lost = self.joined_at - first_id - len(announced)
+        self.gaps += lost
+        return lost
 
     def pop_ready(self) -> list[T]:
         ready: list[T] = []

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any, ClassVar
 
 from semmap.core.journal import FrameJournal, MessageJournal
-from semmap.core.messages import Message
+from semmap.core.messages import Control, Message
 from semmap.core.reorder import FrameReorderBuffer
 from semmap.runtime.bus import Publisher
 from semmap.runtime.service import REPLAY_FRAMES, Service
@@ -129,6 +129,17 @@ class StageService(Service):
             self.handle(message)
         if self.gaps_counter and self.inputs.gaps:  # real time: frames whose input never came, given up
             self.metrics.counters[self.gaps_counter] = self.inputs.gaps
+
+    def on_end_of_stream(self, control: Control) -> None:
+        self.count_frames_before_the_first(control)
+        super().on_end_of_stream(control)
+
+    def count_frames_before_the_first(self, control: Control) -> None:
+        """The stream's end says where it began (frames 0..last, all sent): the frames before the first input
+        this service heard that never came are counted like any other given up (real time drops a stream's first
+        frames too). A subclass with its own `on_end_of_stream` calls this first."""
+        if self.reorders and control.frames == control.last_frame_id + 1 and self.inputs.stream_began_at(0):
+            self.release([])
 
     def on_frame_unreadable(self, frame_id: int) -> None:
         """The player could not read this frame: it never comes; the later ones go on without it (a stream

@@ -70,3 +70,25 @@ def test_a_bounded_buffer_counts_every_frame_it_gives_up() -> None:
     buf.push(4, 4)
     buf.push(5, 5)
     assert buf.pop_ready() == [4, 5] and buf.gaps == 3
+
+
+def test_frames_before_the_first_one_heard_are_gaps_once_the_stream_says_where_it_began() -> None:
+    """A stream whose first frames were dropped upstream (real time: the odometry keeps only its newest frames)
+    starts the buffer late; those frames are counted when the end of the stream says where it began."""
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer(max_pending=8)
+    buf.skip(1)  # announced unreadable before anything came: not a gap
+    buf.push(3, 3)
+    buf.skip(2)  # announced after the first frame came: not a gap either
+    assert buf.pop_ready() == [3] and buf.gaps == 0
+    assert buf.stream_began_at(0) == 1 and buf.gaps == 1, "frame 0 never came"
+    assert buf.stream_began_at(0) == 0 and buf.gaps == 1, "counted once"
+
+
+def test_a_stream_heard_from_its_first_frame_or_resumed_has_no_gap_before_it() -> None:
+    buf: FrameReorderBuffer[int] = FrameReorderBuffer()
+    buf.push(0, 0)
+    assert buf.stream_began_at(0) == 0
+    resumed: FrameReorderBuffer[int] = FrameReorderBuffer()
+    resumed.mark_done(41)  # frames up to 41 were handled before a restart
+    resumed.push(43, 43)
+    assert resumed.stream_began_at(0) == 0 and resumed.gaps == 0

@@ -349,6 +349,7 @@ class AssociatorService(StageService):
         self.dirty = False
 
     def on_end_of_stream(self, control: Control) -> None:
+        self.count_frames_before_the_first(control)
         if self.last_frame_id >= control.last_frame_id and self.stage.awaiting is None:
             self.finish()
 

@@ -30,7 +30,7 @@ from semmap.algorithms.backend.loop_closure import (
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
 from semmap.algorithms.backend.prior_alignment import FinalAlignment
-from semmap.core.messages import Control, DynamicObjects, Frame, MessageError, Observations, OdometryPose
+from semmap.core.messages import DynamicObjects, Frame, MessageError, Observations, OdometryPose
 from semmap.core.outputs import atomic_write_text
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline import BackendStage
@@ -316,10 +316,6 @@ class BackendService(StageService):
             # delta, not the whole trajectory, which would hand it poses the clean run never sent)
             self.remember(self.pub, step.message(self.robot, self.seq, self.last_frame_id, {}), self.last_frame_id)
             self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
-
-    def on_end_of_stream(self, control: Control) -> None:
-        if self.last_frame_id >= control.last_frame_id:
-            self.finish()
 
     def tick(self) -> None:
         """Real time, once the odometry of the stream's last frame is here: a frame still missing before it was
