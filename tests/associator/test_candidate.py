@@ -52,6 +52,21 @@ def test_slow_drift_of_a_big_partial_view_object_is_not_motion() -> None:
     assert validate(views, P).ok
 
 
+def test_a_switch_of_surface_inside_a_segment_is_one_jump_not_a_steady_motion() -> None:
+    """A static chair seen every 4th frame whose views move from its back to its seat (0.35 m lower) half way
+    through a segment, one wrong view beside (from the synthetic scene at 15 Hz). The segment's per-axis median
+    fell between the surfaces and made the jump two steady steps: the chair was retired as moving."""
+    back, seat, wrong = np.array([-0.44, 0.8, 0.8]), np.array([-0.36, 0.61, 0.47]), np.array([0.69, -0.09, 0.78])
+    stamps = [0.93, 1.0, 1.4, 1.53, 1.6, 1.73, 1.87, 2.0, 2.13, 2.27, 2.4]
+    where = [back] * 5 + [wrong] + [seat] * 5
+    views = [fake_view(i, t, c, size=0.8) for i, (t, c) in enumerate(zip(stamps, where, strict=True))]
+    assert not coherent_motion(views, P)[0]
+    # the same chair carried away steadily is still moving
+    carried = [fake_view(i, t, back + np.array([0.0, -0.45 * (t - 0.93), 0.0]), size=0.8)
+               for i, t in enumerate(stamps)]
+    assert coherent_motion(carried, P)[0]
+
+
 def test_erratic_object_is_rejected_by_spread() -> None:
     rng = np.random.default_rng(2)
     views = [fake_view(i, i / 10, rng.uniform(-0.6, 0.6, 3), size=0.3) for i in range(20)]

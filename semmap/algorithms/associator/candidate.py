@@ -289,6 +289,16 @@ class Validation:
     reason: str = ""
 
 
+def medoid(points: np.ndarray) -> np.ndarray:
+    """The point with the smallest summed distance to the others. Why not the per-axis median: a segment whose
+    views switch between two surfaces of a static object (a chair's back, then its seat) has a median halfway
+    between them, and a jump then reads as two steady steps; the medoid stays on one of the surfaces."""
+    if len(points) <= 2:
+        return fast_median(points)
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2).sum(axis=1)
+    return points[int(np.argmin(d))].copy()
+
+
 def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = True) -> tuple[bool, float, float]:
     """(moving, speed, displacement) from the views of the last `motion_window_s`, split by time into 3 to 5
     equal segments.
@@ -310,7 +320,7 @@ def coherent_motion(views: list[View], p: MapperParams, trust_occluded: bool = T
     # Segments of 3+ views: the median of two views halfway through a jump would fake a steady step.
     k = int(np.clip(len(use) // 3, 3, 5))
     parts = np.array_split(np.arange(len(use)), k)
-    m = np.stack([fast_median(c[i]) for i in parts])
+    m = np.stack([medoid(c[i]) for i in parts])
     t = np.array([float(np.median(stamps[i])) for i in parts])
     total = m[-1] - m[0]
     displacement = float(np.linalg.norm(total))
