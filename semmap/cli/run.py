@@ -407,7 +407,8 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     # replicas by measurement unless they or the cadence were set by hand
     plan, source = dc.setup_plan(setup, fps, config.odometry.mode,
                                  replicas=detectors is None and not det.every_n_frames)
-    budget: dict = {"detector": setup.label(), "origin": setup.origin, "odometry": config.odometry.mode}
+    budget: dict = {"detector": setup.label(), "origin": setup.origin, "odometry": config.odometry.mode,
+                    "speed": float(config.run.speed)}
     if plan is None:
         print(f"semmap: real time, detector {setup.label()} ({setup.origin}); its cost was not measured here: "
               "no frame budget (`semmap models doctor`)", file=sys.stderr)

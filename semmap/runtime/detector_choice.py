@@ -610,11 +610,13 @@ def others_cpu_ms(odometry: str, doc: dict[str, Any] | None) -> tuple[float, str
 
 
 def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path | None = None,
-                         detector: str = "", detections_per_s: float = 0.0) -> bool:  # fmt: skip
+                         detector: str = "", detections_per_s: float = 0.0, speed: float = 1.0) -> bool:  # fmt: skip
     """Keep the other services' CPU per frame measured by a real-time run (only in this machine's cache), and what
-    the run's detector (`detector`: its label) achieved, shown beside the next plan's expectation."""
+    the run's detector (`detector`: its label) achieved, shown beside the next plan's expectation. Not from a run
+    played faster than its recording (`run.speed`, e.g. the 3x soak): its services drop frames and load the cores
+    differently, so its figures would mislead the next plan at the recording's own speed."""
     doc = load_choice(model_dir)
-    if doc is None or cpu_ms_per_frame <= 0:
+    if doc is None or cpu_ms_per_frame <= 0 or speed != 1.0:
         return False
     mode = odometry.split(":", 1)[0]
     doc.setdefault("pipeline_cpu_ms_per_frame", {})[mode] = round(cpu_ms_per_frame, 1)

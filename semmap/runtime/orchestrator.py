@@ -532,7 +532,8 @@ class Orchestrator:
 
                 record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame,
                                      detector=str(budget.get("detector", "")),
-                                     detections_per_s=float(budget["achieved"]["detections_per_s"]))
+                                     detections_per_s=float(budget["achieved"]["detections_per_s"]),
+                                     speed=float(budget.get("speed", 1.0)))
             except (OSError, ValueError):
                 pass
         return budget

@@ -169,6 +169,10 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert dc.record_pipeline_cost("gt", 18.0, tmp_path, detector="fp32 512x384 1 thread", detections_per_s=9.4)
     assert dc.last_achieved("gt", "fp32 512x384 1 thread", tmp_path) == 9.4  # shown beside the next expectation
     assert dc.last_achieved("rgbd", "fp32 512x384 1 thread", tmp_path) is None
+    # a run played at 3x its recording's speed (the soak) does not speak for the next run at 1x
+    assert not dc.record_pipeline_cost("gt", 9.0, tmp_path, detector="fp32 512x384 1 thread", detections_per_s=3.1,
+                                       speed=3.0)
+    assert dc.last_achieved("gt", "fp32 512x384 1 thread", tmp_path) == 9.4
 
 
 # --- semmap models doctor ----------------------------------------------------------------------------------
