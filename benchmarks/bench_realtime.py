@@ -9,13 +9,16 @@
    odometry mode, each with nothing else set (`semmap run DATA --odometry MODE [--realtime] --out ...`), and prints
    per run: wall time (and its ratio to the video's length), frames detected, detections per 0.1 s of video,
    dropped frames, frames answered, landmarks (and their share of the lockstep run's), the planned and the
-   achieved cadence, and the load average before the run (the machine is shared: quote medians).
+   achieved cadence, and the load average before the run (the machine is shared: quote medians); and which of the
+   lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep observations;
+   matched by class within 0.3 m): the short-lived objects, or one a real-time run lost another way.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -44,7 +47,8 @@ def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
     stats = json.loads((out / "stats.json").read_text())
-    landmarks = len(json.loads((out / "map.json").read_text()).get("landmarks", []))
+    mapped = json.loads((out / "map.json").read_text()).get("landmarks", [])
+    landmarks = len(mapped)
     frames = stats["frames"]
     answered = sum(s["counters"].get("poses_published", 0) for s in stats["services"].values()
                    if s.get("service") == "odometry")  # fmt: skip
@@ -56,8 +60,21 @@ def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
         "processed": frames["processed"], "published": frames["published"], "landmarks": landmarks,
         "planned": budget.get("planned", {}).get("every_n_frames"),
         "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
-        "detector": budget.get("detector"),
+        "detector": budget.get("detector"), "map": mapped,
     }
+
+
+MATCH_M = 0.3  # a landmark of the reference map is found when one of its class is this close
+
+
+def missed(reference: list[dict], mapped: list[dict]) -> list[str]:
+    """The reference map's landmarks that `mapped` lacks: "class @first-seen s (observations)"."""
+    out = []
+    for lm in reference:
+        near = [math.dist(m["centroid"], lm["centroid"]) for m in mapped if m["class"] == lm["class"]]
+        if min(near, default=math.inf) > MATCH_M:
+            out.append(f"{lm['class']} @{lm.get('first_seen', 0.0):.1f}s ({lm.get('observations', 0)})")
+    return out
 
 
 def main() -> int:
@@ -85,25 +102,27 @@ def main() -> int:
             lock = None if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}", odometry, False)
             if lock:
                 results.append(lock)
-                print(json.dumps(lock), flush=True)
+                print(json.dumps({k: v for k, v in lock.items() if k != "map"}), flush=True)
             for i in range(args.runs):
                 r = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True)
                 if lock:
                     r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
+                    r["missed"] = missed(lock["map"], r["map"])
                 results.append(r)
-                print(json.dumps(r), flush=True)
+                print(json.dumps({k: v for k, v in r.items() if k != "map"}), flush=True)
     print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
           f"{'poses':>6} {'landmarks':>10} {'load':>6}")  # fmt: skip
     for r in results:
         print(f"{r['odometry']:<8} {r['mode']:<9} {r['wall_s']:7.1f} {r['x_video']:8.2f} {r['per_0.1s']:9.2f} "
-              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f}")  # fmt: skip
+              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f}"
+              + (f"  missed: {', '.join(r['missed']) or 'none'}" if "missed" in r else ""))  # fmt: skip
     for odometry in args.odometry.split(","):
         rt = [r for r in results if r["odometry"] == odometry and r["mode"] == "realtime"]
         if rt:
             med = {k: statistics.median(r[k] for r in rt) for k in ("wall_s", "per_0.1s", "landmarks")}
             print(f"median real time, {odometry}: {med}")
     if args.json_out:
-        args.json_out.write_text(json.dumps(results, indent=1))
+        args.json_out.write_text(json.dumps([{k: v for k, v in r.items() if k != "map"} for r in results], indent=1))
     return 0
 
 
