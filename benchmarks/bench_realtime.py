@@ -11,14 +11,13 @@
    dropped frames, frames answered, landmarks (and their share of the lockstep run's), the planned and the
    achieved cadence, and the load average before the run (the machine is shared: quote medians); and which of the
    lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep observations;
-   matched by class within 0.3 m): the short-lived objects, or one a real-time run lost another way.
+   paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another way.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -30,13 +29,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from semmap.algorithms.map_merge import MatchParams, diff_maps  # noqa: E402
+from semmap.core.messages import Landmark  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.runtime import detector_choice as dc  # noqa: E402
+from semmap.runtime.map_store import read_map_json  # noqa: E402
 
 VIDEO_S = 1000 / 30.0
 
 
-def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
+def run(data: Path, out: Path, odometry: str, realtime: bool) -> tuple[dict, list[Landmark]]:
+    """One `semmap run`: its row of figures, and its map."""
     load = os.getloadavg()[0]
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--odometry", odometry, "--out", str(out),
            "--overwrite", "--quiet"] + (["--realtime"] if realtime else [])  # fmt: skip
@@ -47,8 +50,7 @@ def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
     stats = json.loads((out / "stats.json").read_text())
-    mapped = json.loads((out / "map.json").read_text()).get("landmarks", [])
-    landmarks = len(mapped)
+    mapped = read_map_json(out / "map.json")
     frames = stats["frames"]
     answered = sum(s["counters"].get("poses_published", 0) for s in stats["services"].values()
                    if s.get("service") == "odometry")  # fmt: skip
@@ -57,24 +59,18 @@ def run(data: Path, out: Path, odometry: str, realtime: bool) -> dict:
         "odometry": odometry, "mode": "realtime" if realtime else "lockstep", "wall_s": round(wall, 1),
         "x_video": round(wall / VIDEO_S, 2), "load_before": round(load, 2), "detected": frames["detected"],
         "per_0.1s": round(frames["detected"] / VIDEO_S / 10, 2), "dropped": frames["dropped"],
-        "processed": frames["processed"], "published": frames["published"], "landmarks": landmarks,
+        "processed": frames["processed"], "published": frames["published"], "landmarks": len(mapped),
         "planned": budget.get("planned", {}).get("every_n_frames"),
         "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
-        "detector": budget.get("detector"), "map": mapped,
-    }
+        "detector": budget.get("detector"),
+    }, mapped
 
 
-MATCH_M = 0.3  # a landmark of the reference map is found when one of its class is this close
-
-
-def missed(reference: list[dict], mapped: list[dict]) -> list[str]:
-    """The reference map's landmarks that `mapped` lacks: "class @first-seen s (observations)"."""
-    out = []
-    for lm in reference:
-        near = [math.dist(m["centroid"], lm["centroid"]) for m in mapped if m["class"] == lm["class"]]
-        if min(near, default=math.inf) > MATCH_M:
-            out.append(f"{lm['class']} @{lm.get('first_seen', 0.0):.1f}s ({lm.get('observations', 0)})")
-    return out
+def missed(reference: list[Landmark], mapped: list[Landmark]) -> list[str]:
+    """The reference map's landmarks that `mapped` (same frame) lacks, as `semmap diff` pairs them (no pairing of
+    far-apart ones as moved): "class @first-seen s (observations)"."""
+    lost = diff_maps(reference, mapped, MatchParams(move_radius_m=0.0)).missing
+    return [f"{lm.class_name} @{lm.first_seen:.1f}s ({lm.observations})" for lm in lost]
 
 
 def main() -> int:
@@ -99,17 +95,18 @@ def main() -> int:
     results = []
     with tempfile.TemporaryDirectory(prefix="semmap-rt-") as tmp:
         for odometry in args.odometry.split(","):
-            lock = None if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}", odometry, False)
+            lock, lock_map = (None, []) if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}", odometry,
+                                                                     False)
             if lock:
                 results.append(lock)
-                print(json.dumps({k: v for k, v in lock.items() if k != "map"}), flush=True)
+                print(json.dumps(lock), flush=True)
             for i in range(args.runs):
-                r = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True)
+                r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True)
                 if lock:
                     r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
-                    r["missed"] = missed(lock["map"], r["map"])
+                    r["missed"] = missed(lock_map, mapped)
                 results.append(r)
-                print(json.dumps({k: v for k, v in r.items() if k != "map"}), flush=True)
+                print(json.dumps(r), flush=True)
     print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
           f"{'poses':>6} {'landmarks':>10} {'load':>6}")  # fmt: skip
     for r in results:
@@ -122,7 +119,7 @@ def main() -> int:
             med = {k: statistics.median(r[k] for r in rt) for k in ("wall_s", "per_0.1s", "landmarks")}
             print(f"median real time, {odometry}: {med}")
     if args.json_out:
-        args.json_out.write_text(json.dumps([{k: v for k, v in r.items() if k != "map"} for r in results], indent=1))
+        args.json_out.write_text(json.dumps(results, indent=1))
     return 0
 
 

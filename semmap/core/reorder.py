@@ -23,9 +23,10 @@ class FrameReorderBuffer(Generic[T]):
         self.max_pending = max_pending
         self.gaps = 0
         self.skipped: set[int] = set()  # frames that will never come (e.g. unreadable in the dataset)
-        self.joined_at: int | None = None  # the first frame heard (None: none yet, or resumed by `mark_done`)
+        # the first frame heard, until the frames before it are counted (None: none yet, counted, or resumed by
+        # `mark_done`)
+        self.joined_at: int | None = None
         self.skipped_before_join: set[int] = set()  # announced frames before `joined_at`: not gaps
-        self.counted_before_join = False
 
     def push(self, frame_id: int, item: T) -> bool:
         """Queue an item; False for a duplicate or an already released frame."""
@@ -55,11 +56,12 @@ class FrameReorderBuffer(Generic[T]):
     def stream_began_at(self, first_id: int) -> int:
         """The stream began at frame `first_id` (its end says so): the frames before the first one heard that
         never came, and were not announced as skipped, are gaps (counted once); returns how many."""
-        if self.counted_before_join or self.joined_at is None or first_id >= self.joined_at:
+        joined, self.joined_at = self.joined_at, None  # (counted once)
+        if joined is None or first_id >= joined:
             return 0
-        self.counted_before_join = True
-        announced = {f for f in self.skipped | self.skipped_before_join if first_id <= f < self.joined_at}
-        lost = self.joined_at - first_id - len(announced)
+        announced = {f for f in self.skipped | self.skipped_before_join if first_id <= f < joined}
+        self.skipped_before_join.clear()
+        lost = joined - first_id - len(announced)
         self.gaps += lost
         return lost
 
