@@ -9,9 +9,11 @@
    odometry mode, each with nothing else set (`semmap run DATA --odometry MODE [--realtime] --out ...`), and prints
    per run: wall time (and its ratio to the video's length), frames detected, detections per 0.1 s of video,
    dropped frames, frames answered, landmarks (and their share of the lockstep run's), the planned and the
-   achieved cadence, and the load average before the run (the machine is shared: quote medians); and which of the
-   lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep observations;
-   paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another way.
+   achieved cadence (and the video time between detected frames as the tracker saw them, all replicas merged:
+   `cadence_ms` p50 / p95 / max), and the load average before the run (the machine is shared: quote medians);
+   and which of the lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep
+   observations; paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another
+   way.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ def run(data: Path, out: Path, odometry: str, realtime: bool) -> tuple[dict, lis
         "processed": frames["processed"], "published": frames["published"], "landmarks": len(mapped),
         "planned": budget.get("planned", {}).get("every_n_frames"),
         "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
+        "cadence_ms": {k: round(v) for k, v in (stats.get("detection_interval_ms") or {}).items()},
         "detector": budget.get("detector"),
     }, mapped
 

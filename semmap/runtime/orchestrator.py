@@ -25,7 +25,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from statistics import fmean
+from statistics import fmean, median
 
 from semmap.core.messages import Control, Progress, ServiceStatus
 from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
@@ -426,14 +426,18 @@ class Orchestrator:
                 f"{fps:5.1f} fps, {detected} detected{every}, {dropped} dropped, {elapsed:5.1f} s")
 
     def _detection_cadence(self) -> dict[str, float] | None:
-        """Video time between detected frames (p50 / p95 / max ms) with one detector; None with replicas (each
-        reports its own share) or before two detections."""
+        """Video time between detected frames (p50 / p95 / max ms), as the tracker saw them in frame order: with
+        replicas, how evenly their detections interleave (two replicas in step detect frames n and n+1, then
+        nothing for a while). The detector's own figure where the tracker has none yet; None before two
+        detections."""
         with self.lock:
+            tracker = [s for s in self.statuses.values() if s.service == "tracker"]
             detectors = [s for s in self.statuses.values() if s.service == "detector"]
-        if len(detectors) != 1 or "detect_interval_ms" not in detectors[0].timings:
-            return None
-        t = detectors[0].timings["detect_interval_ms"]
-        return {k: float(t[k]) for k in ("p50", "p95", "max") if k in t}
+        for source in (tracker, detectors):
+            if len(source) == 1 and "detect_interval_ms" in source[0].timings:
+                t = source[0].timings["detect_interval_ms"]
+                return {k: float(t[k]) for k in ("p50", "p95", "max") if k in t}
+        return None
 
     @property
     def _total_frames(self) -> int:
@@ -514,7 +518,9 @@ class Orchestrator:
         others_by_service = {name: s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
                              if s.get("service") not in ("detector", None)}
         others_cpu = sum(others_by_service.values())
-        detect = det[0].get("timings_ms", {}).get("detect_ms", {}) if len(det) == 1 else {}
+        per_replica = [s.get("timings_ms", {}).get("detect_ms", {}) for s in det]
+        detect = {k: round(median(t[k] for t in per_replica if k in t), 1)  # (replicas: their median)
+                  for k in ("p50", "p95") if any(k in t for t in per_replica)}
         budget["achieved"] = {
             "detected_frames": detected, "video_s": round(video_s, 2),
             "detections_per_s": round(detected / video_s, 2) if video_s > 0 else 0.0,

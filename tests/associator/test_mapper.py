@@ -81,6 +81,8 @@ def test_an_object_that_starts_moving_is_removed() -> None:
     assert created[0] in removed
     assert created[0] in [i for s in steps for i in s.moved]  # retired as moved, not just emptied
     assert mapper.landmarks() == []
+    why = next(s.moved_why[created[0]] for s in steps if created[0] in s.moved)  # the log's evidence
+    assert why.startswith("track ") and "(chair," in why and " m from the landmark's centre (radius" in why, why
 
 
 def test_two_cups_15_cm_apart_are_two_landmarks() -> None:
@@ -358,3 +360,32 @@ def test_the_whole_map_moves_to_another_frame() -> None:
     assert before.keys() == after.keys() and before
     for i, c in before.items():  # (the fused cloud's voxel grid is axis-aligned in the world: a few mm differ)
         assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - after[i]) < 0.01
+
+
+
+@pytest.mark.parametrize("last_at", [0.4, 1.6], ids=["hopped-inside", "carried-off"])
+def test_a_track_that_moves_only_inside_its_landmark_leaves_the_landmark_in_place(last_at: float) -> None:
+    """Two static chairs side by side, 0.8 m apart, one chair landmark over both (size 2 m); its track's box hops
+    between them (1.4 m between time bins: "moving"). Its last views stand inside the landmark: the object is
+    still there, so only the track stops feeding it. A track whose last views end outside took its object away:
+    the landmark is retired."""
+    from semmap.algorithms.associator.proposal import Candidate
+    from tests.associator.helpers import fake_view
+
+    mapper = LandmarkMapper()
+    lm = mapper.map.create("chair", 0.0)
+    lm.centroid = lm.map_centroid = np.zeros(3)
+    lm.size = 2.0
+    places = [np.array([-0.4, 0.0, 0.0]), np.array([0.4, 0.0, 0.0])]
+    views = [fake_view(i, i / 10, places[(i // 10) % 2]) for i in range(40)]
+    views += [fake_view(40 + i, 4.0 + i / 10, np.array([last_at, 0.0, 0.0])) for i in range(3)]
+    lm.views = list(views)
+    cand = Candidate(7, "chair", views=list(views), landmark_id=lm.id)
+    mapper._cands[7] = cand
+    step = MapperStep()
+    mapper._reject(cand, step, {}, "track_motion")
+    assert step.moving_tracks == [7] and 7 not in mapper._cands  # the track is dropped either way
+    inside = last_at < lm.radius
+    assert (lm.id in mapper.map) == inside
+    assert step.moved == ([] if inside else [lm.id]) and step.kept_despite_motion == ([lm.id] if inside else [])
+    assert "from the landmark's centre" in step.moved_why[lm.id]

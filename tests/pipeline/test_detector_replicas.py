@@ -27,6 +27,9 @@ def _detections(router, tmp_path: Path, replicas: int, semmap_run, read_stats, c
     assert len(detectors) == replicas
     if replicas > 1:
         assert all(v["counters"].get("frames_detected", 0) > 5 for v in detectors), "work was not shared"
+    # the run's cadence is the merged stream's, as the tracker sees it in frame order: every frame, 1/30 s apart
+    cadence = stats["detection_interval_ms"]
+    assert abs(cadence["p50"] - 1000 / 30) < 1.0 and abs(cadence["max"] - 1000 / 30) < 1.0, cadence
     return per_frame
 
 

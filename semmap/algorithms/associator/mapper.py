@@ -65,6 +65,8 @@ from .proposal import (
     MOVING,
     Candidate,
     failure_reason,
+    left_its_landmark,
+    motion_evidence,
     resolve_pending,
     short_but_static,
     validate_candidate,
@@ -87,6 +89,10 @@ class MapperStep:
     rejected: list[int] = field(default_factory=list)  # candidate track ids rejected by validation
     moving_tracks: list[int] = field(default_factory=list)  # of `rejected`: those seen moving
     moved: list[int] = field(default_factory=list)  # of `removed`: landmarks retired because their object moved
+    # the evidence of a moving track (`motion_evidence`), for the log: of `moved`, and of the landmarks kept because
+    # the track's motion stayed inside them (`kept_despite_motion`, `left_its_landmark`)
+    moved_why: dict[int, str] = field(default_factory=dict)
+    kept_despite_motion: list[int] = field(default_factory=list)
     timing_ms: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
 
 
@@ -208,7 +214,7 @@ class LandmarkMapper:
             if cand.landmark_id is None or cand.since_validation >= p.validate_every:
                 reason = validate_candidate(cand, p)
                 if reason:
-                    self._reject(cand, step, touched, moving=reason in MOVING)
+                    self._reject(cand, step, touched, reason)
                     continue
             fed.append((cand, new_views))
         return fed
@@ -248,7 +254,7 @@ class LandmarkMapper:
             if cand is not None and cand.landmark_id is not None and cand.since_validation > 0:
                 reason = failure_reason(cand, p)  # its last views were not validated yet
                 if reason:
-                    self._reject(cand, step, touched, moving=reason in MOVING)
+                    self._reject(cand, step, touched, reason)
                     self._rejected.discard(tid)
             cand = self._cands.pop(tid, None)
             if cand is None or cand.landmark_id is not None:
@@ -300,9 +306,11 @@ class LandmarkMapper:
 
     # ---- helpers
 
-    def _reject(self, cand: Candidate, step: MapperStep, touched: Touched, moving: bool = False) -> None:
-        """Drop a candidate that failed validation. One seen moving takes its landmark with it (retired: the
-        object is no longer where the landmark is, whatever other tracks saw there before)."""
+    def _reject(self, cand: Candidate, step: MapperStep, touched: Touched, reason: str = "") -> None:
+        """Drop a candidate that failed validation (`reason`). One seen moving takes its landmark with it (retired:
+        the object is no longer where the landmark is, whatever other tracks saw there before) when it left the
+        landmark (`left_its_landmark`); one whose motion stayed inside it only stops feeding it."""
+        moving = reason in MOVING
         step.rejected.append(cand.track_id)
         self._rejected.add(cand.track_id)
         self._cands.pop(cand.track_id, None)
@@ -312,8 +320,12 @@ class LandmarkMapper:
         if lm is None:
             return
         if moving:
-            self._remove_landmark(lm.id, step, touched)
-            step.moved.append(lm.id)
+            step.moved_why[lm.id] = motion_evidence(cand, reason, lm, self.params)
+            if left_its_landmark(cand, lm, self.params):
+                self._remove_landmark(lm.id, step, touched)
+                step.moved.append(lm.id)
+                return
+            step.kept_despite_motion.append(lm.id)  # the track feeds it no more; what it gave stays, inside it
             return
         lm.remove_track(cand.track_id)
         if not lm.views:

@@ -271,8 +271,12 @@ class AssociatorService(StageService):
                                           moved=list(step.moved), moving_tracks=list(step.moving_tracks)),
                   max(frame_id, 0))
         for lid in step.moved:
-            self.log.info("retired landmark %d: its object moved", lid)
+            self.log.info("retired landmark %d: its object moved: %s", lid, step.moved_why.get(lid, "(no evidence)"))
         self.metrics.count("landmarks_retired_moving", len(step.moved))
+        for lid in step.kept_despite_motion:
+            self.log.info("kept landmark %d: a track of it moved, but inside it: %s", lid,
+                          step.moved_why.get(lid, "(no evidence)"))
+        self.metrics.count("landmarks_kept_despite_moving_track", len(step.kept_despite_motion))
         self._map_changed(step, full)
 
     def _map_changed(self, step: MapperStep, full: bool) -> None:

@@ -45,6 +45,7 @@ class TrackerService(StageService):
         first_id = int(time.time()) * TRACK_ID_BLOCK if self.resume and self.out_dir is None else 0
         self.stage = TrackerStage(self.params, first_track_id=first_id,
                                   dynamic_classes=self.config.associator.dynamic_classes)
+        self._last_detected_stamp: float | None = None  # for the run's detection cadence (`detect_interval_ms`)
         self.pub = self.publisher(self.bus.keys.tracks)
         self.dynamic_pub = self.publisher(self.bus.keys.dynamic)
 
@@ -74,6 +75,10 @@ class TrackerService(StageService):
         self.log.info("resumed after frame %d (%d tracklets)", frame_id, self.tracker.active_count)
 
     def handle(self, det: Detections) -> None:
+        if not det.skipped:  # frames come here in order, from every detector replica: the run's real cadence
+            if self._last_detected_stamp is not None and det.stamp > self._last_detected_stamp:
+                self.metrics.time_ms("detect_interval_ms", (det.stamp - self._last_detected_stamp) * 1e3)
+            self._last_detected_stamp = det.stamp
         with self.metrics.timer("proposal_ms") as timer:
             out = self.stage.step(det)
         # the frame's dynamic objects (see module docstring and `TrackerStage.dynamic_objects`)
