@@ -97,6 +97,33 @@ def test_choice_is_the_quickest_in_a_run_among_those_that_agree() -> None:
     assert dc.choose([rows[1], rows[4]], cores=2) is None
 
 
+def test_where_the_full_frame_keeps_up_the_most_faithful_configuration_wins() -> None:
+    """This VNNI EPYC (session 18's doctor): int8 640x480 agrees nearly fully (F1 0.99) and still detects every
+    2nd frame of a run, so it beats the faster int8 512x384 (F1 0.92, which loses a far laptop and half a table);
+    on the AVX2-only EPYC nothing at 640x480 keeps up, and the fastest agreeing one stays the choice."""
+    vnni = [
+        _row("fp32", 2, (480, 640), 81, 155, 1.0),  # faithful, but 10 a second
+        _row("int8", 2, (480, 640), 39, 64, 0.99),
+        _row("int8", 1, (480, 640), 53, 54, 0.99),
+        _row("int8", 2, (384, 512), 28, 46, 0.92),  # the fastest that agrees
+        _row("int8", 1, (384, 512), 35, 36, 0.92),
+        _row("int8", 2, (320, 416), 19, 30, 0.87),  # disagrees
+    ]
+    assert dc.rank_for_realtime(vnni, 2)[0].config.hw == (384, 512)
+    best = dc.choose(vnni, cores=2)
+    assert best is not None and best.config == dc.DetectorConfigChoice("int8", 1, 480, 640)
+    avx2 = [
+        _row("fp32", 2, (480, 640), 75, 150, 1.0),
+        _row("fp32", 1, (480, 640), 142, 142, 1.0),
+        _row("fp32", 2, (384, 640), 60, 118, 0.90),
+        _row("fp32", 2, (384, 512), 48, 97, 0.90),
+        _row("fp32", 1, (384, 512), 92, 92, 0.90),
+    ]
+    best = dc.choose(avx2, cores=2)
+    assert best is not None and best.config == dc.DetectorConfigChoice("fp32", 2, 384, 512)
+    assert best == dc.rank_for_realtime(avx2, 2)[0]
+
+
 def test_on_a_vnni_machine_the_same_rule_keeps_int8() -> None:
     rows = [_row("fp32", 2, (480, 640), 70, 130, 1.0), _row("int8", 2, (480, 640), 30, 55, 0.95),
             _row("int8", 1, (480, 640), 47, 47, 0.95)]  # fmt: skip
