@@ -427,9 +427,8 @@ class Orchestrator:
 
     def _detection_cadence(self) -> dict[str, float] | None:
         """Video time between detected frames (p50 / p95 / max ms), as the tracker saw them in frame order: with
-        replicas, how evenly their detections interleave (two replicas in step detect frames n and n+1, then
-        nothing for a while). The detector's own figure where the tracker has none yet; None before two
-        detections."""
+        replicas, the run's cadence and how evenly their detections interleave (each replica's own figure covers
+        only its share). The detector's own figure where the tracker has none yet; None before two detections."""
         with self.lock:
             tracker = [s for s in self.statuses.values() if s.service == "tracker"]
             detectors = [s for s in self.statuses.values() if s.service == "detector"]
