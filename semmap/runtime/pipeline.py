@@ -61,14 +61,16 @@ def combined(a: MapperStep, b: MapperStep) -> MapperStep:
     updated = {lm.id: lm for lm in a.updated + b.updated if lm.id not in removed}
     timing = {k: a.timing_ms.get(k, 0.0) + b.timing_ms.get(k, 0.0) for k in a.timing_ms.keys() | b.timing_ms.keys()}
     return MapperStep(
-        list(updated.values()),
-        removed,
-        a.merges + b.merges,
-        a.observations + b.observations,
-        a.rejected + b.rejected,
-        a.moving_tracks + b.moving_tracks,
-        a.moved + b.moved,
-        timing,
+        updated=list(updated.values()),
+        removed=removed,
+        merges=a.merges + b.merges,
+        observations=a.observations + b.observations,
+        rejected=a.rejected + b.rejected,
+        moving_tracks=a.moving_tracks + b.moving_tracks,
+        moved=a.moved + b.moved,
+        moved_why={**a.moved_why, **b.moved_why},
+        kept_despite_motion=a.kept_despite_motion + b.kept_despite_motion,
+        timing_ms=timing,
     )
 
 

@@ -93,11 +93,14 @@ def test_merges_still_to_go_out_survive_a_restart() -> None:
 
 
 def test_combined_steps_keep_removals_removed() -> None:
-    a = MapperStep(removed=[4], merges=[(4, 1)], timing_ms={"proposal": 1.0})
-    b = MapperStep(removed=[4, 6], merges=[(6, 2)], timing_ms={"proposal": 2.0, "refine": 3.0})
+    a = MapperStep(removed=[4], merges=[(4, 1)], timing_ms={"proposal": 1.0}, moved_why={9: "kept"},
+                   kept_despite_motion=[9])  # fmt: skip
+    b = MapperStep(removed=[4, 6], merges=[(6, 2)], timing_ms={"proposal": 2.0, "refine": 3.0}, moved=[6],
+                   moved_why={6: "left"})  # fmt: skip
     out = combined(a, b)
     assert out.removed == [4, 6] and out.merges == [(4, 1), (6, 2)]
     assert out.timing_ms == {"proposal": 3.0, "refine": 3.0}
+    assert out.moved == [6] and out.kept_despite_motion == [9] and out.moved_why == {9: "kept", 6: "left"}
 
 
 def test_a_backend_restored_from_its_journal_sends_what_the_live_one_sends() -> None:
