@@ -208,10 +208,10 @@ def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0) -> Measured 
     does not need: every 3rd frame at 640x480 maps what every frame does (lockstep, 7-Scenes), every 2nd leaves
     real time's uneven cadence a margin. On an AVX2-only CPU nothing at full size gets there, and the fastest wins
     as before."""
-    ranked = rank_for_realtime(rows, cores, fps)
+    others = DEFAULT_OTHERS_CPU_MS["gt"]
+    ranked = rank_for_realtime(rows, cores, fps, others)
     if not ranked:
         return None
-    others = DEFAULT_OTHERS_CPU_MS["gt"]
     often = [r for r in ranked if 1e3 / plan_cadence(r, cores, fps, others).interval_ms >= FAITHFUL_SHARE * fps]
     return max(often, key=lambda r: round(r.f1, 2)) if often else ranked[0]  # (ties: the faster, ranked first)
 

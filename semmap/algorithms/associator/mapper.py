@@ -70,6 +70,7 @@ from .proposal import (
     resolve_pending,
     short_but_static,
     validate_candidate,
+    where_it_went,
 )
 
 __all__ = ["LandmarkMapper", "MapperParams", "MapperStep", "PoseLookup"]
@@ -320,8 +321,9 @@ class LandmarkMapper:
         if lm is None:
             return
         if moving:
-            step.moved_why[lm.id] = motion_evidence(cand, reason, lm, self.params)
-            if left_its_landmark(cand, lm, self.params):
+            went = where_it_went(cand, lm, self.params)  # (a failed candidate has views: min_views)
+            step.moved_why[lm.id] = motion_evidence(cand, reason, lm, went, self.params)
+            if left_its_landmark(went, lm):
                 self._remove_landmark(lm.id, step, touched)
                 step.moved.append(lm.id)
                 return

@@ -140,19 +140,20 @@ def where_it_went(cand: Candidate, lm: LandmarkState, p: MapperParams) -> float:
     return float(np.linalg.norm(medoid(last) - lm.centroid))
 
 
-def left_its_landmark(cand: Candidate, lm: LandmarkState, p: MapperParams) -> bool:
-    """Has a track that failed as moving taken its object out of its landmark? Its last views stand beyond the
-    landmark's radius from its centroid. Why ask: a track whose box hops between neighbouring chairs of a row (the
-    IOU tracker follows overlapping boxes of one class) or slides over a large object's surfaces "moves" a metre
-    while every object it saw stands still; the landmark then still holds what it was built on, and only the track
-    is dropped. An object carried away ends outside."""
-    return bool(cand.views) and where_it_went(cand, lm, p) > lm.radius
+def left_its_landmark(went_m: float, lm: LandmarkState) -> bool:
+    """Has a track that failed as moving taken its object out of its landmark? Its last views stand `went_m`
+    (`where_it_went`) beyond the landmark's radius from its centroid. Why ask: a track whose box hops between
+    neighbouring chairs of a row (the IOU tracker follows overlapping boxes of one class) or slides over a large
+    object's surfaces "moves" a metre while every object it saw stands still; the landmark then still holds what it
+    was built on, and only the track is dropped. An object carried away ends outside."""
+    return went_m > lm.radius
 
 
-def motion_evidence(cand: Candidate, reason: str, lm: LandmarkState, p: MapperParams) -> str:
+def motion_evidence(cand: Candidate, reason: str, lm: LandmarkState, went_m: float, p: MapperParams) -> str:
     """Why a track failed as moving, in words for the log: which track, how it moved (the test's reason,
-    displacement and speed), and where its last views stand from its landmark. A user who sees a static object
-    retired, or a landmark kept, can tell a real move from a track that switched objects."""
+    displacement and speed), and where its last views stand from its landmark (`went_m`). A user who sees a static
+    object retired, or a landmark kept, can tell a real move from a track that switched objects. (Only for a track
+    that fed a landmark: the test is run again here, off the per-frame path.)"""
     views = cand.views
     if reason == "motion":
         v = validate(views, p, trust_occluded=False)
@@ -160,10 +161,9 @@ def motion_evidence(cand: Candidate, reason: str, lm: LandmarkState, p: MapperPa
     else:
         _, displacement = whole_track_motion(cand, p)
         how = f"its track's time bins lie {displacement:.2f} m apart"
-    span = views[-1].stamp - views[0].stamp if views else 0.0
-    last = where_it_went(cand, lm, p) if views else float("nan")
+    span = views[-1].stamp - views[0].stamp
     return (f"track {cand.track_id} ({cand.class_name}, {len(views)} views over {span:.1f} s) {how}; its last views "
-            f"{last:.2f} m from the landmark's centre (radius {lm.radius:.2f} m, {lm.measurements} measurements)")
+            f"{went_m:.2f} m from the landmark's centre (radius {lm.radius:.2f} m, {lm.measurements} measurements)")
 
 
 def short_but_static(cand: Candidate, p: MapperParams) -> bool:
