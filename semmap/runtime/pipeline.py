@@ -34,7 +34,13 @@ from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph
 from semmap.algorithms.backend.prior_alignment import PriorAlignment
 from semmap.algorithms.detector.onnx_detector import DetectedBox, depth_gate
 from semmap.algorithms.relocalize import RelocResult
-from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerOutput, TrackerParams, depth_range
+from semmap.algorithms.tracker.iou_tracker import (
+    IouTracker,
+    TrackerOutput,
+    TrackerParams,
+    depth_range,
+    held_dynamic_box,
+)
 from semmap.core.messages import (
     CorrectedPoses,
     DepthPatch,
@@ -122,7 +128,8 @@ class TrackerStage:
     Also the frame's dynamic objects (`dynamic_objects`, for a front end that leaves them out of its depth): the
     boxes of tracklets of a dynamic class and of tracklets the associator saw moving (`saw_moving`), and the last
     box of such a tracklet still alive but not detected in this frame (a skipped frame, or a person the detector
-    missed once: their depth would otherwise pull the odometry; Bonn crowd rgbd 0.153 -> 0.133 m ATE)."""
+    missed once: their depth would otherwise pull the odometry; Bonn crowd rgbd 0.153 -> 0.133 m ATE), grown by
+    how far the object may have walked since it was detected (`held_dynamic_box`)."""
 
     def __init__(
         self, params: TrackerParams | None = None, first_track_id: int = 0, dynamic_classes: Iterable[str] = ()
@@ -130,7 +137,8 @@ class TrackerStage:
         self.dynamic_classes = frozenset(dynamic_classes)
         self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=self.dynamic_classes)
         self.moving: set[int] = set()  # track ids the associator rejected as moving
-        self.last_dynamic: dict[int, DynamicBox] = {}  # per dynamic tracklet alive, its last box
+        self.last_dynamic: dict[int, DynamicBox] = {}  # per dynamic tracklet alive, its last detected box
+        self.last_dynamic_stamp: dict[int, float] = {}  # ...and the stamp of the frame that detected it
 
     @property
     def params(self) -> TrackerParams:
@@ -159,15 +167,24 @@ class TrackerStage:
                     lo, hi = depth_range(d, det.depth_scale, band)
                     boxes.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
         seen = {b.track_id for b in boxes}
-        boxes += [b for t, b in sorted(self.last_dynamic.items()) if t in alive and t not in seen]
-        self.last_dynamic = {b.track_id: b for b in boxes}
+        detected = {b.track_id: b for b in boxes}
+        speed = self.params.dynamic_hold_speed_mps
+        for t, b in sorted(self.last_dynamic.items()):
+            if t in alive and t not in seen:
+                elapsed = det.stamp - self.last_dynamic_stamp.get(t, det.stamp)
+                boxes.append(held_dynamic_box(b, elapsed, speed, det.intrinsics))
+                detected[t] = b  # (grown from the box as detected each frame, not from the last grown one)
+        self.last_dynamic_stamp = {t: (det.stamp if t in seen else self.last_dynamic_stamp.get(t, det.stamp))
+                                   for t in detected}
+        self.last_dynamic = detected
         self.moving &= alive  # forget ended tracklets
         return boxes
 
     def state(self) -> dict:
         """The tracker's state plus what the dynamic objects depend on (plain data, msgpack-able)."""
         return {**self.tracker.state(), "moving": sorted(self.moving),
-                "last_dynamic": [b.to_dict() for _, b in sorted(self.last_dynamic.items())]}
+                "last_dynamic": [b.to_dict() for _, b in sorted(self.last_dynamic.items())],
+                "last_dynamic_stamp": [[t, s] for t, s in sorted(self.last_dynamic_stamp.items())]}
 
     def restore(self, state: dict) -> None:
         """Continue from `state()` (a MessageError if it is not one; older states without the dynamic part
@@ -176,6 +193,8 @@ class TrackerStage:
         try:
             self.moving = {int(t) for t in state.get("moving", [])}
             self.last_dynamic = {b.track_id: b for b in map(DynamicBox.from_dict, state.get("last_dynamic", []))}
+            # (a state saved before the stamps were kept: its boxes are held as they are, not grown)
+            self.last_dynamic_stamp = {int(t): float(s) for t, s in state.get("last_dynamic_stamp", [])}
         except (TypeError, ValueError) as exc:
             raise MessageError(f"not a tracker state: {exc}") from None
 

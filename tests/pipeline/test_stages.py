@@ -7,6 +7,7 @@ tests/associator/test_closed_loop_analytic.py); these pin the policy each stage 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from semmap.algorithms.associator.mapper import MapperParams, MapperStep
 from semmap.algorithms.tracker.iou_tracker import TrackerParams
@@ -161,11 +162,15 @@ def test_the_tracker_stage_names_each_frames_dynamic_objects_and_keeps_them_over
     for s in (stage, restored):
         again = s.dynamic_objects(skipped, s.step(skipped))
         assert [(b.track_id, b.reason) for b in again] == [(b.track_id, b.reason) for b in boxes]
-    missed = detections(3, 3 / 30, [cup])  # the detector misses the person once: its last box stays dynamic
-    for s in (stage, restored):
+    boxes = again
+    held_at_2 = next(b for b in boxes if b.class_name == "person").box
+    missed = detections(3, 3 / 30, [cup])  # the detector misses the person once: its last box stays dynamic,
+    for s in (stage, restored):  # grown by how far the person may have walked since frame 1 (held_dynamic_box)
         again = s.dynamic_objects(missed, s.step(missed))
         assert sorted((b.class_name, b.reason) for b in again) == [("cup", "moving"), ("person", "class")]
-        assert next(b for b in again if b.class_name == "person").box == person.box
+        held = next(b for b in again if b.class_name == "person").box
+        assert held[0] < held_at_2[0] < person.box[0] and held[2] > held_at_2[2] > person.box[2]
+        assert held[0] == pytest.approx(person.box[0] - K.fx * 1.5 * (2 / 30) / 2.0)
     late = detections(40, 40 / 30, [], "stride")  # both tracklets ended: nothing dynamic, nothing remembered
     for s in (stage, restored):
         assert s.dynamic_objects(late, s.step(late)) == [] and s.moving == set()

@@ -238,3 +238,26 @@ def test_a_box_covered_by_a_person_is_marked_occluded_and_the_flag_travels() -> 
     assert not next(c for c in out.candidates if c.class_name == "chair").measurements[0].occluded
     plain = IouTracker(TrackerParams(min_length=1))
     assert not any(c.measurements[0].occluded for c in feed(plain, 0, [chair, person]).candidates)
+
+
+def test_a_held_dynamic_box_still_covers_a_walker_the_detector_missed() -> None:
+    """Bonn crowd, frames 266-273: a person 1.1 m away went undetected for 7 frames and walked ~120 px out of his
+    last box while it was held as it was, and the registration that leaves the box out was dragged by him. Grown
+    by a walking speed over the time since the detection, the held box still covers where he went; a box whose
+    depth is unknown grows as if he were close; the depth range grows by the same reach."""
+    from semmap.algorithms.tracker.iou_tracker import held_dynamic_box
+    from semmap.core.messages import DynamicBox
+
+    last = DynamicBox(33, "person", (418.0, 0.0, 593.0, 474.0), 1.09, 1.28, "class")
+    walked_px = 120.0  # where he was when detected again, 7 frames later: (301, 0, 508, 479)
+    as_was = held_dynamic_box(last, 7 / 30, 0.0, K)
+    assert as_was == last  # speed 0: the box as it was (the old behaviour)
+    grown = held_dynamic_box(last, 7 / 30, 1.5, K)
+    assert grown.box[0] <= last.box[0] - walked_px and grown.box[2] == K.width and grown.box[1] == 0.0
+    assert grown.box[0] == pytest.approx(418.0 - 525.0 * 1.5 * (7 / 30) / 1.09)
+    assert (grown.depth_min_m, grown.depth_max_m) == pytest.approx((1.09 - 0.35, 1.28 + 0.35))
+    assert held_dynamic_box(last, 0.0, 1.5, K) == last  # the frame that detected it
+    no_depth = DynamicBox(7, "person", (300.0, 200.0, 340.0, 280.0), 0.0, 0.0, "class")
+    wide = held_dynamic_box(no_depth, 1 / 30, 1.5, K)
+    assert wide.box[0] == pytest.approx(300.0 - 525.0 * 0.05 / 0.5)  # as if 0.5 m away
+    assert (wide.depth_min_m, wide.depth_max_m) == (0.0, 0.0)  # (no depth: a `range` mask leaves out all of it)

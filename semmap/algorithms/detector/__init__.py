@@ -151,8 +151,10 @@ class _OnnxFrames:
             allow=set(section.classes) or None,
             deny=set(section.exclude) or None,
             names=section.names or None,
+            class_confidence=dict(section.class_confidence) or None,
         )
         self.providers = self.onnx.providers
+        self.unknown_confidence_classes = self.onnx.unknown_confidence_classes
 
     def detect_frame(self, frame: Frame) -> list[DetectedBox]:
         return self.onnx.detect(frame.rgb())

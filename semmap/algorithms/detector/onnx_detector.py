@@ -170,6 +170,7 @@ class OnnxDetector:
         names: Sequence[str] | Path | str | None = None,
         imgsz: int = 640,
         spin: bool = False,
+        class_confidence: dict[str, float] | None = None,
     ) -> None:
         """model_path: an ONNX file, or a serialized model (bytes, e.g. one resized in memory).
 
@@ -216,6 +217,12 @@ class OnnxDetector:
         self.names: list[str] = given if given is not None else [f"class{i}" for i in range(nc)]
         self.num_classes = nc
         self._class_ok = self._class_mask(allow, deny)
+        # classes given a threshold that this model cannot detect (a typo, or a model of other classes): the
+        # threshold is moot, the service says so at start (not an error: the default names `person`)
+        self.unknown_confidence_classes = sorted(set(class_confidence or {}) - set(self.names))
+        # per class, the score a detection must exceed: `conf`, or that class's own threshold
+        self._threshold = np.array([float((class_confidence or {}).get(n, self.conf)) for n in self.names])
+        self._prefilter = float(self._threshold.min())
 
     # -- set-up helpers ----------------------------------------------------------------------------------
 
@@ -289,13 +296,13 @@ class OnnxDetector:
             out = out.T  # [4+nc, N] -> [N, 4+nc]
             cls = out[:, 4:]
         else:
-            out = out[out[:, 4] > self.conf]  # score <= objectness: cheap prefilter
+            out = out[out[:, 4] > self._prefilter]  # score <= objectness: cheap prefilter
             cls = out[:, 5:] * out[:, 4:5]
         if cls.shape[1] != self.num_classes:
             raise ValueError(f"model output has {cls.shape[1]} classes, expected {self.num_classes}")
         class_ids = cls.argmax(axis=1)
         scores = cls[np.arange(cls.shape[0]), class_ids]
-        keep = scores > self.conf
+        keep = scores > self._threshold[class_ids]
         if self._class_ok is not None:
             keep &= self._class_ok[class_ids]
         boxes, scores, class_ids = out[keep, :4], scores[keep], class_ids[keep]

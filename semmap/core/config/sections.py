@@ -123,6 +123,14 @@ class DetectorConfig(Section):
     )
     names: OptionalFile = Field("", description="class names file for a bring-your-own model")
     confidence: Probability = Field(0.4, description="paper")
+    class_confidence: dict[str, Probability] = Field(
+        default_factory=lambda: {"person": 0.25},
+        description="per-class thresholds that replace `confidence` for those classes. person 0.25: people are "
+        "never mapped, only left out of the odometry's depth and the SLAM's features (the `dynamic` key), where a "
+        "person missed (motion-blurred, half in view) drags the trajectory and a false one costs a few pixels. Bonn "
+        "crowd, ORB-SLAM3 run 1 as file: 0.4 -> 0.047 m, 0.3 -> 0.046, 0.25 -> 0.044, 0.2 -> 0.042, 0.15 -> 0.106 "
+        "(false people covering whole frames; docs/RESULTS.md, session 19); {} = `confidence` for all",
+    )
     iou: Probability = 0.45
     depth_min_m: NonNegative = Field(0.2, description="paper")
     depth_max_m: Positive = Field(25.0, description="paper")
@@ -161,6 +169,12 @@ class TrackerParams(Section):
     max_age_s: NonNegative = Field(0.5, description="paper: longest time since the last detection")
     dynamic_depth_band_m: Positive = Field(
         0.5, description="a dynamic object's depth range: its box's valid depths this close to its median"
+    )
+    dynamic_hold_speed_mps: NonNegative = Field(
+        1.5,
+        description="a dynamic object alive but not detected in a frame keeps its last box, grown on every side by "
+        "how far it may have moved since at this speed (a brisk walk; semmap/runtime/pipeline.py, "
+        "held_dynamic_box); 0: the last box as it was",
     )
     occlusion_min_overlap: Probability = Field(
         0.1,

@@ -57,6 +57,10 @@ class DetectorService(Service):
                     self.every_n = plan.every_n
                     self.log.info("frame budget: %s", describe_plan(plan, source))
         self.detector = create_detector(self.kind, cfg, model)
+        unknown = getattr(self.detector, "unknown_confidence_classes", [])
+        if unknown:
+            self.log.warning("detector.class_confidence names classes this model does not detect: %s",
+                             ", ".join(unknown))
         if model is not None:
             self.log.info("%s detector on %s, every %d frame(s)", self.kind,
                           ", ".join(getattr(self.detector, "providers", [])), self.every_n)
