@@ -171,7 +171,8 @@ class TrackerStage:
         speed = self.params.dynamic_hold_speed_mps
         for t, b in sorted(self.last_dynamic.items()):
             if t in alive and t not in seen:
-                elapsed = det.stamp - self.last_dynamic_stamp.get(t, det.stamp)
+                # (never longer than a tracklet lives undetected: a restored stamp cannot inflate it further)
+                elapsed = min(det.stamp - self.last_dynamic_stamp.get(t, det.stamp), self.params.max_age_s)
                 boxes.append(held_dynamic_box(b, elapsed, speed, det.intrinsics))
                 detected[t] = b  # (grown from the box as detected each frame, not from the last grown one)
         self.last_dynamic_stamp = {t: (det.stamp if t in seen else self.last_dynamic_stamp.get(t, det.stamp))

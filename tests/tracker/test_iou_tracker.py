@@ -257,6 +257,7 @@ def test_a_held_dynamic_box_still_covers_a_walker_the_detector_missed() -> None:
     assert grown.box[0] == pytest.approx(418.0 - 525.0 * 1.5 * (7 / 30) / 1.09)
     assert (grown.depth_min_m, grown.depth_max_m) == pytest.approx((1.09 - 0.35, 1.28 + 0.35))
     assert held_dynamic_box(last, 0.0, 1.5, K) == last  # the frame that detected it
+    assert held_dynamic_box(last, float("nan"), 1.5, K) == last  # a stamp that says nothing grows nothing
     no_depth = DynamicBox(7, "person", (300.0, 200.0, 340.0, 280.0), 0.0, 0.0, "class")
     wide = held_dynamic_box(no_depth, 1 / 30, 1.5, K)
     assert wide.box[0] == pytest.approx(300.0 - 525.0 * 0.05 / 0.5)  # as if 0.5 m away

@@ -19,6 +19,7 @@ Rules (paper settings: sigma_iou 0.2, min tracklet size 5, max time since the la
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -254,8 +255,8 @@ def held_dynamic_box(box: DynamicBox, elapsed_s: float, speed_mps: float, intrin
     box stayed put; he walked 120 px out of it, and semmap's registration, which leaves the box's depth out, was
     dragged 2-5 cm a frame by him (a camera that moves 3 mm a frame). Grown, the box still covers him: what the
     mask loses is some static background for a few frames, which the registration can spare."""
-    if speed_mps <= 0.0 or elapsed_s <= 0.0:
-        return box
+    if not (speed_mps > 0.0 and elapsed_s > 0.0 and math.isfinite(speed_mps * elapsed_s)):
+        return box  # (not held, or a stamp that says nothing: the box as it was)
     reach_m = speed_mps * elapsed_s
     depth = max(box.depth_min_m, HELD_BOX_MIN_DEPTH_M)  # (0 where the box held no valid depth)
     dx, dy = intrinsics.fx * reach_m / depth, intrinsics.fy * reach_m / depth
