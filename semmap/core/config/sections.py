@@ -173,7 +173,7 @@ class TrackerParams(Section):
     dynamic_hold_speed_mps: NonNegative = Field(
         1.5,
         description="a dynamic object alive but not detected in a frame keeps its last box, grown on every side by "
-        "how far it may have moved since at this speed (a brisk walk; semmap/runtime/pipeline.py, "
+        "how far it may have moved since at this speed (a brisk walk; semmap/algorithms/tracker/iou_tracker.py, "
         "held_dynamic_box); 0: the last box as it was",
     )
     occlusion_min_overlap: Probability = Field(
