@@ -137,8 +137,8 @@ class TrackerStage:
         self.dynamic_classes = frozenset(dynamic_classes)
         self.tracker = IouTracker(params, first_track_id=first_track_id, dynamic_classes=self.dynamic_classes)
         self.moving: set[int] = set()  # track ids the associator rejected as moving
-        self.last_dynamic: dict[int, DynamicBox] = {}  # per dynamic tracklet alive, its last detected box
-        self.last_dynamic_stamp: dict[int, float] = {}  # ...and the stamp of the frame that detected it
+        # per dynamic tracklet alive, its last detected box and the stamp of the frame that detected it
+        self.last_dynamic: dict[int, tuple[DynamicBox, float | None]] = {}
 
     @property
     def params(self) -> TrackerParams:
@@ -166,26 +166,23 @@ class TrackerStage:
                 if reason:
                     lo, hi = depth_range(d, det.depth_scale, band)
                     boxes.append(DynamicBox(tb.track_id, tb.class_name, tb.box, lo, hi, reason))
-        seen = {b.track_id for b in boxes}
-        detected = {b.track_id: b for b in boxes}
-        speed = self.params.dynamic_hold_speed_mps
-        for t, b in sorted(self.last_dynamic.items()):
-            if t in alive and t not in seen:
+        kept: dict[int, tuple[DynamicBox, float | None]] = {b.track_id: (b, det.stamp) for b in boxes}
+        for t, (b, detected_at) in sorted(self.last_dynamic.items()):
+            if t in alive and t not in kept:
+                detected_at = det.stamp if detected_at is None else detected_at  # (a state saved without stamps)
                 # (never longer than a tracklet lives undetected: a restored stamp cannot inflate it further)
-                elapsed = min(det.stamp - self.last_dynamic_stamp.get(t, det.stamp), self.params.max_age_s)
-                boxes.append(held_dynamic_box(b, elapsed, speed, det.intrinsics))
-                detected[t] = b  # (grown from the box as detected each frame, not from the last grown one)
-        self.last_dynamic_stamp = {t: (det.stamp if t in seen else self.last_dynamic_stamp.get(t, det.stamp))
-                                   for t in detected}
-        self.last_dynamic = detected
+                elapsed = min(det.stamp - detected_at, self.params.max_age_s)
+                boxes.append(held_dynamic_box(b, elapsed, self.params.dynamic_hold_speed_mps, det.intrinsics))
+                kept[t] = (b, detected_at)  # (grown from the box as detected each frame, not from the last grown one)
+        self.last_dynamic = kept
         self.moving &= alive  # forget ended tracklets
         return boxes
 
     def state(self) -> dict:
         """The tracker's state plus what the dynamic objects depend on (plain data, msgpack-able)."""
         return {**self.tracker.state(), "moving": sorted(self.moving),
-                "last_dynamic": [b.to_dict() for _, b in sorted(self.last_dynamic.items())],
-                "last_dynamic_stamp": [[t, s] for t, s in sorted(self.last_dynamic_stamp.items())]}
+                "last_dynamic": [b.to_dict() for _, (b, _) in sorted(self.last_dynamic.items())],
+                "last_dynamic_stamp": [[t, s] for t, (_, s) in sorted(self.last_dynamic.items()) if s is not None]}
 
     def restore(self, state: dict) -> None:
         """Continue from `state()` (a MessageError if it is not one; older states without the dynamic part
@@ -193,9 +190,10 @@ class TrackerStage:
         self.tracker = IouTracker.from_state(state, self.params, self.dynamic_classes)
         try:
             self.moving = {int(t) for t in state.get("moving", [])}
-            self.last_dynamic = {b.track_id: b for b in map(DynamicBox.from_dict, state.get("last_dynamic", []))}
-            # (a state saved before the stamps were kept: its boxes are held as they are, not grown)
-            self.last_dynamic_stamp = {int(t): float(s) for t, s in state.get("last_dynamic_stamp", [])}
+            detected_at = {int(t): float(s) for t, s in state.get("last_dynamic_stamp", [])}
+            # (a state saved before the stamps were kept: its boxes are held as they are, grown from the next frame)
+            self.last_dynamic = {b.track_id: (b, detected_at.get(b.track_id))
+                                 for b in map(DynamicBox.from_dict, state.get("last_dynamic", []))}
         except (TypeError, ValueError) as exc:
             raise MessageError(f"not a tracker state: {exc}") from None
 

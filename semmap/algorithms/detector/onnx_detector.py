@@ -219,9 +219,10 @@ class OnnxDetector:
         self._class_ok = self._class_mask(allow, deny)
         # classes given a threshold that this model cannot detect (a typo, or a model of other classes): the
         # threshold is moot, the service says so at start (not an error: the default names `person`)
-        self.unknown_confidence_classes = sorted(set(class_confidence or {}) - set(self.names))
+        own = class_confidence or {}
+        self.unknown_confidence_classes = sorted(set(own) - set(self.names))
         # per class, the score a detection must exceed: `conf`, or that class's own threshold
-        self._threshold = np.array([float((class_confidence or {}).get(n, self.conf)) for n in self.names])
+        self._threshold = np.array([float(own.get(n, self.conf)) for n in self.names])
         self._prefilter = float(self._threshold.min())
 
     # -- set-up helpers ----------------------------------------------------------------------------------
