@@ -406,7 +406,8 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     fps = float(getattr(dataset, "rate_hz", 30.0) or 30.0) * float(config.run.speed)
     # replicas by measurement unless they or the cadence were set by hand
     plan, source = dc.setup_plan(setup, fps, config.odometry.mode,
-                                 replicas=detectors is None and not det.every_n_frames)
+                                 replicas=detectors is None and not det.every_n_frames,
+                                 replicas_set=detectors or 1)
     budget: dict = {"detector": setup.label(), "origin": setup.origin, "odometry": config.odometry.mode,
                     "speed": float(config.run.speed)}
     if plan is None:

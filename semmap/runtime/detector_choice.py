@@ -581,9 +581,13 @@ class CadencePlan:
 
     @property
     def every_n(self) -> int:
-        if self.replicas > 1:  # each replica takes the newest frame of its share whenever it is free
-            return 1
         ratio = self.interval_ms * self.fps / 1e3  # frames of video per detection
+        if self.replicas > 1:
+            # replicas take turns by blocks of every_n frames (the detector service's `owner`), each detecting the
+            # first frame of its block it can: the nearest whole number of frames per detection of them all. At
+            # every frame two replicas that each need two frames' time fall into step and detect frames n and n+1,
+            # then none for three (session 20: one distinct view per 0.13 s where turns give one per 0.07 s)
+            return max(1, math.floor(ratio + 0.5))
         if self.flat_out:
             return max(1, math.floor(ratio + 0.05))
         return max(1, math.ceil(ratio - 0.05))  # (a 5 % slack: the next frame is close)
@@ -707,10 +711,12 @@ def resolve_setup(precision: str, threads: int, input_size: str, realtime: bool,
 
 
 def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path | None = None,
-               cores: int | None = None, replicas: bool = False) -> tuple[CadencePlan | None, str]:  # fmt: skip
+               cores: int | None = None, replicas: bool = False,
+               replicas_set: int = 1) -> tuple[CadencePlan | None, str]:  # fmt: skip
     """The real-time cadence for `setup` (None when its cost was never measured here) and where the other
     services' cost comes from; replicas=True: single-thread replicas where this machine measured them better
-    (`replica_plan`)."""
+    (`replica_plan`); replicas_set > 1: that many replicas set by hand (`--detectors N`), taking turns
+    (`replicas_by_hand`)."""
     if setup.measured is None:
         return None, ""
     doc = load_choice(model_dir)
@@ -720,8 +726,22 @@ def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path 
     row = Measured(DetectorConfigChoice(setup.precision, setup.threads, *(setup.hw or FULL_HW)), m.p50_ms,
                    m.p90_ms, m.cpu_ms, m.f1, m.recall, m.precision, min_ms=m.min_ms)  # fmt: skip
     plan = plan_cadence(row, n, fps, others)
+    if replicas_set > 1:
+        return replicas_by_hand(plan, row.cpu_ms, replicas_set), source
     replicated = replica_plan(plan, setup, doc) if replicas else None
     return (replicated or plan), source
+
+
+def replicas_by_hand(plan: CadencePlan, cpu_ms: float, replicas: int) -> CadencePlan:
+    """`plan`'s detector as `replicas` processes set by hand, taking turns (`CadencePlan.every_n`): together at most
+    `replicas` times as often as one alone, and no more often than the cores the others leave allow.
+
+    Why not the single detector's cadence: the replicas share the frames by rank, so a cadence planned for one
+    (every 2nd frame) would leave each replica with a quarter of the frames and half the cores idle."""
+    threads = plan.threads * replicas
+    interval = max(plan.detect_alone_ms / replicas, cpu_ms / min(float(threads), plan.free_cores))
+    return CadencePlan(plan.detect_alone_ms, interval, plan.free_cores, plan.others_cpu_ms, plan.fps, plan.threads,
+                       replicas, f"{replicas} replicas set by hand (--detectors)")
 
 
 def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None) -> CadencePlan | None:
@@ -766,8 +786,8 @@ def ordinal(n: int) -> str:  # "every 3rd frame"
 def describe_plan(plan: CadencePlan, source: str) -> str:
     """One line: what a real-time run will achieve with this plan."""
     if plan.replicas > 1:
-        return (f"{plan.replicas} replicas of {plan.threads} thread{'s' if plan.threads > 1 else ''}, each taking "
-                f"the newest frame of its share ({plan.layout_note}; the other services take "
+        return (f"{plan.replicas} replicas of {plan.threads} thread{'s' if plan.threads > 1 else ''} taking turns, "
+                f"{ordinal(plan.every_n)} at {plan.fps:.0f} fps ({plan.layout_note}; the other services take "
                 f"{plan.others_cpu_ms:.0f} ms CPU per frame, {source}); expected {plan.detections_per_s:.1f} "
                 "detections/s")
     return (f"detector {plan.detect_alone_ms:.0f} ms alone, ~{plan.interval_ms:.0f} ms in the run (the other services "

@@ -389,3 +389,36 @@ def test_a_track_that_moves_only_inside_its_landmark_leaves_the_landmark_in_plac
     assert (lm.id in mapper.map) == inside
     assert step.moved == ([] if inside else [lm.id]) and step.kept_despite_motion == ([lm.id] if inside else [])
     assert "from the landmark's centre" in step.moved_why[lm.id]
+
+
+def _short_lived_cup(every: int) -> tuple[LandmarkMapper, list[float]]:
+    """A cup in view for 0.58 s (then gone), detected every `every`-th frame, the frames between answered as
+    skipped (they only age the tracklet), as a real-time run's detector does; the mapper's view intervals."""
+    mapper, tracker = LandmarkMapper(), IouTracker()
+    intervals = []
+    for f in range(60):
+        t = f / RATE
+        lookup = lambda i: orbit_pose(i / RATE)  # noqa: E731
+        if f % every:
+            out = tracker.skip(f, t)
+            mapper.process(f, t, [], out.ended, lookup, None)
+        else:
+            dets = detections(orbit_pose(t), [CUP] if t < 0.58 else [])
+            out = tracker.update(f, t, dets, K_SMALL, 0.001)
+            mapper.process(f, t, out.candidates, out.ended, lookup, out.boxes)
+        intervals.append(mapper.view_interval_s())
+    return mapper, intervals
+
+
+def test_an_object_seen_0_6_s_and_detected_every_2nd_frame_is_mapped_as_at_every_frame() -> None:
+    """Views are one per `min_view_interval_s` at 30 Hz; detected every 2nd frame (67 ms), every detection is a
+    view (the nearest to one interval after the last), not every 2nd (one per 133 ms, too few for a short track:
+    `short_but_static` needs 6)."""
+    every_frame, at_30 = _short_lived_cup(1)
+    assert at_30[-1] == pytest.approx(0.1 - 0.5 / RATE)  # keeps the same views as 0.1 s between 33 ms frames
+    assert len(every_frame.landmarks()) == 1
+    every_2nd, at_15 = _short_lived_cup(2)
+    assert at_15[-1] == pytest.approx(0.1 - 1.0 / RATE)
+    assert [lm.class_name for lm in every_2nd.landmarks()] == ["cup"]
+    restored = _round_trip(every_2nd)
+    assert restored.view_interval_s() == pytest.approx(at_15[-1])  # the cadence survives a restart

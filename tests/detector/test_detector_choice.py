@@ -4,6 +4,7 @@ made up; only their bookkeeping is checked."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -260,8 +261,12 @@ def test_replicas_only_where_measured_better_and_for_the_load_measured(tmp_path:
     single, _ = dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2)
     assert single.replicas == 1  # (unless asked for)
     plan, _ = dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2, replicas=True)
-    assert (plan.replicas, plan.threads, plan.every_n) == (2, 1, 1) and plan.detections_per_s == pytest.approx(16.8)
-    assert "2 replicas of 1 thread" in dc.describe_plan(plan, "x") and "1 x 2 threads 14.7/s" in plan.layout_note
+    # 16.8 detections/s of 30 frames: turns of every 2nd frame, each replica every 4th (15/s, evenly spaced)
+    assert (plan.replicas, plan.threads, plan.every_n) == (2, 1, 2) and plan.detections_per_s == pytest.approx(15.0)
+    assert "2 replicas of 1 thread taking turns, every 2nd frame" in dc.describe_plan(plan, "x")
+    assert "1 x 2 threads 14.7/s" in plan.layout_note
+    fast = dataclasses.replace(plan, interval_ms=1e3 / 29.8)  # the VNNI EPYC's int8 replicas: every frame
+    assert fast.every_n == 1 and fast.detections_per_s == pytest.approx(29.8)
     assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 1
     threads_set = dc.resolve_setup("auto", 2, "auto", realtime=True)
     assert dc.setup_plan(threads_set, 30.0, "gt", tmp_path, cores=2, replicas=True)[0].replicas == 1
@@ -283,8 +288,35 @@ def test_a_run_starts_the_replicas_its_budget_chose(tmp_path: Path, monkeypatch)
     config = load_config(None, ["odometry.mode=gt"])
     overrides: list[str] = []
     budget = detector_budget(config, None, "some/folder", overrides)
-    assert budget["replicas"] == 2 and "detector.threads=1" in overrides and "detector.every_n_frames=1" in overrides
+    assert budget["replicas"] == 2 and "detector.threads=1" in overrides and "detector.every_n_frames=2" in overrides
     assert budget["detector"] == "fp32 512x384 1 thread x 2 replicas"
     overrides = []
     budget = detector_budget(config, None, "some/folder", overrides, detectors=1)  # --detectors 1: one
     assert "replicas" not in budget and not any(o.startswith("detector.threads") for o in overrides)
+
+
+def test_replicas_set_by_hand_take_the_newest_frame_of_their_share(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """`--detectors 2` with the cadence left to the budget: a plan for the two, not one detector's every 2nd frame
+    (which left each replica a quarter of the frames and half the cores idle)."""
+    from semmap.cli.run import detector_budget
+    from semmap.core.config import load_config
+
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    rows = [_row("fp32", 2, (384, 512), 50, 97, 0.93), _row("fp32", 1, (384, 512), 92, 93, 0.93)]
+    dc.save_choice(rows, dc.hardware_key(), "test", tmp_path, [dc.Layout(1, 2, 14.7, 0.55)])
+    dc.record_pipeline_cost("gt", 18.0, tmp_path)  # the others: 0.54 cores, 1.46 left
+    config = load_config(None, ["odometry.mode=gt", "detector.precision=fp32", "detector.threads=1",
+                                "detector.input_size=512x384"])  # fmt: skip
+    overrides: list[str] = []
+    alone = detector_budget(config, None, "some/folder", overrides)
+    assert "detector.every_n_frames=2" in overrides and "replicas" not in alone  # one: 92 ms, every 2nd frame
+    overrides = []
+    budget = detector_budget(config, None, "some/folder", overrides, detectors=2)
+    assert "detector.every_n_frames=2" in overrides and budget["replicas"] == 2  # (taking turns)
+    # together: two 1-thread replicas in the 1.46 cores left, 93 ms CPU a detection: 15.7/s, turns of 2 frames
+    assert budget["planned"]["interval_ms"] == pytest.approx(93 / 1.46, abs=0.1)
+    assert budget["planned"]["expected_detections_per_s"] == 15.0
+    assert budget["detector"] == "fp32 512x384 1 thread x 2 replicas"
+    plan = dc.replicas_by_hand(dc.plan_cadence(rows[1], cores=2, fps=30.0, others_cpu_ms=0.0), 93.0, 2)
+    assert plan.interval_ms == pytest.approx(46.5) and plan.every_n == 1  # two idle cores: twice one alone
+    assert plan.detections_per_s == pytest.approx(1e3 / 46.5)

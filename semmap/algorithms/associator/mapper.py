@@ -37,6 +37,7 @@ comes from a generator seeded by (seed, purpose, id, view count).
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -97,6 +98,7 @@ class MapperStep:
     timing_ms: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
 
 
+CADENCE_WINDOW = 31  # detected frames the run's detection cadence is taken over
 Touched = dict[int, list[View]]  # landmark id -> its new views this step, insertion-ordered
 
 
@@ -111,6 +113,7 @@ class LandmarkMapper:
         self._bp = backproject_params(self.params)
         self._dirty: set[int] = set()  # landmarks needing a full re-estimate (views removed or re-chosen)
         self._intrinsics: Intrinsics | None = None  # the camera of the latest measurement (for absence checks)
+        self._detected_stamps: deque[float] = deque(maxlen=CADENCE_WINDOW)  # frames detected lately (cadence)
 
     # ---- queries
 
@@ -141,6 +144,8 @@ class LandmarkMapper:
         """
         step = MapperStep()
         touched: Touched = {}
+        if boxes is not None and (not self._detected_stamps or stamp > self._detected_stamps[-1]):
+            self._detected_stamps.append(stamp)
         t0 = time.perf_counter()
         fed = self._proposal(candidates, stamp, pose, step, touched)
         t1 = time.perf_counter()
@@ -181,6 +186,22 @@ class LandmarkMapper:
         step.timing_ms["update_merge"] = (time.perf_counter() - t0) * 1e3
         return step
 
+    def view_interval_s(self) -> float:
+        """How close to a track's last view a measurement is counted but not back-projected: the view interval
+        (`min_view_interval_s`) less half the run's detection cadence (the median time between detected frames),
+        so the view kept is the detection nearest to one interval after the last.
+
+        Why: at 30 Hz with every frame detected it keeps one view per 0.1 s as the bare interval does (frames lie
+        33 ms apart: 83 ms or 100 ms keep the same ones), but a real-time run that detects every 2nd frame
+        would otherwise keep every 2nd detection (a view per 133 ms), and an object seen for half a second
+        would lack the views a short track needs (`short_but_static`) where the same object in lockstep has
+        them. The run's cadence, not the track's: a track's own missed detections must not change its views."""
+        interval = self.params.min_view_interval_s
+        if len(self._detected_stamps) < 3:
+            return interval
+        cadence = float(np.median(np.diff(np.asarray(self._detected_stamps))))
+        return interval - 0.5 * min(max(cadence, 0.0), interval)
+
     # ---- the stages of process()
 
     def _proposal(
@@ -206,7 +227,7 @@ class LandmarkMapper:
         fed: list[tuple[Candidate, list[View]]] = []
         for cand in work:
             lm = self.map.get(cand.landmark_id) if cand.landmark_id is not None else None
-            new_views, intrinsics = resolve_pending(cand, stamp, pose, lm, self._bp, p)
+            new_views, intrinsics = resolve_pending(cand, stamp, pose, lm, self._bp, p, self.view_interval_s())
             if intrinsics is not None:
                 self._intrinsics = intrinsics
             if not new_views or len(cand.views) < p.min_views:
@@ -463,6 +484,8 @@ class LandmarkMapper:
             "dirty": sorted(self._dirty),
             # the camera of the latest measurement: absence checks of the next frame use it
             "intrinsics": None if self._intrinsics is None else self._intrinsics.to_dict(),
+            # the stamps of the frames detected lately: the run's detection cadence (`view_interval_s`)
+            "detected_stamps": list(self._detected_stamps),
             "candidates": [
                 {
                     "track_id": c.track_id,
@@ -494,6 +517,7 @@ class LandmarkMapper:
         mapper._dirty = {int(t) for t in state["dirty"]}
         if state.get("intrinsics") is not None:
             mapper._intrinsics = Intrinsics.from_dict(state["intrinsics"])
+        mapper._detected_stamps.extend(float(t) for t in state.get("detected_stamps") or ())  # (older: none)
         for d in state["candidates"]:
             shared = d.get("shared") or [None] * len(d["views"])
             c = Candidate(

@@ -56,14 +56,17 @@ def resolve_pending(
     lm: LandmarkState | None,
     bp: BackprojectParams,
     params: MapperParams,
+    view_interval_s: float | None = None,
 ) -> tuple[list[View], Intrinsics | None]:
     """Turn pending measurements whose pose is known into views; drop those that waited too long. `lm` is the
-    landmark the candidate feeds (its frames grow). Returns the new views and the camera of the latest
-    measurement looked at (None when there was none)."""
+    landmark the candidate feeds (its frames grow); view_interval_s: how close to a kept view a measurement is
+    skipped (default `min_view_interval_s`; the mapper lowers it for a sparse detection cadence). Returns the
+    new views and the camera of the latest measurement looked at (None when there was none)."""
     new_views: list[View] = []
     still: list[Measurement] = []
     intrinsics: Intrinsics | None = None
     expected = (lm.centroid, lm.size) if lm is not None and lm.size > 0 else None
+    interval = params.min_view_interval_s if view_interval_s is None else view_interval_s
     kept = sorted(v.stamp for v in cand.views)
     for m in sorted(cand.pending, key=lambda m: (m.stamp, m.frame_id)):
         intrinsics = m.intrinsics
@@ -72,7 +75,7 @@ def resolve_pending(
             lm.frames.add(m.frame_id)
         i = bisect.bisect_left(kept, m.stamp)
         gap = min(abs(m.stamp - kept[j]) for j in (i - 1, i) if 0 <= j < len(kept)) if kept else math.inf
-        if below(gap, params.min_view_interval_s):
+        if below(gap, interval):
             cand.skipped += 1  # 30 Hz frames are nearly the same view: count it, do not back-project it
             continue
         T = pose(m.frame_id)

@@ -26,7 +26,9 @@ class MapperParams(Section):
     view_points_max: AtLeastOne = 500  # foreground points per measurement used for its centroid
     stored_points_max: AtLeastOne = 96  # of which this many are kept per stored view (re-projection, clouds)
     min_view_interval_s: NonNegative = 0.1  # a track's measurements closer than this to its last view are counted,
-    # not back-projected (30 Hz frames are nearly the same view)
+    # not back-projected (30 Hz frames are nearly the same view); less half the run's detection cadence, so a
+    # real-time run detecting every 2nd frame keeps every detection as lockstep keeps one per 0.1 s
+    # (`LandmarkMapper.view_interval_s`)
     border_margin_px: NonNegative = 4.0  # a box this close to the image border saw only part of its object
 
     # --- candidate validation (dynamic / unstable objects)

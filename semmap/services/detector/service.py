@@ -1,9 +1,12 @@
 """Detector service: detections for every frame on `semmap/v1/<robot>/detections`.
 
-Scaling out: each replica holds a liveliness token; the live replicas, sorted by name, share frames by rank
-(frame_id % n == rank), so N replicas detect each frame once. Every frame gets exactly one `Detections`
-message, `skipped` ones too (not this frame's turn under `every_n_frames`, dropped under real-time overload),
-so consumers never wait for a frame that will not come; they re-order by frame id and drop duplicates.
+Scaling out: each replica holds a liveliness token; the live replicas, sorted by name, share the stream by rank
+in blocks of `every_n_frames` frames (block frame_id // every_n, owned by rank block % n: `owner`), so N replicas
+detect each frame once and, with a cadence, take turns (every 2nd frame, 2 replicas: frames 0, 2, 4, 6 go to
+replicas 0, 1, 0, 1, each detected once in its turn, none left to a replica that never detects). Every frame
+gets exactly one `Detections` message, `skipped` ones too (not this frame's turn under `every_n_frames`, dropped
+under real-time overload), so consumers never wait for a frame that will not come; they re-order by frame id and
+drop duplicates.
 """
 
 from __future__ import annotations
@@ -118,14 +121,12 @@ class DetectorService(Service):
 
     def on_frame(self, frame: Frame) -> None:
         rank, n = self._rank()
-        if frame.frame_id % n != rank:
+        if owner(frame.frame_id, self.every_n, n) != rank:
             return
         started = time.time()
-        # frames of our share that never reached us were dropped upstream of this handler (bounded queue)
-        for missed in range(self.last_mine + 1, frame.frame_id):
-            if missed % n == rank and self.last_mine >= 0 and missed not in self._unreadable:
-                self._dropped_ids.add(missed)
-                self._publish_skip(frame, missed, "dropped")
+        # frames of our share that never reached us were left behind upstream of this handler (bounded queue)
+        if self.last_mine >= 0:
+            self._answer_missed(frame, self._owed(frame.frame_id - 1))
         self.last_mine = frame.frame_id
         self._last_frame = frame
         if self._stride_skips(frame.frame_id):
@@ -177,15 +178,32 @@ class DetectorService(Service):
         self._dropped_ids = {f for f in self._dropped_ids if f > frame_id - 1000}
 
 
-    def _stride_skips(self, frame_id: int) -> bool:
-        """Lockstep: every n-th frame by id. Real time: a frame at least n frames after the last one detected, so a
-        detector that ran late (its queue handed it a newer frame) takes that frame instead of idling until the
-        next multiple of n."""
+    def _stride_skips(self, frame_id: int, last: int | None = None) -> bool:
+        """Lockstep: the first frame of each block of n (every n-th frame by id). Real time: the first frame of
+        our block that reaches us, at least n frames after the last one detected (`last`, default the last
+        detected), so a detector that ran late (its queue handed it a newer frame) takes that frame instead of
+        idling until its next block."""
         if self.every_n <= 1:
             return False
-        if self.lockstep or self._last_detected_id is None:
+        if self.lockstep:
             return frame_id % self.every_n != 0
-        return frame_id - self._last_detected_id < self.every_n
+        last = self._last_detected_id if last is None else last
+        if last is None:
+            return False
+        return frame_id // self.every_n == last // self.every_n or frame_id - last < self.every_n
+
+    def _answer_missed(self, frame: Frame, missed: list[int]) -> None:
+        """Answer frames of our share that never reached the handler: `dropped` where one would have been
+        detected (the first due one of a block), `stride` where the cadence would have skipped it anyway, so
+        the dropped count is the detections real time cost, not every frame the queue passed over."""
+        last = self._last_detected_id
+        for frame_id in missed:
+            if self._stride_skips(frame_id, last):
+                self._publish_skip(frame, frame_id, "stride")
+                continue
+            last = frame_id  # (the one it would have detected: the block's later frames are its stride)
+            self._dropped_ids.add(frame_id)
+            self._publish_skip(frame, frame_id, "dropped")
 
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")
@@ -209,7 +227,8 @@ class DetectorService(Service):
     def _owed(self, last_frame_id: int) -> list[int]:
         """Frames of our share up to `last_frame_id` that we have not answered yet."""
         rank, n = self._rank()
-        return [f for f in range(self.last_mine + 1, last_frame_id + 1) if f % n == rank and f not in self._unreadable]
+        return [f for f in range(self.last_mine + 1, last_frame_id + 1)
+                if owner(f, self.every_n, n) == rank and f not in self._unreadable]
 
     def on_end_of_stream(self, control: Control) -> None:
         """Finish once our share is answered; frames still missing after a grace period were dropped."""
@@ -225,13 +244,20 @@ class DetectorService(Service):
             return
         if time.monotonic() - self._eos_since > EOS_GRACE_S and len(self.inbox) == 0:
             if self._last_frame is not None:
-                for missed in self._owed(self.end_of_stream.last_frame_id):
-                    self._publish_skip(self._last_frame, missed, "dropped")
+                self._answer_missed(self._last_frame, self._owed(self.end_of_stream.last_frame_id))
             self.finish()
 
     def teardown(self) -> None:
         self._live_sub.undeclare()
         self._token.undeclare()
+
+
+def owner(frame_id: int, every_n: int, replicas: int) -> int:
+    """The rank of the replica that answers `frame_id`: the one owning its block of `every_n` frames.
+
+    Why blocks and not frame_id % replicas: with a cadence the due frames (one a block) must reach every replica
+    in turn; by frame id alone, 2 replicas and every 2nd frame would hand all due frames to replica 0."""
+    return (frame_id // max(1, every_n)) % max(1, replicas)
 
 
 def main(argv: list[str] | None = None) -> int:
