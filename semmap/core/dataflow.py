@@ -98,7 +98,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic("control", "Control", "stop, end of stream, unreadable frame"),
     Topic("progress/*", "Progress", "a service finished everything a frame caused"),
     Topic("status/**", "ServiceStatus", "a service instance's state, counters and timings, once a second"),
-    Topic("detector/replicas/**", "(liveliness)", "one token per detector replica: they share frames by rank"),
+    Topic("detector/replicas/**", "(liveliness)", "one token per detector replica: they take turns at the frames"),
 )
 
 NODES: tuple[Node, ...] = (

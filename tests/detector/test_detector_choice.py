@@ -295,7 +295,7 @@ def test_a_run_starts_the_replicas_its_budget_chose(tmp_path: Path, monkeypatch)
     assert "replicas" not in budget and not any(o.startswith("detector.threads") for o in overrides)
 
 
-def test_replicas_set_by_hand_take_the_newest_frame_of_their_share(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+def test_replicas_set_by_hand_are_planned_together_taking_turns(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     """`--detectors 2` with the cadence left to the budget: a plan for the two, not one detector's every 2nd frame
     (which left each replica a quarter of the frames and half the cores idle)."""
     from semmap.cli.run import detector_budget
