@@ -1,6 +1,7 @@
 """Real time on the CPU at hand (issue 31): the measured detector choice and what `semmap run --realtime` achieves.
 
     .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry gt,rgbd] [--json-out F]
+        [--realtime-args '--detectors 2 --set detector.precision=fp32 ...']
 
 1. `--choice`: measures every detector configuration on this machine (as `semmap models doctor --remeasure`) and
    prints the table: latency alone, CPU per frame, expected time per detection in a real-time run, F1 against
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -40,11 +42,12 @@ from semmap.runtime.map_store import read_map_json  # noqa: E402
 VIDEO_S = 1000 / 30.0
 
 
-def run(data: Path, out: Path, odometry: str, realtime: bool) -> tuple[dict, list[Landmark]]:
-    """One `semmap run`: its row of figures, and its map."""
+def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] | None = None,
+        ) -> tuple[dict, list[Landmark]]:  # fmt: skip
+    """One `semmap run` (real time: with `extra` arguments): its row of figures, and its map."""
     load = os.getloadavg()[0]
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--odometry", odometry, "--out", str(out),
-           "--overwrite", "--quiet"] + (["--realtime"] if realtime else [])  # fmt: skip
+           "--overwrite", "--quiet"] + (["--realtime", *(extra or [])] if realtime else [])  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -83,6 +86,10 @@ def main() -> int:
     ap.add_argument("--odometry", default="gt,rgbd")
     ap.add_argument("--no-lockstep", action="store_true", help="skip the lockstep reference runs")
     ap.add_argument("--json-out", type=Path, default=None)
+    ap.add_argument("--realtime-args", default="",
+                    help="more arguments for the real-time runs, e.g. another machine's choice: '--detectors 2 "
+                         "--set detector.threads=1 --set detector.precision=fp32 --set detector.input_size=512x384' "
+                         "(the AVX2-only EPYC's, replayed on a VNNI machine in session 20)")  # fmt: skip
     args = ap.parse_args()
     root = find_data_root()
     data = root / "7scenes-redkitchen" if root is not None else None
@@ -104,7 +111,7 @@ def main() -> int:
                 results.append(lock)
                 print(json.dumps(lock), flush=True)
             for i in range(args.runs):
-                r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True)
+                r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True, shlex.split(args.realtime_args))
                 if lock:
                     r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
                     r["missed"] = missed(lock_map, mapped)

@@ -126,7 +126,7 @@ class DetectorService(Service):
         started = time.time()
         # frames of our share that never reached us were left behind upstream of this handler (bounded queue)
         if self.last_mine >= 0:
-            self._answer_missed(frame, self._owed(frame.frame_id - 1))
+            self._answer_missed(frame, self._owed(frame.frame_id - 1), not self._stride_skips(frame.frame_id))
         self.last_mine = frame.frame_id
         self._last_frame = frame
         if self._stride_skips(frame.frame_id):
@@ -192,13 +192,16 @@ class DetectorService(Service):
             return False
         return frame_id // self.every_n == last // self.every_n or frame_id - last < self.every_n
 
-    def _answer_missed(self, frame: Frame, missed: list[int]) -> None:
+    def _answer_missed(self, frame: Frame, missed: list[int], detects_frame: bool = False) -> None:
         """Answer frames of our share that never reached the handler: `dropped` where one would have been
-        detected (the first due one of a block), `stride` where the cadence would have skipped it anyway, so
-        the dropped count is the detections real time cost, not every frame the queue passed over."""
+        detected (the first due one of a block), `stride` where the cadence would have skipped it anyway or
+        where `frame`, of the same block, is detected instead (`detects_frame`: late, not lost). So the dropped
+        count is the detections real time cost, not every frame the queue passed over."""
         last = self._last_detected_id
+        block = frame.frame_id // max(1, self.every_n)
         for frame_id in missed:
-            if self._stride_skips(frame_id, last):
+            late = detects_frame and frame_id // max(1, self.every_n) == block
+            if late or self._stride_skips(frame_id, last):
                 self._publish_skip(frame, frame_id, "stride")
                 continue
             last = frame_id  # (the one it would have detected: the block's later frames are its stride)
