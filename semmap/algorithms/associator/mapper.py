@@ -225,9 +225,10 @@ class LandmarkMapper:
             if cand.pending and tid not in seen:
                 work.append(cand)
         fed: list[tuple[Candidate, list[View]]] = []
+        interval = self.view_interval_s()  # (once a frame: the same for every candidate)
         for cand in work:
             lm = self.map.get(cand.landmark_id) if cand.landmark_id is not None else None
-            new_views, intrinsics = resolve_pending(cand, stamp, pose, lm, self._bp, p, self.view_interval_s())
+            new_views, intrinsics = resolve_pending(cand, stamp, pose, lm, self._bp, p, interval)
             if intrinsics is not None:
                 self._intrinsics = intrinsics
             if not new_views or len(cand.views) < p.min_views:

@@ -125,11 +125,12 @@ class DetectorService(Service):
             return
         started = time.time()
         # frames of our share that never reached us were left behind upstream of this handler (bounded queue)
+        skips = self._stride_skips(frame.frame_id)
         if self.last_mine >= 0:
-            self._answer_missed(frame, self._owed(frame.frame_id - 1), not self._stride_skips(frame.frame_id))
+            self._answer_missed(frame, self._owed(frame.frame_id - 1), not skips)
         self.last_mine = frame.frame_id
         self._last_frame = frame
-        if self._stride_skips(frame.frame_id):
+        if skips:
             self._publish_skip(frame, frame.frame_id, "stride")
             return
         self._last_detected_id = frame.frame_id
@@ -198,9 +199,9 @@ class DetectorService(Service):
         where `frame`, of the same block, is detected instead (`detects_frame`: late, not lost). So the dropped
         count is the detections real time cost, not every frame the queue passed over."""
         last = self._last_detected_id
-        block = frame.frame_id // max(1, self.every_n)
+        block = frame.frame_id // self.every_n
         for frame_id in missed:
-            late = detects_frame and frame_id // max(1, self.every_n) == block
+            late = detects_frame and frame_id // self.every_n == block
             if late or self._stride_skips(frame_id, last):
                 self._publish_skip(frame, frame_id, "stride")
                 continue
