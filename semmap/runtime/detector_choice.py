@@ -583,8 +583,8 @@ class CadencePlan:
     def every_n(self) -> int:
         ratio = self.interval_ms * self.fps / 1e3  # frames of video per detection
         if self.replicas > 1:
-            # replicas take turns by blocks of every_n frames (the detector service's `owner`), each detecting the
-            # first frame of its block it can: the nearest whole number of frames per detection of them all. At
+            # replicas take turns by blocks of every_n frames (semmap/algorithms/detector/turns.py), each detecting
+            # the first frame of its block it can: the nearest whole number of frames per detection of them all. At
             # every frame two replicas that each need two frames' time fall into step and detect frames n and n+1,
             # then none for three (session 20: one distinct view per 0.13 s where turns give one per 0.07 s)
             return max(1, math.floor(ratio + 0.5))

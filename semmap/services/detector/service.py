@@ -1,7 +1,8 @@
 """Detector service: detections for every frame on `semmap/v1/<robot>/detections`.
 
 Scaling out: each replica holds a liveliness token; the live replicas, sorted by name, share the stream by rank
-in blocks of `every_n_frames` frames (block frame_id // every_n, owned by rank block % n: `owner`), so N replicas
+in blocks of `every_n_frames` frames (block frame_id // every_n, owned by rank block % n: `owner`, with the rest
+of the turn logic in semmap/algorithms/detector/turns.py), so N replicas
 detect each frame once and, with a cadence, take turns (every 2nd frame, 2 replicas: frames 0, 2, 4, 6 go to
 replicas 0, 1, 0, 1, each detected once in its turn, none left to a replica that never detects). Every frame
 gets exactly one `Detections` message, `skipped` ones too (not this frame's turn under `every_n_frames`, dropped
@@ -19,6 +20,7 @@ import zenoh
 
 from semmap.algorithms.detector import create_detector, needs_model, resolve_kind
 from semmap.algorithms.detector.onnx_detector import DetectedBox
+from semmap.algorithms.detector.turns import ReplicaTurns, owner
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, Detections, Frame
 from semmap.runtime.detector_choice import describe_plan, load_detector_model, resolve_setup, setup_plan
@@ -85,7 +87,7 @@ class DetectorService(Service):
         # arrive after the next frame, so a gap already counted as dropped is taken back)
         self._unreadable: set[int] = set()
         self._dropped_ids: set[int] = set()
-        self._last_detected_id: int | None = None
+        self.turns = ReplicaTurns(self.every_n, self.lockstep)  # (which frames of our share are detected)
         self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
@@ -125,7 +127,7 @@ class DetectorService(Service):
             return
         started = time.time()
         # frames of our share that never reached us were left behind upstream of this handler (bounded queue)
-        skips = self._stride_skips(frame.frame_id)
+        skips = self.turns.skips(frame.frame_id)
         if self.last_mine >= 0:
             self._answer_missed(frame, self._owed(frame.frame_id - 1), not skips)
         self.last_mine = frame.frame_id
@@ -133,7 +135,7 @@ class DetectorService(Service):
         if skips:
             self._publish_skip(frame, frame.frame_id, "stride")
             return
-        self._last_detected_id = frame.frame_id
+        self.turns.last_detected = frame.frame_id
         with self.metrics.timer("detect_ms") as t_detect:
             try:
                 boxes = self._detect(frame)
@@ -178,36 +180,13 @@ class DetectorService(Service):
         self._unreadable = {f for f in self._unreadable if f > frame_id - 1000}  # (bounded)
         self._dropped_ids = {f for f in self._dropped_ids if f > frame_id - 1000}
 
-
-    def _stride_skips(self, frame_id: int, last: int | None = None) -> bool:
-        """Lockstep: the first frame of each block of n (every n-th frame by id). Real time: the first frame of
-        our block that reaches us, at least n frames after the last one detected (`last`, default the last
-        detected), so a detector that ran late (its queue handed it a newer frame) takes that frame instead of
-        idling until its next block."""
-        if self.every_n <= 1:
-            return False
-        if self.lockstep:
-            return frame_id % self.every_n != 0
-        last = self._last_detected_id if last is None else last
-        if last is None:
-            return False
-        return frame_id // self.every_n == last // self.every_n or frame_id - last < self.every_n
-
     def _answer_missed(self, frame: Frame, missed: list[int], detects_frame: bool = False) -> None:
-        """Answer frames of our share that never reached the handler: `dropped` where one would have been
-        detected (the first due one of a block), `stride` where the cadence would have skipped it anyway or
-        where `frame`, of the same block, is detected instead (`detects_frame`: late, not lost). So the dropped
-        count is the detections real time cost, not every frame the queue passed over."""
-        last = self._last_detected_id
-        block = frame.frame_id // self.every_n
-        for frame_id in missed:
-            late = detects_frame and frame_id // self.every_n == block
-            if late or self._stride_skips(frame_id, last):
-                self._publish_skip(frame, frame_id, "stride")
-                continue
-            last = frame_id  # (the one it would have detected: the block's later frames are its stride)
-            self._dropped_ids.add(frame_id)
-            self._publish_skip(frame, frame_id, "dropped")
+        """Answer frames of our share that never reached the handler (`ReplicaTurns.passed_over`: `dropped` where
+        a detection was lost, `stride` where the cadence would have skipped it or `frame` is detected instead)."""
+        for frame_id, reason in self.turns.passed_over(frame.frame_id, missed, detects_frame):
+            if reason == "dropped":
+                self._dropped_ids.add(frame_id)
+            self._publish_skip(frame, frame_id, reason)
 
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")
@@ -254,14 +233,6 @@ class DetectorService(Service):
     def teardown(self) -> None:
         self._live_sub.undeclare()
         self._token.undeclare()
-
-
-def owner(frame_id: int, every_n: int, replicas: int) -> int:
-    """The rank of the replica that answers `frame_id`: the one owning its block of `every_n` frames.
-
-    Why blocks and not frame_id % replicas: with a cadence the due frames (one a block) must reach every replica
-    in turn; by frame id alone, 2 replicas and every 2nd frame would hand all due frames to replica 0."""
-    return (frame_id // max(1, every_n)) % max(1, replicas)
 
 
 def main(argv: list[str] | None = None) -> int:
