@@ -1,7 +1,7 @@
 """What a real-time run maps on a machine you do not have: its detection schedule simulated, its map made in process.
 
     .venv/bin/python benchmarks/bench_schedule.py [DATA] --plan 512x384:2:2:120 [--plan 640x480:1:2:67:int8 ...]
-        [--spread 0.25] [--frame-ms 33.3] [--seeds 8] [--reference 640x480] [--json-out F]
+        [--spread 0.25] [--frame-ms 33.3] [--seeds 8] [--reference 640x480] [--json-out F] [--cache-dir D]
 
 A plan is LETTERBOX:EVERY_N:REPLICAS:DETECT_MS[:PRECISION]: the detector's letterbox, the planned cadence (every
 n-th frame), the replicas taking turns, one detection's time *in the run* per replica (the `detector ... ms p50 in
@@ -72,11 +72,12 @@ class Plan:
                 f"{self.detect_ms:g} ms")
 
 
-def recording(data: Path, letterbox: str, precision: str = "fp32") -> inprocess.Recording:
+def recording(data: str, letterbox: str, precision: str = "fp32",
+              cache_dir: Path = inprocess.CACHE_DIR) -> inprocess.Recording:  # fmt: skip
     """Every frame's detections at `letterbox` (cached by the in-process driver)."""
     config = load_config(None, [f"detector.input_size={letterbox}", "detector.every_n_frames=1",
                                 f"detector.precision={precision}"])
-    return inprocess.detect_recording(str(data), 0, config, verbose=False)
+    return inprocess.detect_recording(data, 0, config, cache_dir, verbose=False)
 
 
 def masked(rec: inprocess.Recording, detected: set[int]) -> inprocess.Recording:
@@ -92,28 +93,31 @@ def map_of(rec: inprocess.Recording, letterbox: str) -> list[Landmark]:
     return inprocess.run_loop(rec, config, "gt").mapper.landmarks()
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("data", nargs="?", type=Path, default=None, help="default: ../shared/data/7scenes-redkitchen")
+    ap.add_argument("data", nargs="?", default=None,
+                    help="a dataset folder, or synthetic[:frames=N] (default: ../shared/data/7scenes-redkitchen)")
     ap.add_argument("--plan", type=Plan.parse, action="append", required=True)
     ap.add_argument("--spread", type=float, default=0.25, help="sigma of the log-normal detection times")
     ap.add_argument("--frame-ms", type=float, default=1000 / 30, help="time between frames arriving")
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--reference", default="640x480", help="letterbox of the lockstep reference map")
     ap.add_argument("--json-out", type=Path, default=None)
-    args = ap.parse_args()
+    ap.add_argument("--cache-dir", type=Path, default=inprocess.CACHE_DIR, help="where detections are cached")
+    args = ap.parse_args(argv)
     data = args.data
     if data is None:
         root = find_data_root()
-        data = root / "7scenes-redkitchen" if root is not None else None
-    if data is None or not data.is_dir():
-        print("skipped: 7-Scenes redkitchen not in ../shared/data (or give DATA)", file=sys.stderr)
+        data = str(root / "7scenes-redkitchen") if root is not None else None
+    if data is None or not (data.startswith("synthetic") or Path(data).is_dir()):
+        print(f"skipped: {data or '7-Scenes redkitchen under ../shared/data'} is not there (give DATA)",
+              file=sys.stderr)
         return 0
-    reference = map_of(recording(data, args.reference), args.reference)
+    reference = map_of(recording(data, args.reference, cache_dir=args.cache_dir), args.reference)
     print(f"reference: lockstep at {args.reference}, every frame: {len(reference)} landmarks", flush=True)
     results = []
     for plan in args.plan:
-        rec = recording(data, plan.letterbox, plan.precision)
+        rec = recording(data, plan.letterbox, plan.precision, args.cache_dir)
         video_s = len(rec.detections) * (rec.detections[1].stamp - rec.detections[0].stamp)
         counts, rates, lost = [], [], Counter()
         for seed in range(args.seeds):
