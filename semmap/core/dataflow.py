@@ -96,7 +96,8 @@ TOPICS: tuple[Topic, ...] = (
     Topic("map/query", "(JSON reply)", "the current map, asked for with filters (Zenoh query)"),
     Topic("poses/corrected", "CorrectedPoses", "the pose graph's corrected poses (a delta, or full)"),
     Topic("control", "Control", "stop, end of stream, unreadable frame"),
-    Topic("progress/*", "Progress", "a service finished everything a frame caused"),
+    Topic("progress/*", "Progress", "a service finished everything a frame caused (real time: the newest such "
+          "frame, at most every 0.1 s)"),
     Topic("status/**", "ServiceStatus", "a service instance's state, counters and timings, once a second"),
     Topic("detector/replicas/**", "(liveliness)", "one token per detector replica: they take turns at the frames"),
 )

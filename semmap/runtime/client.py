@@ -203,7 +203,8 @@ class SemmapClient:
                 self._cv.wait(min(left, 0.1))
 
     def frames_done(self, services: Iterable[str] = PIPELINE_SERVICES) -> int:
-        """How many frames (ids 0..n-1) every one of `services` has finished, from their progress messages."""
+        """How many frames (ids 0..n-1) every one of `services` has finished, from their progress messages (a run
+        in real time reports it at most every 0.1 s: up to that much behind)."""
         with self._cv:
             return min((self._progress.get(s, -1) for s in services), default=-1) + 1
 

@@ -79,7 +79,8 @@ class PlayerService(Service):
         self.waiting_since = time.monotonic()
         self.frames_pub = self.publisher(self.bus.keys.frames)
         self.control_pub = self.publisher(self.bus.keys.control)
-        self.listen(self.bus.keys.progress_all, Progress, self._on_progress)
+        if self.lockstep:  # only lockstep paces the frames by the services' progress (real time: the clock)
+            self.listen(self.bus.keys.progress_all, Progress, self._on_progress)
         self.listen(self.bus.keys.status_all, ServiceStatus, self._on_status)
         self.idle_timeout_s = 0.002
         self.log.info("playing %s: %d frames at %.1f Hz, %s", self.dataset.name, self.total, self.dataset.rate_hz,
