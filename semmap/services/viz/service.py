@@ -13,7 +13,8 @@ Entity layout (Rerun 0.41):
 - `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
   `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
   rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
-  `world/camera/depth` every `viz.depth_every` frames.
+  `world/camera/depth` every `viz.depth_every` frames. A frame the detector passed over keeps the last
+  detected frame's boxes.
 - `timings/<service>/<stage>`: per-stage latency time series in ms, on the `frame` timeline, sent in batches once
   a second (`TimingColumns`).
 
@@ -294,6 +295,8 @@ class VizService(Service):
 
     def on_detections(self, det: Detections) -> None:
         rr = self.rr
+        if det.skipped:  # a frame the detector passed over (cadence, overload): the last boxes stay up; clearing
+            return  # them would make the overlay blink at every skipped frame
         self._at(det.frame_id)
         if det.detections:
             rr.log("world/camera/image/detections", rr.Boxes2D(
