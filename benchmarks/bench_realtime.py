@@ -11,7 +11,9 @@
    per run: wall time (and its ratio to the video's length), frames detected, detections per 0.1 s of video,
    dropped frames, frames answered, landmarks (and their share of the lockstep run's), the planned and the
    achieved cadence (and the video time between detected frames as the tracker saw them, all replicas merged:
-   `cadence_ms` p50 / p95 / max), and the load average before the run (the machine is shared: quote medians);
+   `cadence_ms` p50 / p95 / max), the load average before the run (the machine is shared: quote medians), the
+   CPU seconds the detectors got and the other services and `semmap run` itself took (on 2 cores the others'
+   share is what the detectors lack);
    and which of the lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep
    observations; paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another
    way.
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shlex
 import statistics
 import subprocess
@@ -49,9 +52,9 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--odometry", odometry, "--out", str(out),
            "--overwrite", "--quiet"] + (["--realtime", *(extra or [])] if realtime else [])  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    t0 = time.monotonic()
+    t0, cpu0 = time.monotonic(), _children_cpu_s()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
-    wall = time.monotonic() - t0
+    wall, cpu = time.monotonic() - t0, _children_cpu_s() - cpu0  # the run and every service it waited for
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
     stats = json.loads((out / "stats.json").read_text())
@@ -60,6 +63,9 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     answered = sum(s["counters"].get("poses_published", 0) for s in stats["services"].values()
                    if s.get("service") == "odometry")  # fmt: skip
     budget = stats.get("detector_budget") or {}
+    # what the detectors got of the CPU, and what everything else took from them (start-up included)
+    detector_cpu = sum(s.get("cpu_s", 0.0) for s in stats["services"].values() if s.get("service") == "detector")
+    services_cpu = sum(s.get("cpu_s", 0.0) for s in stats["services"].values())
     return {
         "odometry": odometry, "mode": "realtime" if realtime else "lockstep", "wall_s": round(wall, 1),
         "x_video": round(wall / VIDEO_S, 2), "load_before": round(load, 2), "detected": frames["detected"],
@@ -68,8 +74,14 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
         "planned": budget.get("planned", {}).get("every_n_frames"),
         "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
         "cadence_ms": {k: round(v) for k, v in (stats.get("detection_interval_ms") or {}).items()},
-        "detector": budget.get("detector"),
+        "detector": budget.get("detector"), "detector_cpu_s": round(detector_cpu, 1),
+        "others_cpu_s": round(services_cpu - detector_cpu, 1), "run_cpu_s": round(cpu - services_cpu, 1),
     }, mapped
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def missed(reference: list[Landmark], mapped: list[Landmark]) -> list[str]:
@@ -118,10 +130,11 @@ def main() -> int:
                 results.append(r)
                 print(json.dumps(r), flush=True)
     print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
-          f"{'poses':>6} {'landmarks':>10} {'load':>6}")  # fmt: skip
+          f"{'poses':>6} {'landmarks':>10} {'load':>6} {'CPU s: detectors':>17} {'others':>7} {'run':>5}")  # fmt: skip
     for r in results:
         print(f"{r['odometry']:<8} {r['mode']:<9} {r['wall_s']:7.1f} {r['x_video']:8.2f} {r['per_0.1s']:9.2f} "
-              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f}"
+              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f} "
+              f"{r['detector_cpu_s']:17.1f} {r['others_cpu_s']:7.1f} {r['run_cpu_s']:5.1f}"
               + (f"  missed: {', '.join(r['missed']) or 'none'}" if "missed" in r else ""))  # fmt: skip
     for odometry in args.odometry.split(","):
         rt = [r for r in results if r["odometry"] == odometry and r["mode"] == "realtime"]
