@@ -43,7 +43,7 @@ MAX_ERRORS_IN_A_ROW = 10  # handler failures in a row that make a service give u
 HEALTH_FILE = environment.read(environment.HEALTH_FILE) or ""  # containers: touched on each status (runtime.health)
 # real time: a service reports its progress at most this often (the newest frame it finished). Nothing waits on
 # each frame there, and a progress message per frame per service was ~40 % of the messages of a run (two readers,
-# ~0.2 ms of CPU at each end: a tenth of a core on 2 cores, taken from the detector); lockstep sends every one
+# ~0.1-0.3 ms of CPU at each end of each, taken from the detector on 2 cores); lockstep sends every one
 PROGRESS_PERIOD_S = 0.1
 EXIT_BACKSTOP_S = 10  # after SIGTERM / SIGINT, or once run() returned: the kernel ends a process still alive then
 # (Zenoh's native threads can keep a finishing interpreter alive; SIGALRM's default action terminates)
@@ -344,7 +344,7 @@ class Service:
             return True
         for publisher, message in outputs:
             publisher.put(message)
-        self._progress_pub.put(Progress(self.robot, self.name, frame_id))
+        self._put_progress(frame_id)
         self.metrics.count("replays")
         return True
 
@@ -357,7 +357,7 @@ class Service:
             return
         last = self.end_of_stream.last_frame_id if self.end_of_stream is not None else None
         if self.lockstep or frame_id == last:
-            self._progress_pub.put(Progress(self.robot, self.name, frame_id))
+            self._put_progress(frame_id)
             if self._progress_owed is not None and self._progress_owed <= frame_id:
                 self._progress_owed = None
         else:
@@ -366,14 +366,17 @@ class Service:
         if self.end_of_stream is not None and not self.finished:
             self.on_end_of_stream(self.end_of_stream)
 
-    def _send_owed_progress(self, now: float | None = None, force: bool = False) -> None:
+    def _send_owed_progress(self, force: bool = False) -> None:
         """(Real time) report the newest frame done, if one is owed and PROGRESS_PERIOD_S has passed."""
         if self._progress_owed is None or self.muted:
             return
-        now = time.monotonic() if now is None else now
+        now = time.monotonic()
         if force or now - self._progress_sent_at >= PROGRESS_PERIOD_S:
-            self._progress_pub.put(Progress(self.robot, self.name, self._progress_owed))
+            self._put_progress(self._progress_owed)
             self._progress_owed, self._progress_sent_at = None, now
+
+    def _put_progress(self, frame_id: int) -> None:
+        self._progress_pub.put(Progress(self.robot, self.name, frame_id))
 
     def finish(self) -> None:
         """All input handled: write outputs and tell the run so. The service stays up until told to stop."""
