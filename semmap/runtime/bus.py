@@ -34,7 +34,7 @@ import zenoh
 
 from semmap.core import environment
 from semmap.core.keys import EXTERNAL_SENDER, Keys
-from semmap.core.messages import Control, Message, MessageError, Progress, ServiceStatus
+from semmap.core.messages import Control, Message, MessageError, Progress, ServiceStatus, peek_frame_id
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -324,6 +324,18 @@ class Inbox:
             return len(self._items)
 
 
+def passes_over(sample: zenoh.Sample, wanted: Callable[[int], bool]) -> bool:
+    """Whether a reader passes `sample` over: its frame id (read unchecked) is one `wanted` refuses. A sample
+    without a readable id, or a `wanted` that fails, is taken (and checked in full)."""
+    frame_id = peek_frame_id(sample.payload.to_bytes())
+    if frame_id is None:
+        return False
+    try:
+        return not wanted(frame_id)
+    except Exception:  # noqa: BLE001 - the check in full decides such a sample
+        return False
+
+
 class LatestSamples:
     """The newest `capacity` raw samples of a subscription, for a reader thread that checks and decodes them.
 
@@ -400,7 +412,8 @@ class Bus:
         self._undeclare.append(pub)
         return Publisher(pub, self.trust, key)
 
-    def subscribe(self, key: str, kind: type[M], on_message: Callable[[M], None], latest: int | None = None) -> None:
+    def subscribe(self, key: str, kind: type[M], on_message: Callable[[M], None], latest: int | None = None,
+                  wanted: Callable[[int], bool] | None = None) -> None:
         """Check and decode every sample on `key`; a refused or bad one is logged and counted, never raised.
 
         In a run (`trust.key`): the signature, the run id, the sender's right to the key; always: the size and
@@ -409,7 +422,14 @@ class Bus:
         `latest`: at most this many samples wait to be checked and decoded, the oldest are dropped (counted in
         `dropped[<topic>]`); for real-time streams a reader cannot always keep up with (frames). Without it a
         slow reader's samples queue in Zenoh's Python callback channel, 256 of them (384 MB of 7-Scenes frames,
-        seconds late), before Zenoh slows the publisher down (see `LatestSamples`)."""
+        seconds late), before Zenoh slows the publisher down (see `LatestSamples`).
+
+        `wanted`: which frame ids this reader takes; the others are passed over on arrival, before the signature
+        check, the decode and the queue (`passes_over`). Why: a detector replica takes only its share of the frames
+        and the backend only keyframes; checking and decoding a 140 KB frame costs ~0.6 ms of CPU, and in real time
+        a frame it passes over anyway would take the queue's place from the newest one it wants. The id is read
+        unchecked (`peek_frame_id`): a forged message can make a reader pass over only itself (a forged frame it
+        does not want is not counted here as rejected; the readers that take it count it)."""
         max_bytes = SMALL_MESSAGE_BYTES if issubclass(kind, SMALL_KINDS) else None
         limit = RateLimit(self.rate_hz)
         trust = self.trust
@@ -450,11 +470,20 @@ class Bus:
             on_message(message)
 
         if latest is None:
-            self._undeclare.append(self.session.declare_subscriber(key, callback))
+            if wanted is None:
+                self._undeclare.append(self.session.declare_subscriber(key, callback))
+            else:
+                self._undeclare.append(self.session.declare_subscriber(
+                    key, lambda sample: None if passes_over(sample, wanted) else callback(sample)))
             return
         box = LatestSamples(latest)
+
+        def arrived(sample: zenoh.Sample) -> None:
+            if wanted is None or not passes_over(sample, wanted):
+                box.put(sample)
+
         # (not indirect: the put runs on Zenoh's receiving thread, so no channel of its own queues samples first)
-        self._undeclare.append(self.session.declare_subscriber(key, zenoh.handlers.Callback(box.put, indirect=False)))
+        self._undeclare.append(self.session.declare_subscriber(key, zenoh.handlers.Callback(arrived, indirect=False)))
         self._boxes[self.keys.topic(key)] = box
         threading.Thread(target=box.drain, args=(callback,), name=f"latest {key}", daemon=True).start()
 

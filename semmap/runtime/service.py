@@ -246,9 +246,10 @@ class Service:
 
     # -- helpers for subclasses -------------------------------------------------------------------------------
     def listen(self, key: str, kind: type[M], handler: Callable[[M], None],
-               realtime_capacity: int | None = None) -> None:
+               realtime_capacity: int | None = None, wanted: Callable[[int], bool] | None = None) -> None:
         """Handle `kind` messages from `key`. Lockstep queues everything (the player paces the run); in real time
-        a stream with `realtime_capacity` keeps only that many waiting, dropping the oldest (frames: stay live)."""
+        a stream with `realtime_capacity` keeps only that many waiting, dropping the oldest (frames: stay live).
+        `wanted`: the frame ids the handler takes; the rest are passed over as they arrive (`Bus.subscribe`)."""
         stream = f"{key}#{kind.SCHEMA}"
         capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
@@ -272,7 +273,7 @@ class Service:
         self._handlers[stream] = checked
         self.inbox.add_stream(stream, capacity)
         # real time: as many again may wait undecoded in the bus (the newest; older ones are dropped unread)
-        self.bus.subscribe(key, kind, arrived, latest=capacity if capacity < QUEUE_CAPACITY else None)
+        self.bus.subscribe(key, kind, arrived, latest=capacity if capacity < QUEUE_CAPACITY else None, wanted=wanted)
 
     def _frame_id_plausible(self, stream: str, topic: str, message: Message) -> bool:
         """Frame ids move forward within a window: one more than `max_frame_gap` from the newest accepted on

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from semmap.core.messages import Frame, Intrinsics
-from semmap.runtime.bus import Bus, BusConfig, LatestSamples
+from semmap.runtime.bus import Bus, BusConfig, LatestSamples, RunTrust
 from semmap.runtime.orchestrator import free_loopback_port
 
 VGA = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
@@ -91,3 +91,67 @@ def test_a_stuck_reader_holds_at_most_latest_frames() -> None:
         release.set()
         sender.close()
         receiver.close()
+
+
+def test_frames_a_reader_does_not_want_never_take_the_place_of_one_it_does() -> None:
+    """A detector replica takes only its share (`wanted`): the others' frames are passed over as they arrive,
+    before the signature check and the queue, so the newest frame *of its share* waits for it, and nothing it
+    passed over counts as dropped. A forged frame it wants is still refused and counted."""
+    hub = f"tcp/127.0.0.1:{free_loopback_port()}"
+    secret = bytes.fromhex(RunTrust.new_secret())
+    receiver = Bus(BusConfig(mode="peer", listen=[hub]), "memrobot", RunTrust("run1", secret, "detector"))
+    sender = Bus(BusConfig(mode="peer", connect=[hub], listen=[]), "memrobot", RunTrust("run1", secret, "player"))
+    forger = Bus(BusConfig(mode="peer", connect=[hub], listen=[]), "memrobot",
+                 RunTrust("run1", bytes.fromhex(RunTrust.new_secret()), "player"))
+    release = threading.Event()
+    try:
+        got: list[int] = []
+        plain: list[int] = []
+
+        def on_frame(frame: Frame) -> None:
+            got.append(frame.frame_id)
+            release.wait(30.0)  # the first frame keeps the reader busy until the rest were sent
+
+        ours = (lambda frame_id: frame_id % 4 < 2)  # noqa: E731 - replica 0 of 2, every 2nd frame: 0-1, 4-5, 8-9
+        receiver.subscribe(receiver.keys.frames, Frame, on_frame, latest=1, wanted=ours)
+        receiver.subscribe(receiver.keys.frames, Frame, lambda frame: plain.append(frame.frame_id), wanted=ours)
+        pub, forged = sender.publisher(sender.keys.frames), forger.publisher(forger.keys.frames)
+        assert pub.wait_matching(10.0) and forged.wait_matching(10.0)
+        rng = np.random.default_rng(0)
+        frame = _frame(0, rng)
+        deadline = time.monotonic() + 10.0
+        zero_puts = 0
+        while not got and time.monotonic() < deadline:  # (a route still being set up may lose the first puts)
+            pub.put(frame)
+            zero_puts += 1
+            time.sleep(0.2)
+        assert got == [0], "frame 0 never arrived"
+        for i in range(1, 12):  # 4, 5, 8, 9 are ours; 10 and 11, the newest, are not
+            frame.frame_id = i
+            pub.put(frame)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and len(plain) < 6 + len(got):  # (frame 0 may have come more than once)
+            time.sleep(0.05)
+        time.sleep(0.2)
+        release.set()
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and len(got) < 2:
+            time.sleep(0.05)
+        assert got == [0, 9], "the newest frame of its share waited, not frame 11 of the other replica"
+        # 1, 4, 5 and 8 were dropped for 9 (and a frame 0 put again while the first was in flight); the others'
+        # frames were not counted
+        assert 4 <= receiver.dropped["frames"] <= 3 + zero_puts
+        assert sorted(set(plain)) == [0, 1, 4, 5, 8, 9]
+        for i in (12, 14):  # forged: 12 is ours (refused and counted by both readers), 14 is not (passed over)
+            frame.frame_id = i
+            forged.put(frame)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and sum(receiver.rejected.values()) < 2:
+            time.sleep(0.05)
+        time.sleep(0.2)
+        assert receiver.rejected == {"rejected_bad_signature[frames]": 2}, receiver.rejected
+        assert got == [0, 9] and 12 not in plain
+    finally:
+        release.set()
+        for bus in (forger, sender, receiver):
+            bus.close()

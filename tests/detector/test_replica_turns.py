@@ -53,6 +53,14 @@ def test_a_simulated_overrun_takes_the_late_frame_of_its_turn_or_loses_the_turn(
     assert simulate(8, 2, 1, lambda f: 0.140 if f == 0 else 0.01, 1 / 30)[:2] == [0, 4]
 
 
+def test_another_replicas_frame_never_takes_the_queue_place_of_a_late_frame_of_ones_own_turn() -> None:
+    # 2 replicas, every 2nd frame: replica 0 owns frames 0-1, 4-5, 8-9; frame 0 takes 210 ms, past frame 4 (133 ms),
+    # frame 5 (167 ms) and replica 1's frame 6 (200 ms). Its queue held frame 5, the late frame of its turn, because
+    # frame 6 is passed over on arrival (the service's `wanted`): a queue of any frame would have lost the turn.
+    got = simulate(12, 2, 2, lambda f: 0.210 if f == 0 else 0.01, 1 / 30)
+    assert got == [0, 2, 5, 6, 8, 10]
+
+
 def test_slow_replicas_detect_less_often_and_never_a_frame_twice() -> None:
     rng = np.random.default_rng(0)
     times = rng.lognormal(np.log(0.150), 0.25, size=1000)

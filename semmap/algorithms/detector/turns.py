@@ -74,7 +74,8 @@ def simulate(
     frame_interval_s: float,
 ) -> list[int]:
     """The frames a real-time run's `replicas` detect, in order: frame k arrives at k * `frame_interval_s`; each
-    replica's queue holds the newest frame (the service's `detector.queue: 1`), and it detects a frame of its share
+    replica's queue holds the newest frame of its share (the service's `detector.queue: 1`; the others' frames are
+    passed over as they arrive, so they never take its place), and it detects a frame of its share
     as `ReplicaTurns.skips` allows, busy for `detect_s(frame_id)` seconds. Why a simulation: which frames get
     detected, not how many, decides what is mapped (evenly spaced detections give more distinct views than the
     same number in pairs), and it follows from the turn logic and the detector's times alone."""
@@ -93,6 +94,8 @@ def simulate(
     for frame_id in range(frames):
         now = frame_id * frame_interval_s
         for rank in range(replicas):
+            if owner(frame_id, every_n, replicas) != rank:
+                continue
             # a queued frame first, as soon as the detection before it ended (in order of when that was)
             if waiting[rank] is not None and busy_until[rank] <= now:
                 queued, waiting[rank] = waiting[rank], None

@@ -24,6 +24,7 @@ from .base import (
     PngImage,
     decode_array,
     encode_array,
+    peek_frame_id,
     pose_to_wire,
     validate_pose,
 )
@@ -63,5 +64,5 @@ __all__ = [
     "DynamicObjects", "Frame", "GroundTruthInstance", "ImageCodec", "Intrinsics", "Landmark", "MapAlignment",
     "MapUpdate", "Measurement", "Message", "MessageError", "Observation", "Observations", "OdometryPose", "Part",
     "PngImage", "Progress", "ServiceStatus", "TagDetection", "TagDetections", "TrackedBox", "Tracks",
-    "decode_array", "encode_array", "image_codec", "pose_to_wire", "use_image_codec", "validate_pose",
+    "decode_array", "encode_array", "image_codec", "peek_frame_id", "pose_to_wire", "use_image_codec", "validate_pose",
 ]

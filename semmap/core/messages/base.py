@@ -418,3 +418,24 @@ def _schema_problem(cls: type[Message], payload: bytes | bytearray | memoryview)
     if isinstance(schema, str) and schema.partition("/")[0] == cls.SCHEMA.partition("/")[0]:
         return f"unsupported version {schema!r}: this build reads {cls.SCHEMA!r}"
     return f"expected schema {cls.SCHEMA!r}, got {schema!r}"
+
+
+class _FrameIdOnly(msgspec.Struct):
+    """A message map read for its `frame_id` alone (every other field is skipped, nothing is copied)."""
+
+    frame_id: int
+
+
+_FRAME_ID_ONLY = msgspec.msgpack.Decoder(_FrameIdOnly)
+
+
+def peek_frame_id(payload: bytes | bytearray | memoryview) -> int | None:
+    """The `frame_id` of an encoded message without decoding or checking it (None where there is none to read).
+
+    Why: a reader that wants only some frames (a detector replica its share, the backend its keyframes) can pass
+    over the rest before paying for the signature check and the decode (~0.6 ms of CPU for a 140 KB frame). The
+    id is not trusted for anything else: the message is still checked in full where it is taken."""
+    try:
+        return _FRAME_ID_ONLY.decode(payload).frame_id
+    except (msgspec.MsgspecError, ValueError, RecursionError):
+        return None

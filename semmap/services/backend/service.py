@@ -82,7 +82,8 @@ class BackendService(StageService):
         self.listen(self.bus.keys.odometry, OdometryPose, self.receive)
         self.listen(self.bus.keys.observations, Observations, self.on_observations)
         if self.closer.params.enabled:
-            self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE)
+            self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE,
+                        wanted=lambda fid: self.closer.wants(fid))  # keyframes only: the rest pass unread
             if self.mask_dynamic:
                 self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
 

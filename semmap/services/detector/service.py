@@ -91,7 +91,9 @@ class DetectorService(Service):
         self._last_detected_stamp: float | None = None  # for the detection cadence (video time between detections)
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg.queue)))
+        # only our share reaches the queue: another replica's frame would take the place of the newest of ours
+        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg.queue)),
+                    wanted=self._ours)
         deadline = time.monotonic() + 5.0
         while time.monotonic() - self._members_changed < MEMBERSHIP_SETTLE_S and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -118,12 +120,16 @@ class DetectorService(Service):
             members = sorted(self._members | {self.instance})
         return members.index(self.instance), len(members)
 
+    def _ours(self, frame_id: int) -> bool:
+        """Whether `frame_id` is in this replica's share (as the live replicas stand now)."""
+        rank, n = self._rank()
+        return owner(frame_id, self.every_n, n) == rank
+
     def _detect(self, frame: Frame) -> list[DetectedBox]:
         return self.detector.detect_frame(frame)
 
     def on_frame(self, frame: Frame) -> None:
-        rank, n = self._rank()
-        if owner(frame.frame_id, self.every_n, n) != rank:
+        if not self._ours(frame.frame_id):  # (the replicas changed since it arrived)
             return
         started = time.time()
         # frames of our share that never reached us were left behind upstream of this handler (bounded queue)
