@@ -14,7 +14,7 @@ Entity layout (Rerun 0.41):
   `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
   rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
   `world/camera/depth` every `viz.depth_every` frames. A frame the detector passed over keeps the last
-  detected frame's boxes.
+  detected frame's boxes, detected and tracked.
 - `timings/<service>/<stage>`: per-stage latency time series in ms, on the `frame` timeline, sent in batches once
   a second (`TimingColumns`).
 
@@ -309,6 +309,10 @@ class VizService(Service):
 
     def on_tracks(self, tracks: Tracks) -> None:
         rr = self.rr
+        if "proposal" in tracks.timing_ms:
+            self.timings.add("timings/tracker/proposal", tracks.frame_id, tracks.timing_ms["proposal"])
+        if tracks.skipped:  # a frame the detector passed over carries no boxes: the last tracked ones stay up, as
+            return  # the detections do (clearing them made the overlay blink at every skipped frame)
         self._at(tracks.frame_id)
         if tracks.boxes:
             states = ["rejected" if b.track_id in self.rejected else "candidate" if b.candidate else "tentative"
@@ -319,8 +323,6 @@ class VizService(Service):
                 colors=[TRACK_COLORS[s] for s in states]))
         else:
             rr.log("world/camera/image/tracks", rr.Clear(recursive=False))
-        if "proposal" in tracks.timing_ms:
-            self.timings.add("timings/tracker/proposal", tracks.frame_id, tracks.timing_ms["proposal"])
 
     def on_map(self, update: MapUpdate) -> None:
         with self.metrics.timer("log_map_ms"):
