@@ -9,7 +9,10 @@ Entity layout (Rerun 0.41):
   it touched, so drawing costs the same per frame in a kitchen and on a street of thousands of landmarks (one
   batch of all of them every frame grew the recording and the viewer's work with the map's size), and a tile's
   labels stay few enough for Rerun to show them.
-- `world/trajectory/odometry`, `world/trajectory/optimized`: camera paths as line strips.
+- `world/trajectory/odometry/part_<n>`, `world/trajectory/optimized/part_<n>`: camera paths as line strips, one per
+  `PATH_PART_FRAMES` frame ids (each joined to the next one's first point). Why parts: a redraw re-logs only the
+  parts whose poses changed, so it costs the same an hour into a run as at its start (one strip of the whole path
+  at every redraw grew the viewer's work and the recording with the square of the run's length).
 - `world/camera`: the current camera pose and pinhole; `world/camera/image` the RGB frame (JPEG as sent),
   `.../detections` (yellow) and `.../tracks` as 2D boxes: tentative tracklets grey, candidates green,
   rejected candidates (moving / unstable) red; `world/rejected` logs each rejection;
@@ -48,6 +51,8 @@ from semmap.runtime.service import Service, service_main
 OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
 TIMINGS_SEND_PERIOD_S = 1.0  # the latency plot's samples go to Rerun in a batch this often (and at the end)
 MAP_TILE_M = 16.0  # landmarks are drawn in cubes of this size; an update re-logs the cubes it touched
+PATH_UNMOVED_M = 1e-3  # a camera position that moved less than this is not drawn again
+PATH_PART_FRAMES = 1000  # camera paths are drawn in strips of this many frame ids; a redraw re-logs those it touched
 LABEL_GAP_M = 0.12  # labels closer than this (horizontally and vertically) would overlap: the later is raised
 CORE_RADIUS_M = (0.03, 0.06)  # the centroid sphere: a fifth of the landmark's radius, within these bounds
 
@@ -137,6 +142,60 @@ class MapTiles:
         return out
 
 
+class PathParts:
+    """A camera path (frame id -> position) kept as parts of `PATH_PART_FRAMES` frame ids, and which parts changed
+    since they were last drawn (`take`). A part's strip ends at the next part's first point, so the strips join;
+    a new first point of a part therefore also changes the part before it."""
+
+    def __init__(self, part_frames: int = PATH_PART_FRAMES) -> None:
+        self.part_frames = part_frames
+        self.parts: dict[int, dict[int, np.ndarray]] = {}
+        self.first: dict[int, int] = {}  # per part, its smallest frame id
+        self.changed: set[int] = set()
+        self.drawn: set[int] = set()  # parts whose strip was taken (and so is on screen)
+
+    def set(self, frame_id: int, position: np.ndarray) -> None:
+        """A frame's position; one within `PATH_UNMOVED_M` of the drawn one changes nothing (the backend's
+        rolling refresh re-sends poses that did not move)."""
+        part = frame_id // self.part_frames
+        points = self.parts.setdefault(part, {})
+        position = np.asarray(position, float)[:3]
+        old = points.get(frame_id)
+        if old is not None and float(np.abs(old - position).max()) <= PATH_UNMOVED_M:
+            return
+        points[frame_id] = position.copy()
+        self.changed.add(part)
+        if frame_id <= self.first.get(part, frame_id):
+            self.first[part] = frame_id
+            self.changed.add(part - 1)
+
+    def reset(self, positions: dict[int, np.ndarray]) -> None:
+        """Replace the whole path (every part drawn again; parts left empty are to be cleared)."""
+        self.changed |= set(self.parts)
+        self.parts.clear()
+        self.first.clear()
+        for frame_id in sorted(positions):
+            self.set(frame_id, positions[frame_id])
+
+    def take(self) -> dict[int, np.ndarray]:
+        """Each changed part's strip (N x 3, in frame order; empty: the part has no frame now), and forget them."""
+        out: dict[int, np.ndarray] = {}
+        for part in sorted(self.changed):
+            points = self.parts.get(part)
+            if points is None:
+                if part in self.drawn:  # emptied by a reset: its strip is to go
+                    out[part] = np.empty((0, 3))
+                    self.drawn.discard(part)
+                continue
+            strip = [points[f] for f in sorted(points)]
+            if part + 1 in self.first:
+                strip.append(self.parts[part + 1][self.first[part + 1]])
+            out[part] = np.array(strip)
+            self.drawn.add(part)
+        self.changed.clear()
+        return out
+
+
 def blueprint(up: np.ndarray | None = None, centre: np.ndarray | None = None, span: float = 4.0) -> object:
     """Map, top-down view (looking along -up at `centre` from `span` metres; world Z-up until a pose tells) and
     the camera, with the latency plot in a tab behind it."""
@@ -207,6 +266,7 @@ class VizService(Service):
         self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
         self.optimized: dict[int, np.ndarray] = {}  # frame id -> corrected pose (the backend sends deltas)
         self.optimized_drawn_at = 0.0
+        self.odometry_path, self.optimized_path = PathParts(), PathParts()  # what is drawn of each, by part
         self.correction: tuple[np.ndarray, np.ndarray] | None = None  # (corrected, odometry) of one frame
         self.map_frame = -1
         self.pinhole = None  # the intrinsics last logged
@@ -267,16 +327,21 @@ class VizService(Service):
         # show the camera where the optimised map puts it: the newest correction applied to the odometry
         current = pose.pose if self.correction is None else carry_correction(*self.correction, pose.pose)
         rr.log("world/camera", rr.Transform3D(translation=current[:3, 3], mat3x3=current[:3, :3]))
+        self.odometry_path.set(pose.frame_id, pose.pose[:3, 3])
         if pose.frame_id % 5 == 0:
-            path = np.array([self.odometry[i][:3, 3] for i in sorted(self.odometry)])
-            rr.log("world/trajectory/odometry", rr.LineStrips3D([path], colors=[(230, 120, 30)], radii=0.005))
+            self._draw_path("world/trajectory/odometry", self.odometry_path, (230, 120, 30), 0.005)
 
     def on_corrected(self, poses: CorrectedPoses) -> None:
-        poses.apply_to(self.optimized)
+        changed = poses.apply_to(self.optimized)
+        if poses.full:
+            self.optimized_path.reset({f: pose[:3, 3] for f, pose in self.optimized.items()})
+        else:
+            for frame_id in changed:
+                self.optimized_path.set(frame_id, self.optimized[frame_id][:3, 3])
         if len(poses.poses) == 0:
             return
         self._at(poses.frame_id)
-        # the whole path is O(trajectory) to draw: at most twice a second (and whenever a full message comes)
+        # at most twice a second (and whenever a full message comes): a loop closure moves many parts of the path
         now = time.monotonic()
         if poses.full or now - self.optimized_drawn_at >= OPTIMIZED_DRAW_PERIOD_S:
             self.optimized_drawn_at = now
@@ -288,10 +353,16 @@ class VizService(Service):
             self.timings.add(f"timings/backend/{name}", poses.frame_id, ms)
 
     def _draw_optimized(self) -> None:
-        if self.optimized:
-            path = np.array([self.optimized[f][:3, 3] for f in sorted(self.optimized)])
-            self.rr.log("world/trajectory/optimized", self.rr.LineStrips3D([path], colors=[(40, 140, 255)],
-                                                                           radii=0.006))
+        self._draw_path("world/trajectory/optimized", self.optimized_path, (40, 140, 255), 0.006)
+
+    def _draw_path(self, entity: str, path: PathParts, color: tuple[int, int, int], radius: float) -> None:
+        """Re-log the parts of a camera path that changed since it was last drawn (`PathParts`)."""
+        rr = self.rr
+        for part, strip in path.take().items():
+            if len(strip):
+                rr.log(f"{entity}/part_{part}", rr.LineStrips3D([strip], colors=[color], radii=radius))
+            else:
+                rr.log(f"{entity}/part_{part}", rr.Clear(recursive=False))
 
     def on_detections(self, det: Detections) -> None:
         rr = self.rr
