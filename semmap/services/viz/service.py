@@ -48,7 +48,7 @@ from semmap.core.messages import (
 )
 from semmap.runtime.service import Service, service_main
 
-OPTIMIZED_DRAW_PERIOD_S = 0.5  # redraw of the whole optimised path (it grows with the run)
+OPTIMIZED_DRAW_PERIOD_S = 0.5  # the optimised path is redrawn (the parts that moved) at most this often
 TIMINGS_SEND_PERIOD_S = 1.0  # the latency plot's samples go to Rerun in a batch this often (and at the end)
 MAP_TILE_M = 16.0  # landmarks are drawn in cubes of this size; an update re-logs the cubes it touched
 PATH_UNMOVED_M = 1e-3  # a camera position that moved less than this is not drawn again
