@@ -469,21 +469,19 @@ class Bus:
             message.sender = sender
             on_message(message)
 
-        if latest is None:
+        def taken(deliver: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sample], None]:
+            """`deliver`, for the samples this reader wants."""
             if wanted is None:
-                self._undeclare.append(self.session.declare_subscriber(key, callback))
-            else:
-                self._undeclare.append(self.session.declare_subscriber(
-                    key, lambda sample: None if passes_over(sample, wanted) else callback(sample)))
+                return deliver
+            return lambda sample: None if passes_over(sample, wanted) else deliver(sample)
+
+        if latest is None:
+            self._undeclare.append(self.session.declare_subscriber(key, taken(callback)))
             return
         box = LatestSamples(latest)
-
-        def arrived(sample: zenoh.Sample) -> None:
-            if wanted is None or not passes_over(sample, wanted):
-                box.put(sample)
-
         # (not indirect: the put runs on Zenoh's receiving thread, so no channel of its own queues samples first)
-        self._undeclare.append(self.session.declare_subscriber(key, zenoh.handlers.Callback(arrived, indirect=False)))
+        self._undeclare.append(self.session.declare_subscriber(
+            key, zenoh.handlers.Callback(taken(box.put), indirect=False)))
         self._boxes[self.keys.topic(key)] = box
         threading.Thread(target=box.drain, args=(callback,), name=f"latest {key}", daemon=True).start()
 

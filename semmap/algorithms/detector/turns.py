@@ -84,8 +84,8 @@ def simulate(
     waiting: list[int | None] = [None] * replicas  # the newest frame queued while busy
     detected: list[int] = []
 
-    def handle(rank: int, frame_id: int, now: float) -> None:
-        if owner(frame_id, every_n, replicas) != rank or turns[rank].skips(frame_id):
+    def handle(rank: int, frame_id: int, now: float) -> None:  # (only frames of the replica's share come here)
+        if turns[rank].skips(frame_id):
             return
         turns[rank].last_detected = frame_id
         detected.append(frame_id)
