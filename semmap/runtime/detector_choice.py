@@ -243,6 +243,17 @@ def model_bytes(precision: str, hw: tuple[int, int], model_dir: Path | None = No
     return resize_input(model, hw).SerializeToString()
 
 
+def detections_down_to(detector: Any, images: Sequence[Any], floor: float) -> list[list[Any]]:
+    """Every image's boxes down to the score `floor` (the detector's own threshold is restored after), so that
+    `agreement` can tell a tie at the threshold from a disagreement."""
+    conf = detector.conf
+    detector.conf = floor
+    try:
+        return [detector.detect(img) for img in images]
+    finally:
+        detector.conf = conf
+
+
 def measure_configs(
     images: Sequence[Any],
     configs: Sequence[DetectorConfigChoice],
@@ -258,12 +269,8 @@ def measure_configs(
     def detector(c: DetectorConfigChoice, blob: bytes) -> OnnxDetector:
         return OnnxDetector(blob, conf=conf, iou=iou, threads=c.threads)
 
-    def low(det: OnnxDetector) -> list[Any]:  # every image's boxes down to conf - TIE_MARGIN
-        det.conf = conf - TIE_MARGIN
-        try:
-            return [det.detect(img) for img in images]
-        finally:
-            det.conf = conf
+    def low(det: OnnxDetector) -> list[Any]:
+        return detections_down_to(det, images, conf - TIE_MARGIN)
 
     blobs: dict[tuple[str, tuple[int, int]], bytes] = {}
     outputs: dict[tuple[str, tuple[int, int]], list[Any]] = {}

@@ -23,6 +23,7 @@ from semmap.algorithms.detector.onnx_detector import (
     xywh_to_xyxy,
 )
 from semmap.datasets.images import read_depth_u16, read_rgb
+from semmap.runtime.detector_choice import detections_down_to
 
 # --- synthetic models --------------------------------------------------------------------------------------
 
@@ -133,6 +134,27 @@ def test_a_class_of_its_own_threshold_keeps_what_the_common_one_drops(request, f
     typo = OnnxDetector(request.getfixturevalue(fixture), threads=1, class_confidence={"pedestrian": 0.2})
     assert typo.unknown_confidence_classes == ["pedestrian"]  # (the detector service logs them at start)
     assert [b.class_name for b in typo.detect(IMAGE)] == ["car", "bicycle"]
+
+
+def test_a_threshold_lowered_after_construction_reaches_the_decode(v5_model):
+    """`semmap models doctor` lowers `conf` on a built detector to see the boxes just under the threshold (a tie,
+    not a disagreement). The per-class thresholds are derived from `conf`; when a change did not reach them, the
+    doctor read every tie as a disagreement and on an AVX2-only CPU no smaller letterbox agreed any more."""
+    det = OnnxDetector(v5_model, conf=0.4, threads=1)
+    assert [b.class_name for b in det.detect(IMAGE)] == ["car", "bicycle"]
+    det.conf = 0.25
+    assert [(b.class_name, round(b.score, 3)) for b in det.detect(IMAGE)] == [("car", 0.9), ("bicycle", 0.7),
+                                                                              ("person", 0.3)]  # fmt: skip
+    assert [[b.class_name for b in boxes] for boxes in detections_down_to(det, [IMAGE], 0.25)] == [
+        ["car", "bicycle", "person"]
+    ]
+    det.conf = 0.4
+    assert det.conf == 0.4 and [b.class_name for b in det.detect(IMAGE)] == ["car", "bicycle"]
+    own = OnnxDetector(v5_model, conf=0.4, threads=1, class_confidence={"car": 0.95})
+    assert [[b.class_name for b in boxes] for boxes in detections_down_to(own, [IMAGE], 0.25)] == [
+        ["bicycle", "person"]
+    ]  # a class of its own threshold keeps it
+    assert own.conf == 0.4 and [b.class_name for b in own.detect(IMAGE)] == ["bicycle"]
 
 
 def test_allow_and_deny_lists(v8_model):

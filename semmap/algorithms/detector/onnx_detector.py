@@ -183,7 +183,6 @@ class OnnxDetector:
         self.model_path = Path("<in memory>") if model_bytes is not None else Path(model_path)  # type: ignore[arg-type]
         if model_bytes is None and not self.model_path.is_file():
             raise FileNotFoundError(f"ONNX model not found: {self.model_path}")
-        self.conf = float(conf)
         self.iou = float(iou)
         self.imgsz = int(imgsz)
         so = ort.SessionOptions()
@@ -219,10 +218,24 @@ class OnnxDetector:
         self._class_ok = self._class_mask(allow, deny)
         # classes given a threshold that this model cannot detect (a typo, or a model of other classes): the
         # threshold is moot, the service says so at start (not an error: the default names `person`)
-        own = class_confidence or {}
-        self.unknown_confidence_classes = sorted(set(own) - set(self.names))
+        self._class_confidence = dict(class_confidence or {})
+        self.unknown_confidence_classes = sorted(set(self._class_confidence) - set(self.names))
+        self.conf = conf  # (sets the per-class thresholds)
+
+    @property
+    def conf(self) -> float:
+        """The common confidence threshold."""
+        return self._conf
+
+    @conf.setter
+    def conf(self, value: float) -> None:
+        """Why a setter: the per-class thresholds are derived from `conf` once, not per detection, so a change of
+        `conf` after construction must re-derive them (`semmap models doctor` lowers it to see the ties at the
+        threshold; when it did not reach the thresholds, every tie read as a disagreement). A class given its own
+        threshold keeps it."""
+        self._conf = float(value)
         # per class, the score a detection must exceed: `conf`, or that class's own threshold
-        self._threshold = np.array([float(own.get(n, self.conf)) for n in self.names])
+        self._threshold = np.array([float(self._class_confidence.get(n, self._conf)) for n in self.names])
         self._prefilter = float(self._threshold.min())
 
     # -- set-up helpers ----------------------------------------------------------------------------------
