@@ -29,7 +29,8 @@ from semmap.runtime.model_store import INT8_FILENAME, default_model_path, get_mo
 log = logging.getLogger(__name__)
 
 CHOICE_FILENAME = "detector_choice.json"
-CHOICE_VERSION = 3  # 2: with the layouts (replicas x threads) of the choice; 3: the most faithful that keeps up
+CHOICE_VERSION = 4  # 2: with the layouts (replicas x threads) of the choice; 3: the most faithful that keeps up;
+# 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2)
 AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
 FAITHFUL_SHARE = 0.5  # `choose`: the most faithful configuration that still detects every 2nd frame in real time
 TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
