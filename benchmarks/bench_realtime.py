@@ -16,7 +16,7 @@
    share is what the detectors lack);
    and which of the lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep
    observations; paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another
-   way.
+   way; and which it mapped that lockstep did not (`gained`): a count is made of both.
 """
 
 from __future__ import annotations
@@ -84,11 +84,13 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def missed(reference: list[Landmark], mapped: list[Landmark]) -> list[str]:
-    """The reference map's landmarks that `mapped` (same frame) lacks, as `semmap diff` pairs them (no pairing of
-    far-apart ones as moved): "class @first-seen s (observations)"."""
-    lost = diff_maps(reference, mapped, MatchParams(move_radius_m=0.0)).missing
-    return [f"{lm.class_name} @{lm.first_seen:.1f}s ({lm.observations})" for lm in lost]
+def missed_and_gained(reference: list[Landmark], mapped: list[Landmark]) -> tuple[list[str], list[str]]:
+    """The reference map's landmarks that `mapped` (same frame) lacks, and those it has that the reference lacks, as
+    `semmap diff` pairs them (no pairing of far-apart ones as moved): "class @first-seen s (observations)". A count
+    of landmarks is the reference's less the missed plus the gained: which objects make it up says more."""
+    diff = diff_maps(reference, mapped, MatchParams(move_radius_m=0.0))
+    return ([f"{lm.class_name} @{lm.first_seen:.1f}s ({lm.observations})" for lm in diff.missing],
+            [f"{lm.class_name} @{lm.first_seen:.1f}s ({lm.observations})" for lm in diff.added])  # fmt: skip
 
 
 def main() -> int:
@@ -126,7 +128,7 @@ def main() -> int:
                 r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True, shlex.split(args.realtime_args))
                 if lock:
                     r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
-                    r["missed"] = missed(lock_map, mapped)
+                    r["missed"], r["gained"] = missed_and_gained(lock_map, mapped)
                 results.append(r)
                 print(json.dumps(r), flush=True)
     print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
@@ -135,7 +137,8 @@ def main() -> int:
         print(f"{r['odometry']:<8} {r['mode']:<9} {r['wall_s']:7.1f} {r['x_video']:8.2f} {r['per_0.1s']:9.2f} "
               f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f} "
               f"{r['detector_cpu_s']:17.1f} {r['others_cpu_s']:7.1f} {r['run_cpu_s']:5.1f}"
-              + (f"  missed: {', '.join(r['missed']) or 'none'}" if "missed" in r else ""))  # fmt: skip
+              + (f"  missed: {', '.join(r['missed']) or 'none'}" if "missed" in r else "")
+              + (f"  gained: {', '.join(r['gained']) or 'none'}" if "gained" in r else ""))  # fmt: skip
     for odometry in args.odometry.split(","):
         rt = [r for r in results if r["odometry"] == odometry and r["mode"] == "realtime"]
         if rt:

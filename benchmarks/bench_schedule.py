@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_realtime import missed  # noqa: E402  (the same pairing and wording as the live runs')
+from bench_realtime import missed_and_gained  # noqa: E402  (the same pairing and wording as the live runs')
 
 from semmap.algorithms.detector.turns import simulate  # noqa: E402
 from semmap.core.config import load_config  # noqa: E402
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
             mapped = map_of(masked(rec, set(detected)), plan.letterbox)
             counts.append(len(mapped))
             rates.append(len(detected) / video_s)
-            lost.update(missed(reference, mapped))
+            lost.update(missed_and_gained(reference, mapped)[0])
         enough = sum(c >= 0.9 * len(reference) for c in counts)
         row = {"plan": str(plan), "detections_per_s": [round(r, 1) for r in rates], "landmarks": counts,
                "median_landmarks": statistics.median(counts), "reference": len(reference),
