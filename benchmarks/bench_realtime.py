@@ -51,7 +51,9 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     load = os.getloadavg()[0]
     cmd = [sys.executable, "-m", "semmap.cli", "run", str(data), "--odometry", odometry, "--out", str(out),
            "--overwrite", "--quiet"] + (["--realtime", *(extra or [])] if realtime else [])  # fmt: skip
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # the project first, then what the caller set (e.g. benchmarks/avx2_stand_in.py's onnxruntime, which every
+    # process of the run must load)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
     t0, cpu0 = time.monotonic(), _children_cpu_s()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall, cpu = time.monotonic() - t0, _children_cpu_s() - cpu0  # the run and every service it waited for
