@@ -17,6 +17,11 @@
    and which of the lockstep run's landmarks each real-time run missed (`missed`: class, first seen (s), lockstep
    observations; paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another
    way; and which it mapped that lockstep did not (`gained`): a count is made of both.
+
+Another machine, stood in (session 24): an AVX2-only CPU's kernels with benchmarks/avx2_stand_in.py
+(`PYTHONPATH=DIR SEMMAP_MODEL_DIR=... python benchmarks/bench_realtime.py --choice ...`: every process of the runs
+loads that onnxruntime), and slower cores with `--slower-cores 0.1` (a share of every core taken during each
+real-time run).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -81,6 +87,44 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     }, mapped
 
 
+def _burn(share: float, stop: Any) -> None:  # a child process: busy `share` of every 33 ms until `stop` is set
+    period = 1.0 / 30.0
+    while not stop.is_set():
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < share * period:
+            pass
+        time.sleep(period * (1.0 - share))
+
+
+class SlowerCores:
+    """One process per core busy `share` of every 33 ms while the block runs: every other process gets that much
+    less of each core, as on a CPU whose cores are slower by about that share (session 24: the AVX2 EPYC's core
+    takes ~11 % longer a detection than the VNNI EPYC's). A stand-in, not a measurement of such a CPU."""
+
+    def __init__(self, share: float) -> None:
+        import multiprocessing
+
+        self.share = share
+        self._ctx = multiprocessing.get_context("spawn")
+        self._stop = self._ctx.Event()
+        self._procs: list[Any] = []
+
+    def __enter__(self) -> SlowerCores:
+        if self.share > 0:
+            self._procs = [self._ctx.Process(target=_burn, args=(self.share, self._stop), daemon=True)
+                           for _ in range(os.cpu_count() or 1)]  # fmt: skip
+            for proc in self._procs:
+                proc.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        for proc in self._procs:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.kill()
+
+
 def _children_cpu_s() -> float:
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
@@ -102,6 +146,9 @@ def main() -> int:
     ap.add_argument("--odometry", default="gt,rgbd")
     ap.add_argument("--no-lockstep", action="store_true", help="skip the lockstep reference runs")
     ap.add_argument("--json-out", type=Path, default=None)
+    ap.add_argument("--slower-cores", type=float, default=0.0, metavar="SHARE",
+                    help="during each real-time run, take SHARE of every core (0.1: cores ~10 %% slower), a stand-in "
+                         "for a slower CPU; its CPU is not counted in the run's figures")  # fmt: skip
     ap.add_argument("--realtime-args", default="",
                     help="more arguments for the real-time runs, e.g. another machine's choice: '--detectors 2 "
                          "--set detector.threads=1 --set detector.precision=fp32 --set detector.input_size=512x384' "
@@ -127,7 +174,11 @@ def main() -> int:
                 results.append(lock)
                 print(json.dumps(lock), flush=True)
             for i in range(args.runs):
-                r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True, shlex.split(args.realtime_args))
+                with SlowerCores(args.slower_cores):
+                    r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True,
+                                    shlex.split(args.realtime_args))  # fmt: skip
+                if args.slower_cores:
+                    r["slower_cores"] = args.slower_cores
                 if lock:
                     r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
                     r["missed"], r["gained"] = missed_and_gained(lock_map, mapped)
