@@ -33,6 +33,7 @@ CHOICE_VERSION = 4  # 2: with the layouts (replicas x threads) of the choice; 3:
 # 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2)
 AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
 FAITHFUL_SHARE = 0.5  # `choose`: the most faithful configuration that still detects every 2nd frame in real time
+FRONT_END_KEEPS_UP = 0.9  # `replica_plan`: replicas only where the odometry posed this share of a real-time run
 TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
 IOU_MATCH = 0.5
 FULL_HW = (480, 640)
@@ -636,16 +637,20 @@ def others_cpu_ms(odometry: str, doc: dict[str, Any] | None) -> tuple[float, str
 
 
 def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path | None = None,
-                         detector: str = "", detections_per_s: float = 0.0, speed: float = 1.0) -> bool:  # fmt: skip
+                         detector: str = "", detections_per_s: float = 0.0, speed: float = 1.0,
+                         front_end_share: float | None = None) -> bool:  # fmt: skip
     """Keep the other services' CPU per frame measured by a real-time run (only in this machine's cache), and what
     the run's detector (`detector`: its label) achieved, shown beside the next plan's expectation. Not from a run
     played faster than its recording (`run.speed`, e.g. the 3x soak): its services drop frames and load the cores
-    differently, so its figures would mislead the next plan at the recording's own speed."""
+    differently, so its figures would mislead the next plan at the recording's own speed. `front_end_share`: the
+    share of the frames the odometry posed (`replica_plan` reads it)."""
     doc = load_choice(model_dir)
     if doc is None or cpu_ms_per_frame <= 0 or speed != 1.0:
         return False
     mode = odometry.split(":", 1)[0]
     doc.setdefault("pipeline_cpu_ms_per_frame", {})[mode] = round(cpu_ms_per_frame, 1)
+    if front_end_share is not None:
+        doc.setdefault("front_end_posed_share", {})[mode] = round(front_end_share, 3)
     if detector and detections_per_s > 0:
         doc.setdefault("achieved_detections_per_s", {})[f"{mode} {detector}"] = round(detections_per_s, 2)
     atomic_write_bytes(choice_path(model_dir), (json.dumps(doc, indent=1) + "\n").encode())
@@ -736,7 +741,7 @@ def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path 
     plan = plan_cadence(row, n, fps, others)
     if replicas_set > 1:
         return replicas_by_hand(plan, row.cpu_ms, replicas_set), source
-    replicated = replica_plan(plan, setup, doc) if replicas else None
+    replicated = replica_plan(plan, setup, doc, odometry) if replicas else None
     return (replicated or plan), source
 
 
@@ -752,13 +757,23 @@ def replicas_by_hand(plan: CadencePlan, cpu_ms: float, replicas: int) -> Cadence
                        replicas, f"{replicas} replicas set by hand (--detectors)")
 
 
-def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None) -> CadencePlan | None:
+def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None,
+                 odometry: str = "gt") -> CadencePlan | None:  # fmt: skip
     """Single-thread replicas instead of `plan`'s one detector, where `measure_layouts` found them to detect more
     often beside the others' load on this machine. Only for the measured choice itself (explicit settings are
-    kept), and only where the run's other services take no more than the load it was measured beside (+25 %):
-    under a heavier front end (`rgbd`) flat-out replicas could starve it, and the single detector's cadence,
-    held to its share, stays."""
+    kept), only where the run's other services take no more than the load it was measured beside (+25 %), and
+    only where the last real-time run with this odometry posed at least `FRONT_END_KEEPS_UP` of its frames:
+    under a heavier front end (`rgbd`) flat-out replicas starve it, and the single detector's cadence, held to its
+    share, stays.
+
+    Why the posed share and not the load alone: a front end that cannot keep up skips frames, so the CPU a run
+    measures for it is what it got, not what it needs. On the AVX2 stand-in (session 24) an `rgbd` run with one
+    detector posed 283 of 1000 frames and measured 1.0 cores of others, under the +25 % bound, so the next runs
+    started replicas, and the odometry posed 192-205."""
     if setup.origin != MEASURED_HERE or not doc or not doc.get("layouts") or not doc.get("choice"):
+        return None
+    posed = (doc.get("front_end_posed_share") or {}).get(odometry.split(":", 1)[0])
+    if posed is not None and float(posed) < FRONT_END_KEEPS_UP:
         return None
     choice = Measured.from_dict(doc["choice"]).config
     if (choice.precision, choice.hw, choice.threads) != (setup.precision, setup.hw or FULL_HW, setup.threads):

@@ -517,6 +517,8 @@ class Orchestrator:
         others_by_service = {name: s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
                              if s.get("service") not in ("detector", None)}
         others_cpu = sum(others_by_service.values())
+        odometry = [s for s in services.values() if s.get("service") == "odometry"]
+        posed = sum(int(s.get("counters", {}).get("poses_published", 0)) for s in odometry) if odometry else None
         per_replica = [s.get("timings_ms", {}).get("detect_ms", {}) for s in det]
         detect = {k: round(median(t[k] for t in per_replica if k in t), 1)  # (replicas: their median)
                   for k in ("p50", "p95") if any(k in t for t in per_replica)}
@@ -529,6 +531,8 @@ class Orchestrator:
             "cpu_ms_per_frame_by_service": {name: round(1e3 * cpu / processed, 1) for name, cpu
                                             in sorted(others_by_service.items())} if processed else {},
             "wall_s": round(wall_s, 2),
+            # the share of the frames the odometry posed: a front end that cannot keep up skips frames
+            "front_end_posed_share": round(posed / processed, 3) if processed and posed is not None else None,
         }
         per_frame = budget["achieved"]["others_cpu_ms_per_frame"]
         if per_frame and processed >= 300 and self.plan.mode == "realtime":
@@ -538,7 +542,8 @@ class Orchestrator:
                 record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame,
                                      detector=str(budget.get("detector", "")),
                                      detections_per_s=float(budget["achieved"]["detections_per_s"]),
-                                     speed=float(budget.get("speed", 1.0)))
+                                     speed=float(budget.get("speed", 1.0)),
+                                     front_end_share=budget["achieved"]["front_end_posed_share"])
             except (OSError, ValueError):
                 pass
         return budget

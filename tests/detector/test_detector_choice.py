@@ -276,6 +276,23 @@ def test_replicas_only_where_measured_better_and_for_the_load_measured(tmp_path:
     assert dc.format_table(doc).endswith("fp32 512x384 2t, 2 x 1 thread")
 
 
+def test_no_replicas_where_the_last_run_starved_the_front_end(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """A front end that cannot keep up skips frames, so a run measures the CPU it got, not the CPU it needs: on the
+    AVX2 stand-in an `rgbd` run with one detector posed 283 of 1000 frames and measured 1.0 cores of others, within
+    the load bound, and the next runs started replicas that left it 192-205 frames. The posed share decides."""
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    rows = [_row("fp32", 2, (384, 512), 50, 97, 0.93), _row("fp32", 1, (384, 512), 92, 93, 0.93)]
+    dc.save_choice(rows, dc.hardware_key(), "test", tmp_path, [dc.Layout(1, 2, 11.5, 0.9), dc.Layout(2, 1, 17.5, 0.9)])
+    setup = dc.resolve_setup("auto", 0, "auto", realtime=True)
+    dc.record_pipeline_cost("gt", 25.0, tmp_path, front_end_share=1.0)
+    dc.record_pipeline_cost("rgbd", 34.0, tmp_path, front_end_share=0.283)  # 1.02 cores: within 1.25 x 0.9
+    assert dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2, replicas=True)[0].replicas == 2
+    assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 1
+    dc.record_pipeline_cost("rgbd", 34.0, tmp_path, front_end_share=0.97)  # a machine where it keeps up
+    assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 2
+    assert dc.load_choice(tmp_path)["front_end_posed_share"] == {"gt": 1.0, "rgbd": 0.97}
+
+
 def test_a_run_starts_the_replicas_its_budget_chose(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     from semmap.cli.run import detector_budget
     from semmap.core.config import load_config
