@@ -19,7 +19,7 @@ import platform
 import queue
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -742,6 +742,12 @@ def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path 
     if replicas_set > 1:
         return replicas_by_hand(plan, row.cpu_ms, replicas_set), source
     replicated = replica_plan(plan, setup, doc, odometry) if replicas else None
+    posed = starved_front_end(doc, odometry) if replicas and setup.origin == MEASURED_HERE else None
+    best = best_layout([Layout(**d) for d in (doc or {}).get("layouts") or []])
+    if replicated is None and posed is not None and best is not None and best.replicas > 1:
+        # say why one detector where replicas were measured better
+        plan = replace(plan, layout_note=f"one detector: the last {odometry.split(':', 1)[0]} run here "
+                                   f"posed {posed:.0%} of its frames, replicas would starve its odometry")  # fmt: skip
     return (replicated or plan), source
 
 
@@ -755,6 +761,13 @@ def replicas_by_hand(plan: CadencePlan, cpu_ms: float, replicas: int) -> Cadence
     interval = max(plan.detect_alone_ms / replicas, cpu_ms / min(float(threads), plan.free_cores))
     return CadencePlan(plan.detect_alone_ms, interval, plan.free_cores, plan.others_cpu_ms, plan.fps, plan.threads,
                        replicas, f"{replicas} replicas set by hand (--detectors)")
+
+
+def starved_front_end(doc: dict[str, Any] | None, odometry: str) -> float | None:
+    """The share of its frames the odometry posed in the last real-time run with it here, where under
+    `FRONT_END_KEEPS_UP`; None where it kept up (or no run recorded it)."""
+    posed = ((doc or {}).get("front_end_posed_share") or {}).get(odometry.split(":", 1)[0])
+    return float(posed) if posed is not None and float(posed) < FRONT_END_KEEPS_UP else None
 
 
 def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None,
@@ -772,8 +785,7 @@ def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | 
     started replicas, and the odometry posed 192-205."""
     if setup.origin != MEASURED_HERE or not doc or not doc.get("layouts") or not doc.get("choice"):
         return None
-    posed = (doc.get("front_end_posed_share") or {}).get(odometry.split(":", 1)[0])
-    if posed is not None and float(posed) < FRONT_END_KEEPS_UP:
+    if starved_front_end(doc, odometry) is not None:
         return None
     choice = Measured.from_dict(doc["choice"]).config
     if (choice.precision, choice.hw, choice.threads) != (setup.precision, setup.hw or FULL_HW, setup.threads):
@@ -818,4 +830,5 @@ def describe_plan(plan: CadencePlan, source: str) -> str:
             f"{ordinal(plan.every_n)} at {plan.fps:g} fps"
             + (f", taken as fast as it can (its {plan.threads} thread{'s' if plan.threads > 1 else ''} fit in the "
                "cores left)" if plan.flat_out else "")
-            + f"; expected {plan.detections_per_s:.1f} detections/s")
+            + f"; expected {plan.detections_per_s:.1f} detections/s"
+            + (f" ({plan.layout_note})" if plan.layout_note else ""))

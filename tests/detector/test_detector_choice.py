@@ -287,7 +287,10 @@ def test_no_replicas_where_the_last_run_starved_the_front_end(tmp_path: Path, mo
     dc.record_pipeline_cost("gt", 25.0, tmp_path, front_end_share=1.0)
     dc.record_pipeline_cost("rgbd", 34.0, tmp_path, front_end_share=0.283)  # 1.02 cores: within 1.25 x 0.9
     assert dc.setup_plan(setup, 30.0, "gt", tmp_path, cores=2, replicas=True)[0].replicas == 2
-    assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 1
+    starved = dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0]
+    assert starved.replicas == 1
+    assert "the last rgbd run here posed 28% of its frames, replicas would starve its odometry" in dc.describe_plan(
+        starved, "x")
     dc.record_pipeline_cost("rgbd", 34.0, tmp_path, front_end_share=0.97)  # a machine where it keeps up
     assert dc.setup_plan(setup, 30.0, "rgbd", tmp_path, cores=2, replicas=True)[0].replicas == 2
     assert dc.load_choice(tmp_path)["front_end_posed_share"] == {"gt": 1.0, "rgbd": 0.97}
