@@ -87,42 +87,35 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     }, mapped
 
 
-def _burn(share: float, stop: Any) -> None:  # a child process: busy `share` of every 33 ms until `stop` is set
-    period = 1.0 / 30.0
-    while not stop.is_set():
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < share * period:
-            pass
-        time.sleep(period * (1.0 - share))
-
-
 class SlowerCores:
     """One process per core busy `share` of every 33 ms while the block runs: every other process gets that much
     less of each core, as on a CPU whose cores are slower by about that share (session 24: the AVX2 EPYC's core
     takes ~11 % longer a detection than the VNNI EPYC's). A stand-in, not a measurement of such a CPU."""
+
+    LONGEST_S = 600.0  # a burner ends by itself after this, should the block never exit
 
     def __init__(self, share: float) -> None:
         import multiprocessing
 
         self.share = share
         self._ctx = multiprocessing.get_context("spawn")
-        self._stop = self._ctx.Event()
+        self._start = self._ctx.Event()  # (held here: the children open it after they start)
+        self._start.set()
         self._procs: list[Any] = []
 
     def __enter__(self) -> SlowerCores:
         if self.share > 0:
-            self._procs = [self._ctx.Process(target=_burn, args=(self.share, self._stop), daemon=True)
+            self._procs = [self._ctx.Process(target=dc.burn, args=(self.share, self._start, self.LONGEST_S),
+                                             daemon=True)
                            for _ in range(os.cpu_count() or 1)]  # fmt: skip
             for proc in self._procs:
                 proc.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        for proc in self._procs:
+        for proc in self._procs:  # (a busy loop holds nothing: ended at once)
+            proc.kill()
             proc.join(timeout=5.0)
-            if proc.is_alive():
-                proc.kill()
 
 
 def _children_cpu_s() -> float:

@@ -33,7 +33,7 @@ CHOICE_VERSION = 4  # 2: with the layouts (replicas x threads) of the choice; 3:
 # 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2)
 AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
 FAITHFUL_SHARE = 0.5  # `choose`: the most faithful configuration that still detects every 2nd frame in real time
-FRONT_END_KEEPS_UP = 0.9  # `replica_plan`: replicas only where the odometry posed this share of a real-time run
+FRONT_END_KEEPS_UP = 0.9  # `setup_plan`: replicas only where the odometry posed this share of a real-time run
 TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
 IOU_MATCH = 0.5
 FULL_HW = (480, 640)
@@ -340,7 +340,9 @@ def candidate_layouts(cores: int) -> list[tuple[int, int]]:
     return layouts
 
 
-def _burn(share: float, start: Any, seconds: float) -> None:  # a child process: the stand-in load
+def burn(share: float, start: Any, seconds: float) -> None:
+    """A child process: a stand-in load, busy `share` of every `BURN_PERIOD_S` for `seconds` once `start` is set
+    (`measure_layouts`'s other services; benchmarks/bench_realtime.py's slower cores)."""
     start.wait()
     stop = time.monotonic() + seconds
     while time.monotonic() < stop:
@@ -385,7 +387,7 @@ def measure_layouts(blob: bytes, images: Sequence[Any], cores: int, load_cores: 
         start, out = ctx.Event(), ctx.Queue()
         workers = [ctx.Process(target=_detect_flat_out, args=(blob, threads, frames, start, seconds, out),
                                daemon=True) for _ in range(replicas)]  # fmt: skip
-        burners = [ctx.Process(target=_burn, args=(share, start, seconds + 0.5), daemon=True)
+        burners = [ctx.Process(target=burn, args=(share, start, seconds + 0.5), daemon=True)
                    for _ in range(cores if share > 0 else 0)]  # fmt: skip
         for proc in workers + burners:
             proc.start()
@@ -741,13 +743,11 @@ def setup_plan(setup: DetectorSetup, fps: float, odometry: str, model_dir: Path 
     plan = plan_cadence(row, n, fps, others)
     if replicas_set > 1:
         return replicas_by_hand(plan, row.cpu_ms, replicas_set), source
-    replicated = replica_plan(plan, setup, doc, odometry) if replicas else None
-    posed = starved_front_end(doc, odometry) if replicas and setup.origin == MEASURED_HERE else None
-    best = best_layout([Layout(**d) for d in (doc or {}).get("layouts") or []])
-    if replicated is None and posed is not None and best is not None and best.replicas > 1:
-        # say why one detector where replicas were measured better
-        plan = replace(plan, layout_note=f"one detector: the last {odometry.split(':', 1)[0]} run here "
-                                   f"posed {posed:.0%} of its frames, replicas would starve its odometry")  # fmt: skip
+    replicated = replica_plan(plan, setup, doc) if replicas else None
+    posed = starved_front_end(doc, odometry) if replicated is not None else None
+    if posed is not None:  # measured better, but they would starve the front end: one detector, and why
+        return replace(plan, layout_note=f"one detector: the last {odometry.split(':', 1)[0]} run here posed "
+                       f"{posed:.0%} of its frames, replicas would starve its odometry"), source  # fmt: skip
     return (replicated or plan), source
 
 
@@ -765,27 +765,24 @@ def replicas_by_hand(plan: CadencePlan, cpu_ms: float, replicas: int) -> Cadence
 
 def starved_front_end(doc: dict[str, Any] | None, odometry: str) -> float | None:
     """The share of its frames the odometry posed in the last real-time run with it here, where under
-    `FRONT_END_KEEPS_UP`; None where it kept up (or no run recorded it)."""
+    `FRONT_END_KEEPS_UP`; None where it kept up (or no run recorded it). `setup_plan` starts no replicas then.
+
+    Why the posed share and not the load alone (`replica_plan`'s bound): a front end that cannot keep up skips
+    frames, so the CPU a run measures for it is what it got, not what it needs. On the AVX2 stand-in (session 24)
+    an `rgbd` run with one detector posed 283 of 1000 frames and measured 1.0 cores of others, under the +25 %
+    bound, so the next runs started replicas, and the odometry posed 192-205."""
     posed = ((doc or {}).get("front_end_posed_share") or {}).get(odometry.split(":", 1)[0])
     return float(posed) if posed is not None and float(posed) < FRONT_END_KEEPS_UP else None
 
 
-def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None,
-                 odometry: str = "gt") -> CadencePlan | None:  # fmt: skip
+def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | None) -> CadencePlan | None:
     """Single-thread replicas instead of `plan`'s one detector, where `measure_layouts` found them to detect more
     often beside the others' load on this machine. Only for the measured choice itself (explicit settings are
-    kept), only where the run's other services take no more than the load it was measured beside (+25 %), and
-    only where the last real-time run with this odometry posed at least `FRONT_END_KEEPS_UP` of its frames:
-    under a heavier front end (`rgbd`) flat-out replicas starve it, and the single detector's cadence, held to its
-    share, stays.
-
-    Why the posed share and not the load alone: a front end that cannot keep up skips frames, so the CPU a run
-    measures for it is what it got, not what it needs. On the AVX2 stand-in (session 24) an `rgbd` run with one
-    detector posed 283 of 1000 frames and measured 1.0 cores of others, under the +25 % bound, so the next runs
-    started replicas, and the odometry posed 192-205."""
+    kept), and only where the run's other services take no more than the load it was measured beside (+25 %):
+    under a heavier front end (`rgbd`) flat-out replicas could starve it, and the single detector's cadence,
+    held to its share, stays (and where the last run's front end was starved anyway, `setup_plan` keeps it:
+    `starved_front_end`)."""
     if setup.origin != MEASURED_HERE or not doc or not doc.get("layouts") or not doc.get("choice"):
-        return None
-    if starved_front_end(doc, odometry) is not None:
         return None
     choice = Measured.from_dict(doc["choice"]).config
     if (choice.precision, choice.hw, choice.threads) != (setup.precision, setup.hw or FULL_HW, setup.threads):
