@@ -428,6 +428,11 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     print(f"semmap: real time, detector {budget['detector']} ({setup.origin}); frame budget: "
           f"{dc.describe_plan(plan, source)}" + (f"; every_n_frames set to {every_n}" if det.every_n_frames else "")
           + (f" (the last real-time run here with it achieved {last:.1f}/s)" if last else ""), file=sys.stderr)
+    if setup.measured is not None:  # (always, where there is a plan)
+        budget["fidelity"] = dc.fidelity(setup.measured)
+        told = dc.describe_fidelity(budget["fidelity"])
+        if told:
+            print(f"semmap: real time's detector {told}", file=sys.stderr)
     return budget
 
 

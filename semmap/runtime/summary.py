@@ -8,6 +8,8 @@ import shlex
 from collections import Counter
 from pathlib import Path
 
+from semmap.runtime.detector_choice import describe_fidelity
+
 SUMMARY_TITLE = "semmap run summary"
 
 
@@ -66,6 +68,9 @@ def run_summary(out_dir: Path, stats: dict) -> str:
             f"{p['expected_detections_per_s']:.1f}/s; achieved {a['detections_per_s']:.1f}/s of video"
             + (f", detector {a['detect_ms_p50']:.0f} ms p50 in the run" if a.get("detect_ms_p50") else "")
         )
+    told = describe_fidelity(budget["fidelity"]) if budget.get("fidelity") else None
+    if told:
+        lines.append(f"  fidelity    the detector {told}")
     lost = stats.get("source", {}).get("counters", {})
     if lost:  # an external source's own count of frames it lost before semmap (the ROS 2 bridge: by reason)
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(lost.items()) if k != "total" and v)

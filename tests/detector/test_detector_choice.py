@@ -234,6 +234,38 @@ def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) ->
     text = run_summary(tmp_path, stats)
     assert ("  detection   planned: fp32 512x384 1 thread, every 3 frame(s), 10.0/s; achieved 9.4/s of video, "
             "detector 97 ms p50 in the run") in text.splitlines()
+    assert not any(line.startswith("  fidelity") for line in text.splitlines())  # (none recorded: none said)
+
+
+def test_a_run_says_what_its_smaller_letterbox_may_miss(tmp_path: Path, monkeypatch, capsys) -> None:  # noqa: ANN001
+    """Real time at a smaller letterbox than lockstep's says so at the start and in the summary, with the doctor's
+    agreement and small-object recall, so that a map with fewer objects comes with its reason (issue 31)."""
+    from semmap.cli.run import detector_budget
+    from semmap.core.config import load_config
+    from semmap.runtime.summary import run_summary
+
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    small = dc.Measured(dc.DetectorConfigChoice("fp32", 2, 384, 512), 50, 55, 97, 0.9036, 0.93, 0.88,
+                        {"book": 0.889, "chair": 0.99, "cell phone": 0.6, "cup": 1.0}, 0.8379, 47)  # fmt: skip
+    full = _row("fp32", 2, (480, 640), 70, 140, 1.0)
+    dc.save_choice([full, small], dc.hardware_key(), "test", tmp_path)
+    dc.record_pipeline_cost("gt", 18.0, tmp_path)
+    config = load_config(None, ["odometry.mode=gt"])
+    budget = detector_budget(config, None, "some/folder", [])
+    assert budget["detector"].startswith("fp32 512x384")
+    assert budget["fidelity"] == {"reference": "fp32 640x480", "f1": 0.9, "f1_strict": 0.84, "recall": 0.93,
+                                  "recall_small": {"book": 0.89, "cell phone": 0.6, "cup": 1.0}}  # fmt: skip
+    said = "agrees with lockstep's (fp32 640x480) at F1 0.90 (0.84 strictly) on this machine's frames; " \
+           "recall book 0.89, cell phone 0.60, cup 1.00: small and far objects that a lockstep run maps may be missing"
+    assert f"semmap: real time's detector {said}" in capsys.readouterr().err.splitlines()
+    stats = {"outcome": "completed", "wall_s": 36.0, "frames": {"processed": 1000, "published": 1000},
+             "detector_budget": {**budget, "achieved": {"detections_per_s": 14.9}}}
+    assert f"  fidelity    the detector {said}" in run_summary(tmp_path, stats).splitlines()
+    # lockstep's own detector in real time (full size, fp32): nothing to say
+    full_size = load_config(None, ["odometry.mode=gt", "detector.precision=fp32", "detector.input_size=640x480"])
+    budget = detector_budget(full_size, None, "some/folder", [])
+    assert budget["fidelity"]["f1"] == 1.0 and dc.describe_fidelity(budget["fidelity"]) is None
+    assert "real time's detector" not in capsys.readouterr().err
 
 
 # --- layouts: one detector of several threads, or single-thread replicas ----------------------------------
