@@ -129,6 +129,11 @@ class Measured:
     def agrees(self) -> bool:
         return self.f1 >= AGREEMENT_F1
 
+    @property
+    def small_object_recall(self) -> dict[str, float]:
+        """Recall of the classes small in the frame (`SMALL_CLASSES`): what a smaller letterbox loses first."""
+        return {c: r for c, r in sorted(self.recall_per_class.items()) if c in SMALL_CLASSES}
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["config"] = asdict(self.config)
@@ -254,6 +259,11 @@ def detections_down_to(detector: Any, images: Sequence[Any], floor: float) -> li
         return [detector.detect(img) for img in images]
     finally:
         detector.conf = conf
+
+
+def format_recall(recall: dict[str, float]) -> str:
+    """'book 0.89, cup 1.00': recall per class, as the doctor's table and a real-time run print it."""
+    return ", ".join(f"{c} {r:.2f}" for c, r in recall.items())
 
 
 def measure_configs(
@@ -539,7 +549,7 @@ def format_table(doc: dict[str, Any]) -> str:
 
     rows = sorted((Measured.from_dict(r) for r in doc["rows"]), key=in_run)
     for r in rows:
-        small = ", ".join(f"{c} {v:.2f}" for c, v in r.recall_per_class.items() if c in SMALL_CLASSES)
+        small = format_recall(r.small_object_recall)
         mark = "" if r.agrees else "  (disagrees)"
         lines.append(f"{r.config.label():<20} {r.alone_ms:7.1f} {r.p50_ms:7.1f} {r.cpu_ms:7.1f} {in_run(r):7.1f} "
                      f"{r.f1:5.2f} {r.f1_strict:6.2f} {r.recall:6.2f}  {small}{mark}")  # fmt: skip
@@ -820,17 +830,16 @@ def fidelity(measured: Measured) -> dict[str, Any]:
     the count alone would not say why."""
     return {"reference": f"fp32 {FULL_HW[1]}x{FULL_HW[0]}", "f1": round(measured.f1, 2),
             "f1_strict": round(measured.f1_strict, 2), "recall": round(measured.recall, 2),
-            "recall_small": {c: round(r, 2) for c, r in sorted(measured.recall_per_class.items())
-                             if c in SMALL_CLASSES}}  # fmt: skip
+            "recall_small": {c: round(r, 2) for c, r in measured.small_object_recall.items()}}  # fmt: skip
 
 
 def describe_fidelity(d: dict[str, Any]) -> str | None:
     """One line from `fidelity`'s record; None where the detector is lockstep's own (nothing is lost)."""
-    if min(float(d.get("f1", 1.0)), float(d.get("recall", 1.0))) >= 0.995:
+    if min(d["f1"], d["recall"]) >= 0.995:
         return None
-    small = ", ".join(f"{c} {r:.2f}" for c, r in d.get("recall_small", {}).items())
-    return (f"agrees with lockstep's ({d.get('reference', 'full size')}) at F1 {d['f1']:.2f} "
-            f"({d.get('f1_strict', d['f1']):.2f} strictly) on this machine's frames"
+    small = format_recall(d["recall_small"])
+    return (f"agrees with lockstep's ({d['reference']}) at F1 {d['f1']:.2f} ({d['f1_strict']:.2f} strictly) on "
+            "this machine's frames"
             + (f"; recall {small}" if small else "")
             + ": small and far objects that a lockstep run maps may be missing")
 
