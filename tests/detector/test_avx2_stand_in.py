@@ -3,10 +3,11 @@
 Machines are lent by chance: for six sessions every one had AVX-512 and VNNI, so the AVX2 path of
 `semmap models doctor` ran nowhere, and when its tie margin broke (a lowered threshold no longer reached the decode)
 no test saw that on an AVX2-only CPU no smaller letterbox agreed any more and real time fell back to 640x480.
-benchmarks/avx2_stand_in.py makes onnxruntime take the AVX2 kernels on an AVX-512 CPU (and changes nothing on an
-AVX2-only one), so these facts are checked on either class: without VNNI the int8 copy disagrees with fp32, and
-fp32 512x384, the real-time choice there, agrees only because a score within 0.1 of the threshold counts as a tie.
-Scores only; nothing is timed.
+benchmarks/avx2_stand_in.py makes onnxruntime take the AVX2 kernels on a CPU with AVX-512, AVX-VNNI or AMX (and
+changes nothing on an AVX2-only one; since session 26 it also turns off AVX-VNNI and AMX, which an Intel Xeon lent
+then had), so these facts are checked on either class: without VNNI the int8 copy with 8-bit weights disagrees
+with fp32 and the one with 7-bit weights (int8w7) agrees, and fp32 512x384 agrees only because a score within 0.1
+of the threshold counts as a tie. Scores only; nothing is timed.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from semmap.runtime import detector_choice as dc
-from semmap.runtime.model_store import get_model_dir
+from semmap.runtime.model_store import QUANTIZED_FILES, get_model_dir
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -32,7 +33,8 @@ from pathlib import Path
 from semmap.runtime import detector_choice as dc
 assert onnxruntime.__file__.startswith(sys.argv[1]), onnxruntime.__file__  # the stand-in, not the installed one
 images, _ = dc.calibration_images(sys.argv[2], 48)
-configs = [dc.DetectorConfigChoice("fp32", 1, 384, 512), dc.DetectorConfigChoice("int8", 1, 480, 640)]
+configs = [dc.DetectorConfigChoice("fp32", 1, 384, 512), dc.DetectorConfigChoice("int8", 1, 480, 640),
+           dc.DetectorConfigChoice("int8w7", 1, 480, 640)]
 rows = dc.measure_configs(images, configs, timing_frames=1, model_dir=Path(sys.argv[3]))
 print(json.dumps({r.config.label(): [r.f1, r.f1_strict, r.recall_per_class] for r in rows}))
 """
@@ -43,14 +45,14 @@ def _flags() -> set[str]:
 
 
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="an x86-64 CPU's kernels")
-def test_without_vnni_int8_disagrees_and_512x384_agrees_by_its_ties(kitchen_dir: Path, tmp_path: Path) -> None:
+def test_without_vnni_int8_disagrees_int8w7_agrees_and_512x384_agrees_by_its_ties(
+    kitchen_dir: Path, tmp_path: Path
+) -> None:
     flags = _flags()
     if "avx2" not in flags:
         pytest.skip("no AVX2: the stand-in is for AVX2 CPUs")
-    if flags & {"avx_vnni", "amx_int8"}:
-        pytest.skip("this CPU has AVX-VNNI or AMX, which the stand-in leaves on: its int8 is not an AVX2 CPU's")
     models = get_model_dir()
-    if not (models / "yolov5s.onnx").is_file() or not (models / dc.INT8_FILENAME).is_file():
+    if not all((models / name).is_file() for name in ("yolov5s.onnx", *QUANTIZED_FILES.values())):
         pytest.skip("detector models absent: run ./dev.sh setup (semmap models fetch / quantize)")
     ort = tmp_path / "ort"
     built = subprocess.run([sys.executable, str(PROJECT / "benchmarks" / "avx2_stand_in.py"), "--out", str(ort)],
@@ -66,3 +68,5 @@ def test_without_vnni_int8_disagrees_and_512x384_agrees_by_its_ties(kitchen_dir:
     int8_f1, _, per_class = scores["int8 640x480 1t"]
     assert int8_f1 < dc.AGREEMENT_F1, scores  # 8-bit products without VNNI saturate: int8 is never chosen
     assert per_class["book"] < 0.9, per_class  # (small objects lose most)
+    w7_f1, w7_strict, _ = scores["int8w7 640x480 1t"]
+    assert w7_strict > int8_f1 and w7_f1 >= dc.AGREEMENT_F1, scores  # 7-bit weights cannot saturate: it agrees

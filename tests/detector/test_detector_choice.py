@@ -125,6 +125,44 @@ def test_where_the_full_frame_keeps_up_the_most_faithful_configuration_wins() ->
     assert best == dc.rank_for_realtime(avx2, 2)[0]
 
 
+def test_without_vnni_the_7bit_int8_copy_takes_over_where_it_agrees_and_is_cheaper() -> None:
+    """Session 26's doctor on AVX2 kernels (stand-in): the 8-bit int8 copy disagrees at every size (its products
+    saturate), the 7-bit one agrees where fp32 does and costs less CPU, so it is the choice; the same rule on a VNNI
+    machine keeps the 8-bit copy, which is more faithful there at the same speed."""
+    avx2 = [
+        _row("fp32", 2, (480, 640), 103, 207, 1.0),
+        _row("int8", 2, (480, 640), 86, 149, 0.88),  # disagrees
+        _row("int8w7", 1, (480, 640), 158, 155, 0.97),  # faithful, but under every 2nd frame in a run
+        _row("fp32", 1, (384, 512), 134, 137, 0.90),
+        _row("fp32", 2, (384, 512), 74, 139, 0.90),
+        _row("int8", 1, (384, 512), 93, 92, 0.85),  # disagrees
+        _row("int8w7", 1, (384, 512), 98, 98, 0.91),
+        _row("int8w7", 2, (384, 512), 45, 81, 0.91),
+    ]
+    best = dc.choose(avx2, cores=2)
+    assert best is not None and best.config == dc.DetectorConfigChoice("int8w7", 2, 384, 512)
+    vnni = [
+        _row("fp32", 2, (480, 640), 69, 138, 1.0),
+        _row("int8", 1, (480, 640), 52, 52, 0.99),
+        _row("int8w7", 1, (480, 640), 52, 52, 0.97),
+        _row("int8", 1, (384, 512), 35, 35, 0.92),
+    ]
+    best = dc.choose(vnni, cores=2)
+    assert best is not None and best.config == dc.DetectorConfigChoice("int8", 1, 480, 640)
+
+
+def test_the_doctor_measures_each_copy_the_model_dir_holds(tmp_path: Path) -> None:
+    from semmap.runtime.model_store import QUANTIZED_FILES
+
+    assert dc.available_precisions(tmp_path) == ["fp32"]
+    (tmp_path / QUANTIZED_FILES["int8w7"]).write_bytes(b"")
+    assert dc.available_precisions(tmp_path) == ["fp32", "int8w7"]
+    (tmp_path / QUANTIZED_FILES["int8"]).write_bytes(b"")
+    configs = dc.candidate_configs(dc.available_precisions(tmp_path), cores=2, sizes=[(480, 640)])
+    assert [c.label() for c in configs] == ["fp32 640x480 1t", "fp32 640x480 2t", "int8 640x480 1t",
+                                            "int8 640x480 2t", "int8w7 640x480 1t", "int8w7 640x480 2t"]  # fmt: skip
+
+
 def test_on_a_vnni_machine_the_same_rule_keeps_int8() -> None:
     rows = [_row("fp32", 2, (480, 640), 70, 130, 1.0), _row("int8", 2, (480, 640), 30, 55, 0.95),
             _row("int8", 1, (480, 640), 47, 47, 0.95)]  # fmt: skip

@@ -148,3 +148,15 @@ def test_quantize_refuses_foreign_models(tmp_path):
     onnx.save(helper.make_model(g), str(tmp_path / "f.onnx"))
     with pytest.raises(ValueError, match="converted by semmap"):
         ms.quantize_int8(tmp_path / "f.onnx", [tmp_path / "x.jpg"])
+
+
+def test_quantize_writes_one_copy_per_out_path(tmp_path):
+    """`--out` names one file, so with both copies asked for (8- and 7-bit weights) it is refused before any work."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "semmap.cli", "models", "quantize", "--synthetic", "--weight-bits", "both",
+           "--out", str(tmp_path / "q.onnx")]  # fmt: skip
+    refused = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "--weight-bits 8 or 7" in refused.stderr, refused.stderr
+    assert not (tmp_path / "q.onnx").exists()

@@ -109,11 +109,12 @@ class DetectorConfig(Section):
     model: OptionalFile = Field(
         "", description='ONNX model file; "" = the converted YOLOv5s from `semmap models fetch` (see precision)'
     )
-    precision: Literal["auto", "fp32", "int8"] = Field(
+    precision: Literal["auto", "fp32", "int8", "int8w7"] = Field(
         "auto",
-        description="auto (real time: the configuration measured fastest on this machine among those agreeing "
-        "with fp32 at full size, `semmap models doctor`; fp32 otherwise) | fp32 | int8 (~2x faster on CPUs with "
-        "VNNI, no gain without; `semmap models quantize DATASET` makes it, ./dev.sh does)",
+        description="auto (real time: the configuration measured on this machine, among those agreeing with fp32 "
+        "at full size, `semmap models doctor`; fp32 otherwise) | fp32 | int8 (~2x faster on CPUs with VNNI; "
+        "without VNNI its 8-bit products saturate and it disagrees) | int8w7 (int8 with 7-bit weights: agrees "
+        "without VNNI too, at int8's speed); `semmap models quantize DATASET` makes both copies, ./dev.sh does",
     )
     input_size: str = Field(
         "auto",
