@@ -219,11 +219,26 @@ def _models_quantize(args: argparse.Namespace) -> int:
         if args.synthetic:
             images = synthetic_calibration_images(Path(tmp), args.max_images)
         else:
-            images = _image_files(args.calib)
+            images = _calibration_frames(args.calib, args.max_images)
         return _quantize(model, images, args)
 
 
-def _quantize(model: Path, images: list[Path], args: argparse.Namespace) -> int:
+def _calibration_frames(paths: list[Path], count: int) -> list:
+    """A dataset folder semmap reads (7-Scenes, TUM, KITTI...): `count` of its colour frames, evenly spread. Why: a
+    folder's every image file would take a 7-Scenes folder's depth PNGs as colour images too. Otherwise the image
+    files given, and the images in the folders given."""
+    from semmap.datasets import DatasetError
+    from semmap.runtime.detector_choice import calibration_images
+
+    if len(paths) == 1 and paths[0].is_dir():
+        try:
+            return calibration_images(paths[0], count)[0]
+        except DatasetError:
+            pass  # a plain folder of images
+    return _image_files(paths)
+
+
+def _quantize(model: Path, images: list, args: argparse.Namespace) -> int:
     from semmap.runtime.model_store import quantize_int8
 
     if not images:

@@ -9,6 +9,7 @@ import subprocess
 import tarfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from semmap.runtime import model_store as ms
@@ -160,3 +161,22 @@ def test_quantize_writes_one_copy_per_out_path(tmp_path):
     refused = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "--weight-bits 8 or 7" in refused.stderr, refused.stderr
     assert not (tmp_path / "q.onnx").exists()
+
+
+@pytest.mark.needs_data
+def test_quantize_calibrates_on_a_datasets_colour_frames_only(kitchen_dir, tmp_path):
+    """`semmap models quantize ../shared/data/7scenes-redkitchen` (what ./dev.sh runs): every image file of that folder
+    would include its 16-bit depth PNGs, read as colour; a dataset folder gives its colour frames instead, evenly
+    spread. A plain folder of pictures still gives its files."""
+    import shutil
+
+    from semmap.cli.models import _calibration_frames
+
+    frames = _calibration_frames([kitchen_dir], 6)
+    assert len(frames) == 6
+    assert all(f.dtype == np.uint8 and f.ndim == 3 and f.shape[2] == 3 for f in frames)
+    plain = tmp_path / "pictures"
+    plain.mkdir()
+    for name in ("frame-000000.color.jpg", "frame-000001.color.jpg"):
+        shutil.copy(kitchen_dir / name, plain / name)
+    assert _calibration_frames([plain], 6) == sorted(plain.iterdir())
