@@ -239,7 +239,7 @@ def _calibration_frames(paths: list[Path], count: int) -> list:
 
 
 def _quantize(model: Path, images: list, args: argparse.Namespace) -> int:
-    from semmap.runtime.model_store import quantize_int8
+    from semmap.runtime.model_store import WEIGHT_BITS, quantize_int8
 
     if not images:
         _err("no calibration images found")
@@ -247,7 +247,7 @@ def _quantize(model: Path, images: list, args: argparse.Namespace) -> int:
     step = max(1, len(images) // max(1, args.max_images))
     images = images[::step][: args.max_images]
     print(f"calibrating on {len(images)} images ...", file=sys.stderr)
-    for bits in (8, 7) if args.weight_bits == "both" else (int(args.weight_bits),):
+    for bits in WEIGHT_BITS.values() if args.weight_bits == "both" else (int(args.weight_bits),):
         try:
             out = quantize_int8(model, images, args.out, weight_bits=bits)
         except (ValueError, OSError) as exc:

