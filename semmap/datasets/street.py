@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .base import DatasetError
@@ -498,7 +497,7 @@ class StreetDataset(SyntheticDataset):
         local = local[1:].astype(np.int32)
         to_local = {int(g): i for i, g in enumerate(ids)}
         return FrameScene(
-            vertices=v, triangles=o3d.core.Tensor(f.astype(np.uint32)), tri_color=col, tri_label=local,
+            vertices=v, triangles=np.ascontiguousarray(f, dtype=np.uint32), tri_color=col, tri_label=local,
             tri_inv_size=inv, tri_contrast=con, n_obj=len(ids),
             moving={to_local[g]: pose_ for g, pose_ in moving.items() if g in to_local}, ids=ids.astype(np.int32),
         )  # fmt: skip

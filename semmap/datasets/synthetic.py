@@ -458,7 +458,7 @@ class FrameScene:
     keyed by local index (their texture lives in their mesh frame)."""
 
     vertices: np.ndarray  # (V, 3) float32, moving objects already placed
-    triangles: Any  # o3d.core.Tensor (T, 3) uint32
+    triangles: np.ndarray  # (T, 3) uint32, C-contiguous: Open3D wraps it per cast without a copy
     tri_color: np.ndarray
     tri_label: np.ndarray
     tri_inv_size: np.ndarray
@@ -520,7 +520,9 @@ class SyntheticDataset(Dataset):
             if obj.moving:
                 self._moving_vertices[obj.instance_id] = slice(first, n_vertices)
         self._vertices = np.vstack(vertices).astype(np.float32)
-        self._triangles = o3d.core.Tensor(np.vstack(triangles).astype(np.uint32))
+        # numpy, not an Open3D tensor: an Open3D allocation still alive when the process ends makes Open3D's
+        # leak check at exit end the process with status 1 (a service that stopped cleanly reported failure)
+        self._triangles = np.ascontiguousarray(np.vstack(triangles), dtype=np.uint32)
         self._tri_color, self._tri_label = np.vstack(color), np.concatenate(label)
         self._tri_inv_size, self._tri_contrast = np.concatenate(inv_size), np.concatenate(contrast)
         self._prepare_rays(self.config.seed)
@@ -666,7 +668,7 @@ class SyntheticDataset(Dataset):
         dirs = rays[:, 3:]
 
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor.from_numpy(fs.vertices), fs.triangles)
+        scene.add_triangles(o3d.core.Tensor.from_numpy(fs.vertices), o3d.core.Tensor.from_numpy(fs.triangles))
         hits = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.threads)
 
         triangle = hits["primitive_ids"].numpy().astype(np.intp)  # one conversion instead of one per lookup

@@ -67,8 +67,9 @@ def test_reverse_start_order_and_a_router_restart(tmp_path: Path) -> None:
         control = bus.publisher(bus.keys.control)
         control.wait_matching(10)
         control.put(Control("order", "stop"))
-        for proc in procs:
-            assert proc.wait(timeout=30) == 0
+        for name, proc in zip(("player", "tracker", "detector", "odometry"), procs, strict=True):
+            code = proc.wait(timeout=30)
+            assert code == 0, f"{name} exited with {code}:\n" + (tmp_path / f"{name}.log").read_text()[-3000:]
         bus.close()
         lines = [ln for ln in odometry_log.read_text().splitlines() if not ln.startswith("#")]
         assert len(lines) == 120
