@@ -247,13 +247,14 @@ def _quantize(model: Path, images: list, args: argparse.Namespace) -> int:
     step = max(1, len(images) // max(1, args.max_images))
     images = images[::step][: args.max_images]
     print(f"calibrating on {len(images)} images ...", file=sys.stderr)
-    for bits in WEIGHT_BITS.values() if args.weight_bits == "both" else (int(args.weight_bits),):
-        try:
-            out = quantize_int8(model, images, args.out, weight_bits=bits)
-        except (ValueError, OSError) as exc:
-            _err(str(exc))
-            return 1
-        print(out)
+    with tempfile.TemporaryDirectory(prefix="semmap-ranges-") as tmp:  # one calibration pass for every copy
+        for bits in WEIGHT_BITS.values() if args.weight_bits == "both" else (int(args.weight_bits),):
+            try:
+                out = quantize_int8(model, images, args.out, weight_bits=bits, ranges_cache=Path(tmp) / "ranges.json")
+            except (ValueError, OSError) as exc:
+                _err(str(exc))
+                return 1
+            print(out)
     return 0
 
 

@@ -180,3 +180,27 @@ def test_quantize_calibrates_on_a_datasets_colour_frames_only(kitchen_dir, tmp_p
     for name in ("frame-000000.color.jpg", "frame-000001.color.jpg"):
         shutil.copy(kitchen_dir / name, plain / name)
     assert _calibration_frames([plain], 6) == sorted(plain.iterdir())
+
+
+def test_copies_of_one_model_share_one_calibration_pass(tmp_path, pinned):
+    """`semmap models quantize` writes the 8- and 7-bit-weight copies from one calibration pass: the first copy
+    leaves the activations' ranges in `ranges_cache`, and the second reads them instead of running the model over
+    the images again, with the same result as its own pass."""
+    model = ms.fetch_model(tmp_path / "models", source=_sdist(tmp_path / "s.tar.gz", pinned), imgsz=IMGSZ)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (IMGSZ[0], IMGSZ[1], 3), dtype=np.uint8) for _ in range(3)]
+    alone = ms.quantize_int8(model, images, tmp_path / "alone.onnx", weight_bits=7)
+    cache = tmp_path / "ranges.json"
+    ms.quantize_int8(model, images, tmp_path / "w8.onnx", weight_bits=8, ranges_cache=cache)
+    assert cache.is_file()
+    # images that cannot be read: the second copy never looks at them, it reads the ranges
+    shared = ms.quantize_int8(model, [tmp_path / "missing.jpg"], tmp_path / "w7.onnx", weight_bits=7,
+                              ranges_cache=cache)  # fmt: skip
+    assert shared.read_bytes() != (tmp_path / "w8.onnx").read_bytes()
+
+    import onnx
+
+    def weights(path: Path) -> dict[str, bytes]:
+        return {t.name: t.raw_data for t in onnx.load(str(path)).graph.initializer}
+
+    assert weights(shared) == weights(alone)
