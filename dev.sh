@@ -159,7 +159,7 @@ setup() {
   compose_schema
 }
 
-# what `./dev.sh test` selects: the default and the slow tests; soaks (too long for CI) only when asked for
+# what `./dev.sh test` selects: the default and the slow tests; soaks (left out of CI for time) only when asked for
 TEST_MARKERS="not soak"
 
 pytest_run() {

@@ -118,13 +118,15 @@ def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn_dir: Path, vocab
 
 
 @pytest.mark.slow
-def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path):
+@pytest.mark.parametrize("run", [1, pytest.param(2, marks=pytest.mark.soak), pytest.param(3, marks=pytest.mark.soak)])
+def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path, run: int):
     """The three ORB-SLAM3 runs of the Bonn window (1.21-1.35 m ATE: it mapped the people) fed as `file:`, each of
-    their steps checked by semmap's people-masked registration: every one comes out under 15 cm."""
+    their steps checked by semmap's people-masked registration: every one comes out under 15 cm. CI repairs run 1
+    (about a minute each, 3.2 min for the three in session 27); `pytest -m soak` the other two, and
+    `benchmarks/bench_real_slam.py` all three (docs/RESULTS.md)."""
     from semmap.runtime.inprocess import closed_loop
 
-    for run in (1, 2, 3):
-        path = data_root / "orbslam3" / f"bonn_crowd_orbslam3_run{run}.tum"
-        res, _ = closed_loop(str(bonn_dir), f"file:{path}")
-        assert res.ate_odometry < 0.15, (run, res.summary())
-        assert res.frontend_counters["repair_overruled"] > 100
+    path = data_root / "orbslam3" / f"bonn_crowd_orbslam3_run{run}.tum"
+    res, _ = closed_loop(str(bonn_dir), f"file:{path}")
+    assert res.ate_odometry < 0.15, (run, res.summary())
+    assert res.frontend_counters["repair_overruled"] > 100
