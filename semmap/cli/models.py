@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -83,9 +84,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     doctor = actions.add_parser(
         "doctor",
         help="measure which detector configuration serves real time on this machine (cached per machine)",
-        description="Time each detector configuration that could serve real time here (fp32 / int8, 1 / 2 "
-        "threads, letterbox 640x480 / 640x384 / 512x384 / 480x352 / 416x320) on real frames, score each against "
-        "fp32 at 640x480 (F1 >= 0.9, recall per class) and cache the choice beside the models, keyed by the CPU "
+        description="Time each detector configuration that could serve real time here (fp32 / int8 / int8w7, "
+        "1 / 2 threads, letterbox 640x480 / 640x384 / 512x384 / 480x352 / 416x320) on real frames, score each "
+        "against fp32 at 640x480 (F1 >= 0.9, recall per class) and cache the choice beside the models (in "
+        "$SEMMAP_CHOICE_DIR where set and no --dir is given: the container image's), keyed by the CPU "
         "model, its SIMD flags, the cores and the onnxruntime version. `detector.precision: auto` in real time "
         "takes it. Prints the cached table when this machine was already measured (--remeasure to measure again).",
     )
@@ -174,6 +176,16 @@ def _models_doctor(args: argparse.Namespace) -> int:
         return 2
     doc = None if args.remeasure else load_choice(args.dir)
     if doc is None:
+        home = choice_path(args.dir).parent
+        try:  # before a minute of measuring, not after it
+            home.mkdir(parents=True, exist_ok=True)
+            writable = os.access(home, os.W_OK)
+        except OSError:
+            writable = False
+        if not writable:
+            _err(f"cannot keep this machine's measurement in {home} (not writable): set SEMMAP_CHOICE_DIR to a "
+                 "directory of yours")  # fmt: skip
+            return 1
         print(f"measuring detector configurations on this machine (about a minute) -> {choice_path(args.dir)}",
               file=sys.stderr)
         try:

@@ -30,6 +30,7 @@ PARENT_PID = "SEMMAP_PARENT_PID"
 ROBOT = "SEMMAP_ROBOT"
 HEALTH_FILE = "SEMMAP_HEALTH_FILE"
 MODEL_DIR = "SEMMAP_MODEL_DIR"
+CHOICE_DIR = "SEMMAP_CHOICE_DIR"
 DATA = "SEMMAP_DATA"
 XDG_RUNTIME_DIR = "XDG_RUNTIME_DIR"
 ROS_DISCOVERY_RANGE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
@@ -49,6 +50,8 @@ VARIABLES: tuple[Variable, ...] = (
     Variable(HEALTH_FILE, "containers: the heartbeat file a service touches (semmap.runtime.health)",
              "/tmp/semmap.health"),
     Variable(MODEL_DIR, "where detector models and the ORB vocabulary live", "~/.cache/semmap/models"),
+    Variable(CHOICE_DIR, "where this machine's detector measurement (`semmap models doctor`) is kept, where the "
+             "model dir is read-only (containers)", "the model dir"),
     Variable(DATA, "where datasets are looked up by name"),
     Variable(XDG_RUNTIME_DIR, "(the desktop's) where the registry of live runs is kept"),
     Variable(ROS_DISCOVERY_RANGE, "(ROS 2's) discovery range; `semmap ros2` defaults it to LOCALHOST", "LOCALHOST"),

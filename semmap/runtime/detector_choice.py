@@ -5,9 +5,10 @@ saturate and its detections disagree with fp32, unless its weights have 7 bits (
 default is right everywhere. `measure_configs` times each configuration that could serve real time
 (precision fp32/int8/int8w7 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
 size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes the fastest one that agrees
-(F1 >= AGREEMENT_F1). The result is cached as JSON beside the models (`detector_choice.json`), keyed by the CPU
-model, its SIMD flags, the core count and the onnxruntime version: another machine (or an upgrade) measures
-again. `semmap models doctor` prints the table; `detector.precision: auto` in real time reads the choice.
+(F1 >= AGREEMENT_F1). The result is cached as JSON beside the models (`detector_choice.json`; in
+`$SEMMAP_CHOICE_DIR` where set, as in the container image), keyed by the CPU model, its SIMD flags, the core
+count and the onnxruntime version: another machine (or an upgrade) measures again. `semmap models doctor`
+prints the table; `detector.precision: auto` in real time reads the choice.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from semmap.core import environment
 from semmap.core.outputs import atomic_write_bytes
 from semmap.runtime.model_store import QUANTIZED_FILES, default_model_path, get_model_dir
 
@@ -452,7 +454,14 @@ def calibration_images(source: str | Path | None, count: int = 24) -> tuple[list
 
 
 def choice_path(model_dir: Path | None = None) -> Path:
-    return (Path(model_dir) if model_dir is not None else get_model_dir()) / CHOICE_FILENAME
+    """Where this machine's measurement is kept: beside the models of `model_dir` where one is given (`--dir`),
+    else in `$SEMMAP_CHOICE_DIR`, else beside the models (`$SEMMAP_MODEL_DIR`). Why a directory of its own: a
+    container's models belong to root and its services run as another user, so the measurement needs a writable
+    home (a volume) that a rebuilt image's models do not share."""
+    if model_dir is not None:
+        return Path(model_dir) / CHOICE_FILENAME
+    own = environment.read(environment.CHOICE_DIR)
+    return (Path(own).expanduser() if own else get_model_dir()) / CHOICE_FILENAME
 
 
 def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, model_dir: Path | None = None,
@@ -518,7 +527,7 @@ def measure_and_save(
     best = choose(rows, int(key["cores"]))
     layouts: list[Layout] = []
     if best is not None and int(key["cores"]) >= 2:
-        before = load_choice(directory, key)
+        before = load_choice(model_dir, key)
         load = others_cpu_ms("gt", before)[0] * 30.0 / 1e3  # the others' cores in a 30 fps run
         blob = model_bytes(best.config.precision, best.config.hw, directory)
         try:
@@ -530,8 +539,8 @@ def measure_and_save(
             for lay in layouts:
                 progress(f"{best.config.label()} as {lay.label()}: {lay.detections_per_s:.1f} detections/s "
                          f"beside {lay.load_cores:.2f} cores of load")
-    save_choice(rows, key, where, directory, layouts)
-    doc = load_choice(directory, key)
+    save_choice(rows, key, where, model_dir, layouts)
+    doc = load_choice(model_dir, key)
     assert doc is not None
     return doc
 

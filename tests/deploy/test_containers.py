@@ -165,6 +165,13 @@ def _down(compose: list[str], env: dict[str, str], project: str) -> None:
         _podman(env, "volume", "rm", "-f", vol, check=False)
 
 
+def _build_args() -> str:
+    build_args = "--network host --format docker"
+    if HOST_CA.is_file():
+        build_args += f" --secret id=ca,src={HOST_CA}"
+    return build_args
+
+
 def _image_id(env: dict[str, str]) -> str:
     return _podman(env, "image", "inspect", "--format", "{{.Id}}", IMAGE, check=False).strip()
 
@@ -211,9 +218,6 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
         "SEMMAP_DATASET": kitchen_dir.name,
         "SEMMAP_ROUTER_PORT": str(port),
     }
-    build_args = "--network host --format docker"
-    if HOST_CA.is_file():
-        build_args += f" --secret id=ca,src={HOST_CA}"
     files = ["-f", "compose.yaml", "-f", OVERRIDE]
     endpoint, reader_config = f"tcp/127.0.0.1:{port}", None
     if profile == "secure":
@@ -221,7 +225,7 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
         env["SEMMAP_CERTS"] = str(certs)
         files += ["-f", SECURE]
         endpoint = f"tls/127.0.0.1:{port}"
-    compose = ["podman-compose", "-p", project, *files, "--podman-build-args", build_args]
+    compose = ["podman-compose", "-p", project, *files, "--podman-build-args", _build_args()]
     timings: dict[str, float] = {}
     watch: StatusWatch | None = None
     build: subprocess.Popen | None = None
@@ -285,3 +289,42 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
     assert json.loads((outputs / "map.json").read_text())["landmarks"], "an empty map proves nothing"
     for name in ("trajectory_optimized.tum", "trajectory_odometry.tum", "groundtruth.tum"):
         assert (outputs / name).read_text() == (embedded / name).read_text(), name
+
+
+def test_the_image_measures_the_machine_it_runs_on_and_its_real_time_detector_takes_the_choice(
+    podman_env: dict[str, str],
+) -> None:
+    """Real time in containers on the CPU at hand (issue 31), as compose.yaml documents it: `docker compose run --rm
+    detector semmap models doctor` times the image's fp32 and int8 copies on this machine and keeps the choice in
+    the `measurements` volume (the models belong to root, the services run as `semmap`: SEMMAP_CHOICE_DIR), and a
+    real-time detector that `up` starts afterwards runs that choice instead of fp32 at full size."""
+    project = f"semmaptest{os.getpid()}doctor"
+    env = {**podman_env, "SEMMAP_MODE": "realtime", "SEMMAP_ROUTER_PORT": str(free_loopback_port())}
+    compose = ["podman-compose", "-p", project, "-f", "compose.yaml", "-f", OVERRIDE, "--podman-build-args",
+               _build_args()]  # fmt: skip
+    try:
+        build = subprocess.run([*compose, "build", "zenoh"], cwd=PROJECT, env=env, capture_output=True, text=True,
+                               timeout=BUILD_WITHIN_S)  # fmt: skip (the layers of the stack test, where it ran first)
+        assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+        doctor = subprocess.run(
+            [*compose, "run", "--rm", "detector", "semmap", "models", "doctor", "--frames", "4"],
+            cwd=PROJECT, env=env, capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert doctor.returncode == 0, doctor.stdout[-3000:] + doctor.stderr[-3000:]
+        assert "int8w7 640x480 1t" in doctor.stdout, doctor.stdout[-3000:]  # the image's 7-bit copy is a candidate
+        chosen = next(line for line in doctor.stdout.splitlines() if line.startswith("choice (detector.precision auto"))
+        precision, size = chosen.split(": ", 1)[1].split()[:2]  # "int8w7 512x384 1t, 2 x 1 thread"
+
+        up = subprocess.run([*compose, "up", "-d", "--no-build", "zenoh", "detector"], cwd=PROJECT, env=env,
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert up.returncode == 0, up.stdout[-3000:] + up.stderr[-3000:]
+        deadline, model_line = time.monotonic() + 180, ""
+        while not model_line and time.monotonic() < deadline:
+            time.sleep(2)
+            model_line = next((line for line in _logs(env, project, lines=200).splitlines()
+                               if "detector INFO" in line and " model " in line), "")  # fmt: skip
+        assert model_line, _logs(env, project)
+        assert f"model {precision} {size} " in model_line and "measured on this machine" in model_line, model_line
+    finally:
+        _down(compose, env, project)
+    assert _leftovers(env, project) == {}

@@ -245,6 +245,23 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert dc.last_achieved("gt", "fp32 512x384 1 thread", tmp_path) == 9.4
 
 
+def test_a_read_only_model_dir_keeps_the_measurement_in_the_choice_dir(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """The container image: root's models, the services' user measures into a volume of its own."""
+    models, own = tmp_path / "models", tmp_path / "measured"
+    models.mkdir()
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(models))
+    monkeypatch.setenv("SEMMAP_CHOICE_DIR", str(own))  # (not made yet: saving makes it)
+    path = dc.save_choice([_row("int8w7", 1, (384, 512), 95, 95, 0.93)], dc.hardware_key(), "test")
+    assert path == own / dc.CHOICE_FILENAME and not (models / dc.CHOICE_FILENAME).exists()
+    rt = dc.resolve_setup("auto", 0, "auto", realtime=True)  # what a detector service started by compose resolves
+    assert (rt.precision, rt.hw, rt.origin) == ("int8w7", (384, 512), "measured on this machine")
+    assert dc.record_pipeline_cost("gt", 20.0)
+    assert json.loads(path.read_text())["pipeline_cpu_ms_per_frame"] == {"gt": 20.0}
+    assert dc.choice_path(models) == models / dc.CHOICE_FILENAME  # a model dir given (`--dir`) keeps its own
+    monkeypatch.delenv("SEMMAP_CHOICE_DIR")
+    assert dc.load_choice() is None  # beside the models again: nothing measured there
+
+
 # --- semmap models doctor ----------------------------------------------------------------------------------
 
 
@@ -264,6 +281,17 @@ def test_doctor_prints_the_cached_table_and_the_choice(tmp_path: Path, monkeypat
     assert ("no VNNI" in out) != dc.has_vnni(dc.hardware_key())
     assert main(["models", "doctor", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["choice"]["config"]["height"] == 384
+
+
+def test_doctor_refuses_a_home_it_cannot_write_before_measuring(tmp_path: Path, monkeypatch, capsys) -> None:  # noqa: ANN001
+    from semmap.cli.main import main
+
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    (tmp_path / MODEL_FILENAME).write_bytes(b"x")  # (never loaded: refused before measuring)
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("SEMMAP_CHOICE_DIR", str(tmp_path / "a-file" / "measured"))
+    assert main(["models", "doctor"]) == 1
+    assert "not writable): set SEMMAP_CHOICE_DIR" in capsys.readouterr().err
 
 
 def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) -> None:
