@@ -4,11 +4,12 @@ Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI; on an AVX2-only one (iss
 saturate and its detections disagree with fp32, unless its weights have 7 bits (int8w7, session 26), so no fixed
 default is right everywhere. `measure_configs` times each configuration that could serve real time
 (precision fp32/int8/int8w7 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
-size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes the fastest one that agrees
-(F1 >= AGREEMENT_F1). The result is cached as JSON beside the models (`detector_choice.json`; in
-`$SEMMAP_CHOICE_DIR` where set, as in the container image), keyed by the CPU model, its SIMD flags, the core
-count and the onnxruntime version: another machine (or an upgrade) measures again. `semmap models doctor`
-prints the table; `detector.precision: auto` in real time reads the choice.
+size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes, among those that agree
+(F1 >= AGREEMENT_F1), the most faithful one that keeps up with real time, else the fastest. The result is
+cached as JSON beside the models (`detector_choice.json`; in `$SEMMAP_CHOICE_DIR` where set, as in the container
+image), keyed by the CPU model, its SIMD flags, the core count and the onnxruntime version: another machine (or an
+upgrade) measures again. `semmap models doctor` prints the table; `detector.precision: auto` in real time reads
+the choice.
 """
 
 from __future__ import annotations
