@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 import time
@@ -176,16 +175,6 @@ def _models_doctor(args: argparse.Namespace) -> int:
         return 2
     doc = None if args.remeasure else load_choice(args.dir)
     if doc is None:
-        home = choice_path(args.dir).parent
-        try:  # before a minute of measuring, not after it
-            home.mkdir(parents=True, exist_ok=True)
-            writable = os.access(home, os.W_OK)
-        except OSError:
-            writable = False
-        if not writable:
-            _err(f"cannot keep this machine's measurement in {home} (not writable): set SEMMAP_CHOICE_DIR to a "
-                 "directory of yours")  # fmt: skip
-            return 1
         print(f"measuring detector configurations on this machine (about a minute) -> {choice_path(args.dir)}",
               file=sys.stderr)
         try:

@@ -465,6 +465,21 @@ def choice_path(model_dir: Path | None = None) -> Path:
     return (Path(own).expanduser() if own else get_model_dir()) / CHOICE_FILENAME
 
 
+def writable_choice_home(model_dir: Path | None = None) -> Path:
+    """The directory `choice_path` names, made if missing; OSError where this user cannot write there. Checked
+    before measuring (`measure_and_save`), so a read-only home fails at once, not after a minute of timing."""
+    home = choice_path(model_dir).parent
+    try:
+        home.mkdir(parents=True, exist_ok=True)
+        writable = os.access(home, os.W_OK)
+    except OSError:
+        writable = False
+    if not writable:
+        raise OSError(f"cannot keep this machine's measurement in {home} (not writable): set SEMMAP_CHOICE_DIR to a "
+                      "directory of yours")  # fmt: skip
+    return home
+
+
 def save_choice(rows: Sequence[Measured], key: dict[str, Any], source: str, model_dir: Path | None = None,
                 layouts: Sequence[Layout] = ()) -> Path:  # fmt: skip
     best = choose(rows, int(key.get("cores", 1)))
@@ -520,6 +535,7 @@ def measure_and_save(
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Measure every candidate on this machine and cache the result; returns the cached document."""
+    writable_choice_home(model_dir)
     key = hardware_key()
     directory = Path(model_dir) if model_dir is not None else get_model_dir()
     images, where = calibration_images(source, frames)
