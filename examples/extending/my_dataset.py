@@ -60,15 +60,10 @@ class PairsDataset(Dataset):
 
     def __getitem__(self, index: int) -> FrameData:
         stem = self.stems[index]
-        return FrameData(
-            index=index,
-            stamp=index / self.rate_hz,
-            rgb=read_rgb_file(self.root / "color" / f"{stem}.jpg"),  # kept encoded, sent as stored
-            depth=read_depth_file(self.root / "depth" / f"{stem}.png"),
-            depth_scale=self.depth_scale,
-            intrinsics=self.intrinsics,
-            gt_pose=None if self.poses is None else self.poses[index],
-        )
+        rgb = read_rgb_file(self.root / "color" / f"{stem}.jpg")  # kept encoded: sent as stored, decoded on use
+        depth = read_depth_file(self.root / "depth" / f"{stem}.png")
+        gt_pose = None if self.poses is None else self.poses[index]
+        return FrameData(index, index / self.rate_hz, rgb, depth, self.depth_scale, self.intrinsics, gt_pose)
 
     @property
     def has_groundtruth(self) -> bool:
@@ -82,12 +77,7 @@ def open_pairs(path: Path, **options: object) -> Dataset:
     return PairsDataset(path, **options)
 
 
-register(
-    NAME,
-    open_pairs,
-    "numbered pairs: a folder with camera.json, color/*.jpg, depth/*.png (+ poses.txt)",
-    is_my_pairs_dir,
-)
+register(NAME, open_pairs, "numbered pairs: camera.json, color/*.jpg, depth/*.png (+ poses.txt)", is_my_pairs_dir)
 
 
 def main() -> int:

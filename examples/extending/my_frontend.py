@@ -59,14 +59,8 @@ def create(section: OdometryConfig, argument: str) -> FrontEnd:
     return RandomWalkOdometry(step_mm / 1000.0, section.seed)
 
 
-register(
-    NAME,
-    create,
-    "SIMULATED: ground truth with a random walk of MM millimetres a frame (examples/extending)",
-    takes_argument=True,
-    needs_groundtruth=True,
-    simulated=True,
-)
+register(NAME, create, "SIMULATED: ground truth with a random walk of MM millimetres a frame (examples/extending)",
+         takes_argument=True, needs_groundtruth=True, simulated=True)
 
 
 def main() -> int:
