@@ -19,7 +19,8 @@ from semmap.core.config import ConfigError, OdometryConfig
 if TYPE_CHECKING:
     from semmap.algorithms.odometry.frontends import FrontEnd
 
-__all__ = ["AUTO", "FrontEndKind", "available", "check_mode", "create_frontend", "register", "resolve_mode"]
+__all__ = ["AUTO", "FrontEndKind", "available", "check_mode", "create_frontend", "motion_params", "register",
+           "repair_params", "resolve_mode"]
 
 AUTO = "auto"  # the default: a real front end (see resolve_mode)
 
@@ -119,22 +120,33 @@ def _file(c: OdometryConfig, path: str) -> FrontEnd:
     from .frontends import FileOdometry
 
     return FileOdometry(path, c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.file_time_offset_s,
-                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=_gates(c), rate_hz=c.file_rate_hz,
-                        measured_sigmas_after=_measured(c))
+                        repair=c.repair, dynamic_mask=c.dynamic_mask, repair_gates=repair_params(c),
+                        rate_hz=c.file_rate_hz, measured_sigmas_after=_measured(c), motion=motion_params(c))
 
 
-def _gates(c: OdometryConfig):  # noqa: ANN202 - RepairParams
+def repair_params(c: OdometryConfig):  # noqa: ANN201 - RepairParams (imported only when a front end checks)
+    """The step check's settings (`odometry.repair_*`, `odometry.arbiter_*`) as the repair takes them."""
+    from .arbiter import ArbiterParams
     from .repair import RepairParams
 
-    return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness,
-                        scope=c.repair_scope, hold_s=c.repair_hold_s)
+    arbiter = ArbiterParams(window_frames=c.arbiter_window_frames, min_t=c.arbiter_min_t,
+                            min_matches=c.arbiter_min_matches)
+    return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness, scope=c.repair_scope,
+                        hold_s=c.repair_hold_s, arbiter=arbiter, witness_every=c.repair_witness_every)
+
+
+def motion_params(c: OdometryConfig):  # noqa: ANN201 - MotionParams
+    """When a dynamic object counts as moving (`odometry.motion_*`): what opens the repair's scope."""
+    from .motion import MotionParams
+
+    return MotionParams(c.motion_window_s, c.motion_min_spread_m, c.motion_min_views, c.motion_persist_views)
 
 
 def _external(c: OdometryConfig, _: str) -> FrontEnd:
     from .frontends import ExternalSlamOdometry
 
     return ExternalSlamOdometry(c.file_sigma_translation_m, c.file_sigma_rotation_deg, c.repair, c.dynamic_mask,
-                                _gates(c), measured_sigmas_after=_measured(c))
+                                repair_params(c), measured_sigmas_after=_measured(c), motion=motion_params(c))
 
 
 def _measured(c: OdometryConfig) -> int:

@@ -13,55 +13,23 @@ from __future__ import annotations
 
 import json
 import math
-from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from semmap.algorithms.dynamic_mask import DYNAMIC_MASKS, mask_dynamic
 from semmap.core.config import OdometryConfig
-from semmap.core.messages import DynamicBox
 from semmap.datasets.trajectory_io import KITTI_RATE_HZ, read_trajectory
 
-from .repair import RepairParams, SlamRepair
+from .base import FrontEnd, OdometryError, OdometryInput
+from .base import flat as _flat
+from .base import unflat as _unflat
+from .checked import CheckedSlam
+from .motion import MotionParams
+from .registration import PairRegistration
+from .repair import RepairParams
 
-
-class OdometryError(ValueError):
-    """The front end cannot produce a pose for this input (e.g. `gt` on data without ground truth)."""
-
-
-@dataclass
-class OdometryInput:
-    frame_id: int
-    stamp: float
-    gt_pose: np.ndarray | None
-    rgb: np.ndarray | None = None
-    depth: np.ndarray | None = None
-    depth_scale: float = 0.001
-    intrinsics: np.ndarray | None = None  # 3x3
-    dynamic: list[DynamicBox] | None = None  # the frame's dynamic objects, for front ends that leave them out
-    slam_pose: np.ndarray | None = None  # an external SLAM's own pose of this frame (the `external` front end)
-
-
-class FrontEnd(ABC):
-    """One pose per frame, in frame order. `sigmas` is the declared per-frame (translation m, rotation rad)."""
-
-    needs_images = False
-    uses_dynamic = False  # leaves out the depth of dynamic objects (the service then gets them for each frame)
-    needs_slam = False  # checks an external SLAM's poses (the service then gets them on the `slam` key)
-    sigmas: tuple[float, float] = (0.01, 0.005)
-
-    @abstractmethod
-    def estimate(self, frame: OdometryInput) -> np.ndarray: ...
-
-    def state(self) -> dict:
-        """What a restarted service needs to continue the same trajectory (plain data)."""
-        return {}
-
-    def restore(self, state: dict) -> None:  # noqa: B027 - stateless front ends have nothing to restore
-        """Continue from `state()` output."""
+__all__ = ["FrontEnd", "OdometryError", "OdometryInput", "PairRegistration", "make_frontend", "frame_offset"]
 
 
 def _require_gt(frame: OdometryInput) -> np.ndarray:
@@ -149,73 +117,6 @@ class DriftingOdometry(FrontEnd):
         self._est = _unflat(state["est"], (4, 4))
         self._prev_gt = _unflat(state["prev_gt"], (4, 4))
         self.up = _unflat(state["up"], (3,))
-
-
-def _flat(a: np.ndarray | None) -> list[float] | None:
-    return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
-
-
-def _unflat(values: list[float] | None, shape: tuple[int, ...]) -> np.ndarray | None:
-    return None if values is None else np.asarray(values, float).reshape(shape)
-
-
-class PairRegistration:
-    """semmap's own measurement of a frame-to-frame motion: Open3D multi-scale RGB-D odometry (hybrid) between the
-    previous frame and this one, the depth of both frames' dynamic objects left out (a person moving between the
-    two frames leaves out where it was and where it is, in each). `register` returns (T_prev^-1 T_cur, fitness)
-    or (None, 0) for the first frame or a pair Open3D cannot register. The `rgbd` front end chains these steps;
-    the repair of an external SLAM (repair.py) checks the SLAM's steps against them."""
-
-    def __init__(self, dynamic_mask: str = "box") -> None:
-        import open3d as o3d  # heavy: only when a front end that registers is chosen
-
-        if dynamic_mask not in DYNAMIC_MASKS:
-            raise OdometryError(f"odometry.dynamic_mask must be one of {DYNAMIC_MASKS}, got {dynamic_mask!r}")
-        self.o3d = o3d
-        self.dynamic_mask = dynamic_mask
-        self._prev: tuple[object, np.ndarray, list[DynamicBox]] | None = None  # colour, raw depth, dynamic boxes
-        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
-        self.failed = 0
-
-    def reset(self) -> None:
-        """Forget the previous frame (after a restart: the next frame starts a new chain)."""
-        self._prev = None
-
-    @property
-    def has_previous(self) -> bool:
-        """Whether the next `register` has a previous frame to register to."""
-        return self._prev is not None
-
-    def _image(self, color: object, depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float) -> object:
-        o3d = self.o3d
-        raw = mask_dynamic(depth, boxes, depth_scale, self.dynamic_mask)
-        return o3d.t.geometry.RGBDImage(color, o3d.t.geometry.Image(np.ascontiguousarray(raw)))
-
-    def register(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
-        if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
-            raise OdometryError("RGB-D registration needs RGB, depth and intrinsics")
-        o3d = self.o3d
-        color = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb.astype(np.float32) / 255.0))
-        boxes = list(frame.dynamic or [])
-        result: tuple[np.ndarray | None, float] = (None, 0.0)
-        if self._prev is not None:
-            prev_color, prev_depth, prev_boxes = self._prev
-            pair = prev_boxes + boxes
-            current = self._image(color, frame.depth, pair, frame.depth_scale)
-            previous = self._image(prev_color, prev_depth, pair, frame.depth_scale)
-            K = o3d.core.Tensor(np.asarray(frame.intrinsics, dtype=np.float64), o3d.core.Dtype.Float64)
-            try:
-                out = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                    current, previous, K, o3d.core.Tensor(np.eye(4)), 1.0 / frame.depth_scale, 4.0,
-                    self._criteria, o3d.t.pipelines.odometry.Method.Hybrid)
-                relative = out.transformation.numpy()
-                if not np.all(np.isfinite(relative)):
-                    raise RuntimeError("non-finite odometry")
-                result = (relative, float(out.fitness))
-            except RuntimeError:
-                self.failed += 1
-        self._prev = (color, frame.depth, boxes)
-        return result
 
 
 class RgbdOdometry(FrontEnd):
@@ -306,106 +207,95 @@ def check_trajectory_overlap(path: str | Path, frame_stamps: list[float], offset
     return f"odometry {path}: {n} of {total} frames matched a pose within {max_difference_s} s"
 
 
-class FileOdometry(FrontEnd):
+class CheckedSlamFrontEnd(FrontEnd):
+    """A SLAM's poses, each step checked by semmap (checked.py) unless the check is off: what `file:`,
+    `external` and `orbslam3` share. A subclass hands `checked_pose` its SLAM's pose of each frame; the SLAM's own
+    poses are kept as `slam_trajectory` (written as `trajectory_slam.tum`), the decisions in `counters` and
+    `judged` (written to `odometry_repair.json`)."""
+
+    def __init__(self, fixed_sigmas: tuple[float, float], check: CheckedSlam) -> None:
+        self.sigmas = self.fixed_sigmas = fixed_sigmas
+        self.check = check
+        self.needs_images = self.uses_dynamic = check.checks
+        self.counters: dict[str, int] = {}
+        self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the SLAM's own poses, before the repair
+
+    def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False) -> np.ndarray:
+        if slam_pose is not None:
+            self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
+        pose = self.check.pose(frame, slam_pose, slam_weak)
+        self.sigmas = self.check.repair.declared_sigmas(self.fixed_sigmas)
+        self.counters.update({**self.check.counters(), **_declared_counters(self.sigmas)})
+        return pose
+
+    @property
+    def step_source(self) -> str:
+        """Whose step this frame's pose took: slam | semmap | motion (the motion model) | copied (no check)."""
+        return self.check.repair.last_winner if self.check.checks else "copied"
+
+    def overruled(self) -> list[tuple[int, int]]:
+        return self.check.repair.report.spans()
+
+    def judged(self) -> list[dict]:
+        return list(self.check.repair.report.judged)
+
+    def state(self) -> dict:
+        return self.check.state()
+
+    def restore(self, state: dict) -> None:
+        self.check.restore(state)
+
+
+class FileOdometry(CheckedSlamFrontEnd):
     """Poses from a TUM trajectory file (or a KITTI pose file, pose i at i / `rate_hz`), matched to each frame by
     the nearest timestamp (+ a time offset).
 
-    With `repair` (the default) each of the file's steps is checked against semmap's own people-masked RGB-D
-    registration of the same two frames and the wrong ones are overruled (repair.py): the front end then needs the
-    frames' images and their dynamic objects. A frame with no pose within `FILE_MATCH_S` counts as one the SLAM
-    had none for. Without `repair` the file's poses are copied as they are."""
+    With `repair` (the default) each of the file's steps is checked by semmap (checked.py): the front end then
+    needs the frames' images and their dynamic objects. A frame with no pose within `FILE_MATCH_S` counts as one
+    the SLAM had none for. Without `repair` the file's poses are copied as they are."""
 
     def __init__(self, path: str | Path, sigma_translation_m: float, sigma_rotation_deg: float,
                  time_offset_s: float = 0.0, repair: bool = False, dynamic_mask: str = "box",
                  repair_gates: RepairParams | None = None, rate_hz: float = KITTI_RATE_HZ,
-                 measured_sigmas_after: int = 0) -> None:
+                 measured_sigmas_after: int = 0, motion: MotionParams | None = None) -> None:
         poses = sorted(read_trajectory(path, rate_hz=rate_hz), key=lambda p: p[0])
         if not poses:
             raise OdometryError(f"trajectory file {path} holds no poses")
+        super().__init__((sigma_translation_m, math.radians(sigma_rotation_deg)),
+                         CheckedSlam(repair_gates, dynamic_mask, repair, motion, measured_sigmas_after))
         self.stamps = np.array([t for t, _ in poses])
         self.poses = [p for _, p in poses]
-        self.sigmas = self.fixed_sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
         self.time_offset_s = float(time_offset_s)
         self.far_matches = 0
-        self.check = PairRegistration(dynamic_mask) if repair else None
-        self.repair = SlamRepair(repair_gates, measured_sigmas_after=measured_sigmas_after) if repair else None
-        self.needs_images = self.uses_dynamic = repair
-        self.counters: dict[str, int] = {}
-        self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the file's poses matched to frames
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
         nearest, matched = match_trajectory(self.stamps, np.array([frame.stamp]), self.time_offset_s)
         if not matched[0]:
             self.far_matches += 1
         pose = self.poses[int(nearest[0])].copy()
-        if self.repair is None or self.check is None:
+        if not self.check.checks:
             return pose
-        if matched[0]:
-            self.slam_trajectory.append((float(frame.stamp), pose.copy()))
-        step, fitness = self.check.register(frame)
-        repaired = self.repair.update(frame.frame_id, pose if matched[0] else None, step, fitness,
-                                      bool(frame.dynamic), float(frame.stamp))
-        self.sigmas = self.repair.declared_sigmas(self.fixed_sigmas)
-        self.counters = {**self.repair.report.counters(), **_declared_counters(self.sigmas)}
-        return repaired
-
-    def overruled(self) -> list[tuple[int, int]]:
-        return [] if self.repair is None else self.repair.report.spans()
-
-    def state(self) -> dict:
-        return {} if self.repair is None else {"repair": self.repair.state()}
-
-    def restore(self, state: dict) -> None:
-        if self.repair is not None and "repair" in state:
-            self.repair.restore(state["repair"])
-        if self.check is not None:
-            self.check.reset()
+        return self.checked_pose(frame, pose if matched[0] else None)
 
 
-class ExternalSlamOdometry(FrontEnd):
+class ExternalSlamOdometry(CheckedSlamFrontEnd):
     """A live external SLAM's poses (the client's or the ROS 2 bridge's, on the `slam` key), each step checked
-    against semmap's own people-masked registration like `file:` (repair.py); `odometry.repair=false` copies them.
-    The run's odometry is then the repaired trajectory; the SLAM's own poses are kept as `trajectory_slam.tum`."""
+    by semmap like `file:` (checked.py); `odometry.repair=false` copies them. The run's odometry is then the
+    repaired trajectory; the SLAM's own poses are kept as `trajectory_slam.tum`."""
 
-    needs_images = True
-    uses_dynamic = True
     needs_slam = True
 
     def __init__(self, sigma_translation_m: float, sigma_rotation_deg: float, repair: bool = True,
                  dynamic_mask: str = "box", repair_gates: RepairParams | None = None,
-                 measured_sigmas_after: int = 0) -> None:
-        self.sigmas = self.fixed_sigmas = (sigma_translation_m, math.radians(sigma_rotation_deg))
-        self.check = PairRegistration(dynamic_mask) if repair else None
-        self.repair = SlamRepair(repair_gates, measured_sigmas_after=measured_sigmas_after if repair else 0)
-        self.counters: dict[str, int] = {}
-        self.slam_trajectory: list[tuple[float, np.ndarray]] = []
+                 measured_sigmas_after: int = 0, motion: MotionParams | None = None) -> None:
+        super().__init__((sigma_translation_m, math.radians(sigma_rotation_deg)),
+                         CheckedSlam(repair_gates, dynamic_mask, repair, motion, measured_sigmas_after))
 
     def estimate(self, frame: OdometryInput) -> np.ndarray:
         slam = frame.slam_pose
         if slam is not None and (slam.shape != (4, 4) or not np.all(np.isfinite(slam))):
             slam = None
-        if slam is not None:
-            self.slam_trajectory.append((float(frame.stamp), slam.copy()))
-        if self.check is None:
-            pose = self.repair.copy(frame.frame_id, slam)
-        else:
-            step, fitness = self.check.register(frame)
-            pose = self.repair.update(frame.frame_id, slam, step, fitness, bool(frame.dynamic), float(frame.stamp))
-        self.sigmas = self.repair.declared_sigmas(self.fixed_sigmas)
-        self.counters = {**self.repair.report.counters(), **_declared_counters(self.sigmas)}
-        return pose
-
-    def overruled(self) -> list[tuple[int, int]]:
-        return self.repair.report.spans()
-
-    def state(self) -> dict:
-        return {"repair": self.repair.state()}
-
-    def restore(self, state: dict) -> None:
-        if "repair" in state:
-            self.repair.restore(state["repair"])
-        if self.check is not None:
-            self.check.reset()
+        return self.checked_pose(frame, slam)
 
 
 def _declared_counters(sigmas: tuple[float, float]) -> dict[str, int]:

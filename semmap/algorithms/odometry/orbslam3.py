@@ -29,8 +29,10 @@ from semmap.algorithms.dynamic_mask import dynamic_pixels
 from semmap.core.config import OdometryConfig
 from semmap.core.messages import DynamicBox
 
-from .frontends import FrontEnd, OdometryError, OdometryInput, PairRegistration, _flat
-from .repair import RepairParams, SlamRepair
+from . import motion_params, repair_params
+from .base import OdometryError, OdometryInput, flat
+from .checked import CheckedSlam
+from .frontends import CheckedSlamFrontEnd
 
 MASKS = ("range", "box", "none")
 
@@ -80,11 +82,13 @@ def blank_dynamic(rgb: np.ndarray, depth: np.ndarray, boxes: list[DynamicBox], d
     return rgb_out, depth_out, float(mask.mean())
 
 
-class OrbSlam3Odometry(FrontEnd):
+class OrbSlam3Odometry(CheckedSlamFrontEnd):
     """ORB-SLAM3 RGB-D tracking with semmap's dynamic masks and step check (module docstring).
 
     Not restartable mid-run (ORB-SLAM3's map lives in its process): after a restart the new instance starts a new
-    map at the saved pose and the repair chains its steps from there."""
+    map at the saved pose and the repair chains its steps from there. The SLAM's own word on a frame counts too:
+    a pose it tracked on fewer than `orbslam3_weak_points` map points is a weak one, which semmap's registration
+    overrules where the two disagree."""
 
     needs_images = True
     uses_dynamic = True
@@ -106,15 +110,15 @@ class OrbSlam3Odometry(FrontEnd):
         self.features = config.orbslam3_features
         self.mask = config.orbslam3_mask
         self.rate_hz = rate_hz
-        self.sigmas = (config.orbslam3_sigma_translation_m, math.radians(config.orbslam3_sigma_rotation_deg))
-        self.check = PairRegistration(config.dynamic_mask) if config.repair else None
-        self.repair = SlamRepair(repair_params(config))
+        super().__init__((config.orbslam3_sigma_translation_m, math.radians(config.orbslam3_sigma_rotation_deg)),
+                         CheckedSlam(repair_params(config), config.dynamic_mask, config.repair, motion_params(config)))
+        self.needs_images = self.uses_dynamic = True  # (ORB-SLAM3 tracks the images, its masks need the boxes)
+        self.weak_points = config.orbslam3_weak_points
         self._slam = None
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._anchor: np.ndarray | None = None  # world <- ORB-SLAM3's map of the first frame
         self._restored = False
-        self.counters = {"orb_lost": 0, "orb_not_initialized": 0, "orb_blanked_permille": 0}
-        self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # ORB-SLAM3's own poses, before the repair
+        self.counters.update({"orb_lost": 0, "orb_not_initialized": 0, "orb_blanked_permille": 0, "orb_weak": 0})
         self._blanked_sum, self._frames = 0.0, 0  # the blanked share of the image, summed (a running mean)
 
     def _start(self, frame: OdometryInput) -> None:
@@ -147,6 +151,7 @@ class OrbSlam3Odometry(FrontEnd):
         result = self._slam.track_rgbd(np.ascontiguousarray(rgb), np.ascontiguousarray(depth), float(frame.stamp))
         state = str(result.state).rsplit(".", 1)[-1]
         slam_pose = None
+        weak = False
         if result.pose_valid and state == "OK":
             slam_pose = np.asarray(result.pose_wc, dtype=np.float64)
             if self._anchor is None:
@@ -154,32 +159,23 @@ class OrbSlam3Odometry(FrontEnd):
                 start = frame.gt_pose if (frame.gt_pose is not None and not self._restored) else None
                 self._anchor = (start @ np.linalg.inv(slam_pose)) if start is not None else np.eye(4)
             slam_pose = self._anchor @ slam_pose
-            self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
+            weak = int(getattr(result, "num_tracked_points", self.weak_points)) < self.weak_points
+            self.counters["orb_weak"] += int(weak)
         elif state == "NOT_INITIALIZED":
             self.counters["orb_not_initialized"] += 1
         else:
             self.counters["orb_lost"] += 1
-        if self.check is not None:
-            step, fitness = self.check.register(frame)
-            pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, bool(boxes), float(frame.stamp))
-        else:  # no check: ORB-SLAM3's steps as they are (lost frames carried at constant velocity)
-            pose = self.repair.copy(frame.frame_id, slam_pose)
-        self.counters.update(self.repair.report.counters())
+        pose = self.checked_pose(frame, slam_pose, weak)
         self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
         return pose
 
-    def overruled(self) -> list[tuple[int, int]]:
-        return self.repair.report.spans()
-
     def state(self) -> dict:
-        return {"repair": self.repair.state(), "anchor": _flat(self._anchor)}
+        return {**self.check.state(), "anchor": flat(self._anchor)}
 
     def restore(self, state: dict) -> None:
-        self.repair.restore(state.get("repair", {}))
-        self.repair.break_chain()  # a new ORB-SLAM3 instance starts a new map: its first step says nothing
+        self.check.restore(state)
+        self.check.break_chain()  # a new ORB-SLAM3 instance starts a new map: its first step says nothing
         self._restored = True
-        if self.check is not None:
-            self.check.reset()
 
     def close(self) -> None:
         if self._slam is not None:
@@ -190,8 +186,3 @@ class OrbSlam3Odometry(FrontEnd):
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
-
-
-def repair_params(config: OdometryConfig) -> RepairParams:
-    return RepairParams(config.repair_translation_m, config.repair_rotation_deg, config.repair_min_fitness,
-                        scope=config.repair_scope, hold_s=config.repair_hold_s)

@@ -4,16 +4,22 @@ A visual SLAM that walking people corrupt does not fail loudly: it tracks featur
 moves with them (ORB-SLAM3 on the Bonn "crowd" window: an estimated path of 10.8 m for a camera that moved 1 m).
 semmap sees the same frames, knows where the people are (the tracker's dynamic boxes) and can register two
 consecutive frames with their depth left out (`rgbd` odometry, 40-100 ms a pair). `SlamRepair` compares each of
-the SLAM's frame-to-frame steps with that registration and, where they disagree by more than a gate, **overrules**
-the SLAM: the output takes semmap's step instead and re-anchors the SLAM's later poses onto the repaired path, so
-the SLAM's own later motion still counts (its steps keep their local accuracy: feature tracking, local bundle
-adjustment). Where the SLAM has no pose (lost, not initialised) semmap's step carries the trajectory alone.
+the SLAM's frame-to-frame steps with that registration and, where they disagree by more than a gate, asks the
+static scene which of the two is right (arbiter.py: sparse features over the last few frames, evidence neither was
+fitted to). Only where that evidence clearly favours semmap's registration does the output **overrule** the SLAM:
+it takes semmap's step and re-anchors the SLAM's later poses onto the repaired path, so the SLAM's own later motion
+still counts. Where the evidence is weak, the SLAM keeps its step. Where the SLAM has no pose (lost, not
+initialised) semmap's step carries the trajectory alone.
+
+Where it checks (the scope): only while an object is *seen to move* (motion.py) and `hold_s` after. A person who
+sits still, or a false person box, is no reason to doubt the SLAM; on a static scene a SLAM beats semmap's
+frame-to-frame registration (7-Scenes: ORB-SLAM3 3.5 cm, checked everywhere 7.3 cm; TUM fr1_rpy, fast rotation:
+registration steps 25 mm off, the SLAM's 4 mm).
 
 Why step by step and not poses: a wrong step is local (a person crossing the view for a second), but it shifts
 every later pose; comparing steps finds it where it happened, and replacing one step moves the rest with it.
-Why a gate, not a weighted mean: when two measurements of a step disagree by centimetres, one of them is wrong,
-and averaging keeps half the error. The registration is trusted only when it registered enough of the image
-(`fitness`) and agreed with itself (finite, not a jump beyond `max_step_*`); otherwise the SLAM's step stands.
+The registration is a witness only where it registered enough of the image (`fitness`) and agreed with itself
+(finite, not a jump beyond `max_step_*`); otherwise the SLAM's step stands if it continues the recent motion.
 
 Everything here is pure: steps in, poses and counters out (the front ends in frontends.py feed it).
 """
@@ -22,10 +28,16 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from .arbiter import ArbiterParams, Verdict
+
+# judge(slam_motion, semmap_motion, steps): the static scene's verdict on two motions over the last `steps` frames
+Judge = Callable[[np.ndarray, np.ndarray, int], Verdict]
 
 
 @dataclass(frozen=True)
@@ -37,8 +49,11 @@ class RepairParams:
     min_fitness: float = 0.15  # semmap's registration must cover this fraction of the pixels to overrule
     max_step_m: float = 0.3  # a registration step longer than this (m per frame) is itself not trusted
     max_step_deg: float = 15.0
-    scope: str = "dynamic"  # check steps only while dynamic objects are in view (and `hold_s` after); "always"
+    scope: str = "moving"  # check steps only while an object is seen moving (and `hold_s` after); "always"
     hold_s: float = 2.0  # a SLAM that mapped a person keeps those points a while after the person left the view
+    arbiter: ArbiterParams = field(default_factory=ArbiterParams)  # who is right where the two disagree
+    # outside the scope a frame is registered only to measure the SLAM's precision (StepAgreement), every n-th
+    witness_every: int = 5
     # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
     # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)
     gate_rate_hz: float = 30.0
@@ -65,11 +80,17 @@ class RepairReport:
     implausible: int = 0  # no trustworthy registration and the SLAM's step broke the recent motion: replaced
     coast_limit: int = 0  # ...but the motion model had carried `max_coast_s` already: the SLAM's step taken
     outvoted: int = 0  # the registration disagreed, but the SLAM's step continued the recent motion and it did not
+    kept: int = 0  # the registration disagreed, but the static scene did not clearly favour it: the SLAM's step
+    slam_weak: int = 0  # the registration disagreed and the SLAM itself said its tracking was weak: overruled
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
+    # per judged step (the first `max_judged`): what disagreed, the evidence and who won (odometry_repair.json)
+    judged: list[dict] = field(default_factory=list)
+    max_judged: int = 5000
 
-    # the counted fields, in the order states saved before session 14 listed them (a list, not named)
-    COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted")
+    # the counted fields; older saved states listed the first eight as a plain list, in this order
+    COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted",
+               "kept", "slam_weak")
 
     def counters(self) -> dict[str, int]:
         return {f"repair_{name}": getattr(self, name) for name in self.COUNTED}
@@ -80,6 +101,16 @@ class RepairReport:
             saved = {f"repair_{name}": v for name, v in zip(self.COUNTED, saved, strict=False)}
         for name in self.COUNTED:
             setattr(self, name, int((saved or {}).get(f"repair_{name}", 0)))
+
+    def note_judgement(self, frame_id: int, winner: str, difference: tuple[float, float], verdict: Verdict | None,
+                       fitness: float) -> None:
+        if len(self.judged) < self.max_judged:
+            record = {"frame": int(frame_id), "winner": winner, "differ_mm": round(difference[0] * 1e3, 2),
+                      "differ_deg": round(difference[1], 3), "fitness": round(float(fitness), 3)}
+            if verdict is not None:
+                record.update(t=round(verdict.t, 2), matches=verdict.matches,
+                              slam_px=_rounded(verdict.slam_px), semmap_px=_rounded(verdict.semmap_px))
+            self.judged.append(record)
 
     def spans(self) -> list[tuple[int, int]]:
         """The overruled frames as [first, last] runs of consecutive ids: where the SLAM went wrong."""
@@ -176,6 +207,10 @@ class StepAgreement:
         self._restored = None if not state else (float(state[0]), float(state[1]))
 
 
+def _rounded(value: float) -> float | None:
+    return None if not math.isfinite(value) else round(float(value), 2)
+
+
 def step_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation m, rotation deg) between two relative motions."""
     d = np.linalg.inv(a) @ b
@@ -194,6 +229,9 @@ class SlamRepair:
     `slam_pose` is the SLAM's camera-to-world pose (None where it has none); `check_step` semmap's registration
     of the previous frame to this one as the relative motion T_prev^-1 T_cur (None where it has none). The output
     starts at the first SLAM pose (or at `start`), in the SLAM's world frame.
+
+    It keeps the last `arbiter.window_frames` steps of both estimates (the SLAM's poses, semmap's own steps) so
+    that a disagreement is judged over that window (`judge`, arbiter.py) rather than on one noisy frame pair.
     """
 
     def __init__(self, params: RepairParams | None = None, start: np.ndarray | None = None,
@@ -211,6 +249,15 @@ class SlamRepair:
         self.agreement = StepAgreement(max(1, measured_sigmas_after))
         self.measured_sigmas = measured_sigmas_after > 0
         self.took_slam_step = False  # this frame's step is the SLAM's own (not semmap's, not the motion model's)
+        self.last_winner = "slam"  # whose step this frame took: slam | semmap | motion (the motion model)
+        # the static scene's verdicts over the recent disagreements, summed with a fading memory (> 0: semmap's)
+        self.evidence = 0.0
+        self._verdict: Verdict | None = None  # the last verdict weighed
+        # the window the arbiter judges: the SLAM's last poses and semmap's own last steps (its registration where
+        # it was a witness, else the step taken), newest last
+        window = max(1, self.params.arbiter.window_frames)
+        self._slam_window: deque[np.ndarray | None] = deque(maxlen=window)  # poses of the frames before this one
+        self._semmap_window: deque[np.ndarray] = deque(maxlen=window - 1)  # steps between them
 
     def copy(self, frame_id: int, slam_pose: np.ndarray | None) -> np.ndarray:
         """No check (`odometry.repair` off): the SLAM's steps as they are; a frame without a SLAM pose repeats the
@@ -266,16 +313,25 @@ class SlamRepair:
         ratio = (stamp - self._stamp) * self.params.gate_rate_hz
         return ratio**2 if ratio >= 1.5 else 1.0
 
-    def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
-               fitness: float = 1.0, dynamic_in_view: bool = True, stamp: float | None = None) -> np.ndarray:
-        """`dynamic_in_view`: the frame holds dynamic objects (people...); with scope `dynamic` a step is checked
-        only then and for `hold_s` seconds (by `stamp`) after, since a SLAM on a static scene is better than
-        semmap's frame-to-frame registration (7-Scenes: ORB-SLAM3 3.5 cm, checked everywhere 7.3 cm)."""
-        p, r = self.params, self.report
-        if dynamic_in_view and stamp is not None:
+    def in_scope(self, moving_in_view: bool, stamp: float | None, undecided: bool = False) -> bool:
+        """Whether this frame's step is checked: with scope `moving`, while an object is seen moving and `hold_s`
+        seconds (by `stamp`) after, and while one is in view whose motion is not known yet (no hold after);
+        always with scope `always`."""
+        if moving_in_view and stamp is not None:
             self._dynamic_seen = stamp
-        in_scope = p.scope == "always" or dynamic_in_view or (
-            stamp is not None and self._dynamic_seen is not None and stamp - self._dynamic_seen <= p.hold_s)
+        return self.params.scope == "always" or moving_in_view or undecided or (
+            stamp is not None and self._dynamic_seen is not None and stamp - self._dynamic_seen <= self.params.hold_s)
+
+    def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
+               fitness: float = 1.0, moving_in_view: bool = True, stamp: float | None = None,
+               judge: Judge | None = None, slam_weak: bool = False, undecided: bool = False) -> np.ndarray:
+        """`moving_in_view`: an object in this frame is seen moving (motion.py); with scope `moving` a step is
+        checked only then and for `hold_s` seconds (by `stamp`) after. `judge` weighs the static scene's evidence
+        where the two estimates disagree (without one the evidence is weak and the SLAM keeps its step);
+        `slam_weak`: the SLAM said its own tracking of this frame was weak (few tracked points); `undecided`: an
+        object is in view whose motion is not known yet (checked too, see `in_scope`)."""
+        r = self.report
+        in_scope = self.in_scope(moving_in_view, stamp, undecided)
         if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
             slam_pose = None
         if self._pose is None:  # the first frame: the anchor
@@ -286,6 +342,7 @@ class SlamRepair:
             else:
                 self._pose = np.eye(4)
             self._slam_prev = None if slam_pose is None else slam_pose.copy()
+            self._slam_window.append(self._slam_prev)
             return self._pose.copy()
         r.steps += 1
         scale = self._gate_scale(stamp)
@@ -303,30 +360,78 @@ class SlamRepair:
                 self.agreement.add_witnessed(slam_step, check_step)
             if not in_scope:
                 r.static += 1
+                self.evidence = 0.0  # (what the scene said of an earlier scope says nothing of the next one)
                 step = slam_step
             elif not trusted:
-                step = self._without_witness(frame_id, slam_step, stamp, scale)
+                step = self._without_witness(frame_id, slam_pose, slam_step, stamp, scale, judge)
             else:
-                dt, dr = step_difference(slam_step, check_step)
-                if dt <= p.translation_m * scale and dr <= p.rotation_deg * scale:
-                    step = slam_step
-                elif scale > 1.0 and self._continues(slam_step, scale) and not self._continues(check_step, scale):
-                    # two witnesses against one: the SLAM's step continues the camera's recent motion and the
-                    # registration's breaks it (KITTI 00 at 10 Hz: three registrations 1-3 deg off, on a slow car
-                    # in a street, turned a 1.3 m trajectory into 6.9 m)
-                    r.outvoted += 1
-                    step = slam_step
-                else:
-                    r.overruled += 1
-                    self._note(frame_id)
-                    step = check_step
+                step = self._arbitrate(frame_id, slam_pose, slam_step, check_step, fitness, scale, judge, slam_weak)
         self.took_slam_step = slam_step is not None and step is slam_step
+        self.last_winner = "slam" if self.took_slam_step else ("semmap" if trusted and step is check_step else "motion")
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
+        self._slam_window.append(self._slam_prev)
+        self._semmap_window.append(np.asarray(check_step if trusted else step, float).copy())
         self._last_step = np.asarray(step, float).copy()
         self._pose = self._pose @ self._last_step
         if stamp is not None:
             self._stamp = float(stamp)
         return self._pose.copy()
+
+    def _arbitrate(self, frame_id: int, slam_pose: np.ndarray, slam_step: np.ndarray, check_step: np.ndarray,
+                   fitness: float, scale: float, judge: Judge | None, slam_weak: bool) -> np.ndarray:
+        """Both estimates of this step are at hand: the SLAM's, unless they disagree and the evidence says
+        otherwise."""
+        p, r = self.params, self.report
+        difference = step_difference(slam_step, check_step)
+        if difference[0] <= p.translation_m * scale and difference[1] <= p.rotation_deg * scale:
+            return slam_step
+        if scale > 1.0 and self._continues(slam_step, scale) and not self._continues(check_step, scale):
+            # two witnesses against one: the SLAM's step continues the camera's recent motion and the
+            # registration's breaks it (KITTI 00 at 10 Hz: three registrations 1-3 deg off, on a slow car in a
+            # street, turned a 1.3 m trajectory into 6.9 m)
+            r.outvoted += 1
+            return slam_step
+        if slam_weak:  # the SLAM's own word: it barely tracked this frame
+            r.slam_weak += 1
+            r.overruled += 1
+            self._note(frame_id)
+            r.note_judgement(frame_id, "semmap", difference, None, fitness)
+            return check_step
+        verdict = self._judge(slam_pose, check_step, judge)
+        if self._weigh(verdict):
+            r.overruled += 1
+            self._note(frame_id)
+            r.note_judgement(frame_id, "semmap", difference, verdict, fitness)
+            return check_step
+        r.kept += 1
+        r.note_judgement(frame_id, "slam", difference, verdict, fitness)
+        return slam_step
+
+    def _weigh(self, verdict: Verdict | None) -> bool:
+        """Add a verdict to the evidence of the recent disagreements (faded by `evidence_memory`, each verdict
+        clipped to `evidence_clip`): does it now favour semmap's estimate by `min_t`? Why a running sum: a SLAM that
+        people drag is dragged for a while, a few millimetres a frame, and each frame pair alone is within the
+        noise as often as not (Bonn crowd: semmap's registration won 50 % of single judgements); the sum of a few
+        consecutive ones is not. A single strong verdict still decides alone."""
+        a = self.params.arbiter
+        self._verdict = verdict
+        if verdict is None or verdict.matches < a.min_matches:
+            return self.evidence >= a.min_t and verdict is not None
+        self.evidence = a.evidence_memory * self.evidence + max(-a.evidence_clip, min(a.evidence_clip, verdict.t))
+        return self.evidence >= a.min_t
+
+    def _judge(self, slam_pose: np.ndarray, check_step: np.ndarray, judge: Judge | None) -> Verdict | None:
+        """The static scene's verdict on the two motions over the window: the SLAM's from its pose at the window's
+        start to this one, semmap's its own steps over the window then this registration. None without a judge or
+        without the SLAM's pose at the window's start (it was lost there: nothing to compare)."""
+        if judge is None or not self._slam_window or self._slam_window[0] is None:
+            return None
+        steps = len(self._semmap_window) + 1
+        slam_motion = np.linalg.inv(self._slam_window[0]) @ slam_pose
+        semmap_motion = np.eye(4)
+        for step in self._semmap_window:
+            semmap_motion = semmap_motion @ step
+        return judge(slam_motion, semmap_motion @ check_step, steps)
 
     def _continues(self, step: np.ndarray, scale: float) -> bool:
         """Does `step` continue the camera's recent motion (within the gates, scaled to the frame interval)?"""
@@ -336,11 +441,13 @@ class SlamRepair:
         dt, dr = step_difference(step, self._last_step)
         return dt <= p.translation_m * scale and dr <= p.rotation_deg * scale
 
-    def _without_witness(self, frame_id: int, slam_step: np.ndarray, stamp: float | None, scale: float) -> np.ndarray:
-        """No witness of semmap's own: the SLAM's step still has to agree with the camera's recent motion (constant
-        velocity) within the gates, scaled to the frame interval, else the motion model carries this frame; but
-        not for longer than `max_coast_s` in a row: a camera that changed its speed for good (a car braking) would
-        otherwise be held at its old speed for ever, its SLAM refused at every later step."""
+    def _without_witness(self, frame_id: int, slam_pose: np.ndarray, slam_step: np.ndarray, stamp: float | None,
+                         scale: float, judge: Judge | None) -> np.ndarray:
+        """No registration to witness the step: the SLAM's step stands if it continues the camera's recent motion
+        (constant velocity) within the gates, scaled to the frame interval. If it breaks it, the static scene
+        judges the SLAM's motion against the motion model's, as against a registration; only where the evidence
+        favours the motion model does it carry this frame, and not for longer than `max_coast_s` in a row (a
+        camera that changed its speed for good, a car braking, would otherwise be held at its old speed)."""
         p, r = self.params, self.report
         dt, dr = step_difference(slam_step, self._last_step)
         length = max(float(np.linalg.norm(slam_step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
@@ -354,15 +461,23 @@ class SlamRepair:
             r.coast_limit += 1
             self._coast_since = None
             return slam_step
+        difference = step_difference(slam_step, self._last_step)
+        if not self._weigh(self._judge(slam_pose, self._last_step, judge)):  # (a fast turn: the SLAM's to make)
+            r.kept += 1
+            r.note_judgement(frame_id, "slam", difference, self._verdict, 0.0)
+            return slam_step
         if self._coast_since is None and stamp is not None:
             self._coast_since = float(self._stamp if self._stamp is not None else stamp)
         r.implausible += 1
         self._note(frame_id)
+        r.note_judgement(frame_id, "motion", difference, self._verdict, 0.0)
         return self._last_step
 
     def break_chain(self) -> None:
         """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
         self._slam_prev = None
+        self._slam_window.clear()
+        self._semmap_window.clear()
 
     def state(self) -> dict:
         r = self.report
@@ -382,6 +497,8 @@ class SlamRepair:
         self._stamp, self._coast_since = state.get("stamp"), state.get("coast_since")
         r.overruled_frames = [int(f) for f in state.get("frames", [])]
         self.agreement.restore(state.get("agreement"))
+        self._slam_window.clear()  # (the images of the window are gone too: the next judgements start afresh)
+        self._semmap_window.clear()
 
 
 def _flat(a: np.ndarray | None) -> list[float] | None:

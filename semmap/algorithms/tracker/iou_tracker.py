@@ -23,6 +23,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 
 from semmap.core.config import TrackerParams
@@ -256,7 +257,7 @@ def held_dynamic_box(box: DynamicBox, elapsed_s: float, speed_mps: float, intrin
     dragged 2-5 cm a frame by him (a camera that moves 3 mm a frame). Grown, the box still covers him: what the
     mask loses is some static background for a few frames, which the registration can spare."""
     if not (speed_mps > 0.0 and elapsed_s > 0.0 and math.isfinite(speed_mps * elapsed_s)):
-        return box  # (not held, or a stamp that says nothing: the box as it was)
+        return msgspec.structs.replace(box, held=True)  # (a stamp that says nothing: the box as it was)
     reach_m = speed_mps * elapsed_s
     depth = max(box.depth_min_m, HELD_BOX_MIN_DEPTH_M)  # (0 where the box held no valid depth)
     dx, dy = intrinsics.fx * reach_m / depth, intrinsics.fy * reach_m / depth
@@ -266,4 +267,4 @@ def held_dynamic_box(box: DynamicBox, elapsed_s: float, speed_mps: float, intrin
     lo, hi = box.depth_min_m, box.depth_max_m
     if hi > 0.0:  # (0, 0: the box held no valid depth, and a `range` mask leaves out all of it)
         lo, hi = max(0.0, lo - reach_m), hi + reach_m
-    return DynamicBox(box.track_id, box.class_name, grown, lo, hi, box.reason)
+    return DynamicBox(box.track_id, box.class_name, grown, lo, hi, box.reason, held=True)

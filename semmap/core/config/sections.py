@@ -283,15 +283,45 @@ class OdometryConfig(Section):
         description="repair: semmap's registration witnesses a step only where it registered this fraction of the "
         "pixels; elsewhere the SLAM's step must agree with the recent motion (the same gate)",
     )
-    repair_scope: Literal["dynamic", "always"] = Field(
-        "dynamic",
-        description="repair: check the SLAM's steps only while dynamic objects are in view and repair_hold_s "
-        "after (dynamic: on a static scene a SLAM beats frame-to-frame registration: 7-Scenes ORB-SLAM3 3.5 cm, "
-        "checked everywhere 7.3 cm), or always",
+    repair_scope: Literal["moving", "always"] = Field(
+        "moving",
+        description="repair: check the SLAM's steps only while an object is seen moving (motion_*) and "
+        "repair_hold_s after (moving: a person sitting still or a false person box is no reason to doubt a SLAM, and "
+        "on a static scene a SLAM beats frame-to-frame registration), or always",
     )
     repair_hold_s: NonNegative = Field(
-        2.0, description="repair: seconds after the last dynamic object left the view that steps are still checked"
+        2.0, description="repair: seconds after the last moving object left the view that steps are still checked"
     )
+    repair_witness_every: AtLeastOne = Field(
+        5,
+        description="file:PATH and external: outside the scope, register every n-th frame pair only to measure the "
+        "SLAM's precision (file_sigma_measured); the other pairs cost nothing",
+    )
+    motion_window_s: Positive = Field(
+        1.0, description="a dynamic object moves when its centroids over this long scatter by more than ..."
+    )
+    motion_min_spread_m: Positive = Field(
+        0.10,
+        description="... this (median absolute deviation from their median, in the world of the repaired poses: "
+        "the associator's MAD test applied to people; a walker covers a metre a second, a seated person's box "
+        "centre stays within centimetres)",
+    )
+    motion_min_views: AtLeastOne = Field(5, description="...from at least this many detected views (paper: 5)")
+    motion_persist_views: AtLeastOne = Field(
+        3, description="...for this many views in a row (semmap/algorithms/odometry/motion.py says which views count)"
+    )
+    arbiter_window_frames: AtLeastOne = Field(
+        3,
+        description="repair: where the SLAM's step and semmap's registration disagree, both motions over this many "
+        "frames are scored on the static scene's ORB matches between the window's ends (a dragged SLAM drifts frame "
+        "after frame; one frame pair's noise hides it)",
+    )
+    arbiter_min_t: Positive = Field(
+        3.0,
+        description="repair: semmap's step replaces the SLAM's only when its motion explains the matches better by "
+        "this many standard errors; weaker evidence keeps the SLAM's step",
+    )
+    arbiter_min_matches: AtLeastOne = Field(40, description="repair: fewer static matches are weak evidence")
     orbslam3_vocabulary: str = Field(
         "",
         description="orbslam3: the ORB vocabulary (ORBvoc.txt, or `semmap models vocabulary IMAGES --out FILE`); "
@@ -305,6 +335,11 @@ class OdometryConfig(Section):
         "range",
         description="orbslam3: blank the frame's dynamic objects before it tracks: range (the pixels of a box in "
         "the object's depth band), box (the whole box), none",
+    )
+    orbslam3_weak_points: Count = Field(
+        30,
+        description="orbslam3: a frame ORB-SLAM3 tracked on fewer map points than this is a weak pose of its own "
+        "account; semmap's registration replaces its step where the two disagree",
     )
     orbslam3_sigma_translation_m: Positive = Field(0.005, description="what orbslam3 declares per frame")
     orbslam3_sigma_rotation_deg: Positive = 0.3

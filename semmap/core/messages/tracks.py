@@ -82,7 +82,8 @@ class DynamicBox(Part):
 
     depth_min_m..depth_max_m: the depth range of the object's surface in the box (metres; 0, 0 when the box
     held no valid depth): a consumer can leave out only the pixels in that range (the background behind a
-    person stays usable) or the whole box.
+    person stays usable) or the whole box. `held`: not detected in this frame; the object's last detected box,
+    grown by how far it may have moved since (a mask, not a measurement of where it is).
     """
 
     REASONS: ClassVar[tuple[str, ...]] = ("class", "moving")
@@ -92,6 +93,7 @@ class DynamicBox(Part):
     depth_min_m: NonNegativeFloat
     depth_max_m: NonNegativeFloat
     reason: Literal["class", "moving"]
+    held: bool = False
 
     def __post_init__(self) -> None:
         if decoding():  # msgspec made it a tuple of floats

@@ -1,0 +1,94 @@
+"""semmap's check of a SLAM's poses, frame by frame: the one place the pieces of the repair meet.
+
+- motion.py says whether an object in view is seen moving: only then (and `hold_s` after) is the SLAM's step
+  doubted at all;
+- registration.py measures the step itself, with the dynamic objects left out, only where that is asked: inside
+  the scope, where the SLAM has no pose, and on every `witness_every`-th frame where the SLAM's precision is being
+  measured (a registration costs 40-100 ms; a static scene needs none);
+- arbiter.py judges a disagreement on the static scene's evidence over the last few frames;
+- repair.py decides the step and chains the output.
+
+The `file:`, `external` and `orbslam3` front ends each hand it their SLAM's pose of every frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .arbiter import StepArbiter, Verdict
+from .base import OdometryInput
+from .motion import MotionParams, MovingObjects
+from .registration import PairRegistration
+from .repair import RepairParams, SlamRepair
+
+
+class CheckedSlam:
+    """`pose(frame, slam_pose)` -> the repaired camera-to-world pose (see module docstring). With `check` off the
+    SLAM's poses are copied (frames it has none for carried at constant velocity) and no image is looked at."""
+
+    def __init__(self, params: RepairParams | None = None, dynamic_mask: str = "box", check: bool = True,
+                 motion: MotionParams | None = None, measured_sigmas_after: int = 0) -> None:
+        self.params = params or RepairParams()
+        self.repair = SlamRepair(self.params, measured_sigmas_after=measured_sigmas_after if check else 0)
+        self.registration = PairRegistration(dynamic_mask) if check else None
+        self.arbiter = StepArbiter(self.params.arbiter) if check else None
+        self.moving = MovingObjects(motion)
+        self.registrations = 0  # pairs registered (the rest were only remembered)
+        self._frames = 0
+
+    @property
+    def checks(self) -> bool:
+        return self.registration is not None
+
+    def pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False) -> np.ndarray:
+        if self.registration is None or self.arbiter is None:
+            return self.repair.copy(frame.frame_id, slam_pose)
+        boxes = list(frame.dynamic or [])
+        moving = self.moving.moving(boxes)
+        undecided = self.moving.undecided(boxes)
+        self._frames += 1
+        wanted = (self.repair.in_scope(moving, frame.stamp, undecided) or slam_pose is None
+                  or (self.repair.measured_sigmas and self._frames % max(1, self.params.witness_every) == 0))
+        step, fitness = None, 0.0
+        if wanted:
+            step, fitness = self.registration.register(frame)
+            self.registrations += 1
+        else:
+            self.registration.remember(frame)
+        self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
+        pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
+                                  judge=self._judge, slam_weak=slam_weak, undecided=undecided)
+        k = np.asarray(frame.intrinsics, float)
+        self.moving.observe(float(frame.stamp), boxes, pose, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+                            frame.depth.shape[1], frame.depth.shape[0])
+        return pose
+
+    def _judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+        assert self.arbiter is not None
+        if self.arbiter.frames_held != steps + 1:  # (a window that a restart or a lost SLAM cut short)
+            return Verdict(0.0, 0, math.nan, math.nan)
+        return self.arbiter.judge(slam_motion, semmap_motion)
+
+    def counters(self) -> dict[str, int]:
+        return {**self.repair.report.counters(), "repair_registrations": self.registrations,
+                "repair_judged": 0 if self.arbiter is None else self.arbiter.judged,
+                "moving_objects": len(self.moving.seen_moving)}
+
+    def break_chain(self) -> None:
+        self.repair.break_chain()
+        if self.arbiter is not None:
+            self.arbiter.reset()
+
+    def state(self) -> dict:
+        return {"repair": self.repair.state(), "moving": self.moving.state()}
+
+    def restore(self, state: dict) -> None:
+        if "repair" in state:
+            self.repair.restore(state["repair"])
+        self.moving.restore(state.get("moving", {}))
+        if self.registration is not None:
+            self.registration.reset()
+        if self.arbiter is not None:
+            self.arbiter.reset()
