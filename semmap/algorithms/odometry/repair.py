@@ -68,7 +68,7 @@ class RepairReport:
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
 
-    # the counted fields, in the order states saved before session 14 listed them (a list, not named)
+    # the counted fields, in the order older saved states listed them (a plain list, not named)
     COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted")
 
     def counters(self) -> dict[str, int]:
