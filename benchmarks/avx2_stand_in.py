@@ -1,18 +1,18 @@
-"""An onnxruntime whose kernels are an AVX2-only CPU's, on a CPU with AVX-512, AVX-VNNI or AMX: a stand-in for the
-machines of issue 31.
+"""An onnxruntime whose kernels are an AVX2-only CPU's, on a CPU with AVX-512, AVX-VNNI or AMX: a stand-in for an
+AVX2-only machine.
 
 Why: real time on 2 cores is decided by the detector's speed *and* its numbers, and both depend on the CPU's SIMD
 extensions: without VNNI the int8 model with 8-bit weights is barely faster than fp32 and disagrees with it (its
 8-bit products saturate), so `semmap models doctor` chooses differently there than on a VNNI machine. Developers
-are lent machines of either class by chance; on an AVX-512 one the AVX2 path was never exercised, and a bug that
-only shows there went unseen for four sessions (session 24: the doctor's tie margin). onnxruntime has no switch for
-its kernel choice: MLAS, its math library, reads CPUID once at start-up and picks its kernels. So this script copies
-the installed `onnxruntime` package and changes, in the copy's extension module, the branches of each copy of
+are lent machines of either class by chance; on an AVX-512 one the AVX2 path is never exercised, and a bug that
+only shows there (such as one in the doctor's tie margin) goes unseen. onnxruntime has no switch for its kernel
+choice: MLAS, its math library, reads CPUID once at start-up and picks its kernels. So this script copies the
+installed `onnxruntime` package and changes, in the copy's extension module, the branches of each copy of
 MLAS's start-up check that take kernels an AVX2-only CPU lacks: AVX-VNNI (`test $0x10, %al; je` after cpuid(7,1)),
 AVX-512F (`test $0x10000, <cpuid(7).ebx>; je`; AVX-512 VNNI lies behind it), AVX-VNNI-INT8 and AVX-NE-CONVERT
 (tests of cpuid(7,1).edx) each become `jmp`, and AMX's `jne` (no AMX-TILE and AMX-INT8) an unconditional jump
-(session 26: the Intel Xeon lent then had AVX-VNNI and AMX, and with only AVX-512F turned off its int8 still used
-VNNI). Everything else, the AVX2/FMA kernels and the u8s8 int8 path of a CPU without VNNI included, runs as on an
+(an Intel Xeon with AVX-VNNI and AMX, with only AVX-512F turned off, still runs its int8 on VNNI). Everything
+else, the AVX2/FMA kernels and the u8s8 int8 path of a CPU without VNNI included, runs as on an
 AVX2-only CPU. What it does not change: the core's speed (a Zen 4 core running AVX2 code is ~10 % faster per clock
 than a Zen 2/3 one), and the CPU flags `/proc/cpuinfo` shows (so the doctor's cache key still names AVX-512: use a
 model dir of its own).

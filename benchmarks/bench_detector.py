@@ -5,7 +5,7 @@ end to end (letterbox, inference, decode, NMS), after a warm-up, with the frames
 With --int8 it also builds an int8 copy (calibrated on other frames of the same sequence) and times it.
 With --openvino it times the network alone (same letterboxed input, same resized fp32 model) in onnxruntime and in
 OpenVINO's CPU runtime (`pip install openvino`; not a dependency: on the 2-core AVX2 EPYC it was slower, see
-docs/PERFORMANCE.md, issue 31); --input-size picks the letterbox (default 384x512, the real-time choice there).
+docs/PERFORMANCE.md); --input-size picks the letterbox (default 384x512, the real-time choice there).
 
     .venv/bin/python benchmarks/bench_detector.py [--frames 50] [--int8] [--openvino] [--json-out out.json]
 """

@@ -12,7 +12,7 @@ process over Zenoh, the ONNX YOLOv5s detector) and `semmap eval` on each case:
   rgbd-geometry `rgbd` with `associator.dynamic_classes=[]`: people kept out by the motion tests alone
 
 and prints a row per case: front-end ATE, optimised ATE, landmarks by class, `person` landmarks, landmarks
-retired as moved, run time. The issue's targets: rgbd optimised ATE <= 0.10 m and 0 person landmarks; gt
+retired as moved, run time. The targets: rgbd optimised ATE <= 0.10 m and 0 person landmarks; gt
 completes with 0 person landmarks. Needs ../shared/data/bonn_crowd (or $SEMMAP_DATA/bonn_crowd) and the
 detector model (`semmap models fetch`).
 """

@@ -11,9 +11,9 @@ dropped) and its main thread spends `--work-ms` on each frame it takes (decodes 
 CPU: a detector on a loaded machine). It prints the subscriber's RSS every 5 s, its growth from the first
 sample after warm-up (10 s) to the last, how many frames it took and dropped and how old the frames it took
 were. Variants (each a fresh pair of processes; default: both):
-- `callback`: the subscription as services had it before issue 20's memory fix (a Python callback: Zenoh
-  queues up to 256 samples for it on a thread of its own),
-- `latest`: `Bus.subscribe(..., latest=1)` as `Service.listen` does now for real-time streams.
+- `callback`: a subscription with a Python callback (Zenoh queues up to 256 samples for it on a thread of its
+  own, so a slow reader's memory grows),
+- `latest`: `Bus.subscribe(..., latest=1)` as `Service.listen` does for real-time streams.
 """
 
 from __future__ import annotations

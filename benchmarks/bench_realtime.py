@@ -1,4 +1,4 @@
-"""Real time on the CPU at hand (issue 31): the measured detector choice and what `semmap run --realtime` achieves.
+"""Real time on the CPU at hand: the measured detector choice and what `semmap run --realtime` achieves.
 
     .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry gt,rgbd] [--json-out F]
         [--realtime-args '--detectors 2 --set detector.precision=fp32 ...']
@@ -18,7 +18,7 @@
    observations; paired as `semmap diff` pairs two maps in one frame): the short-lived objects, or one lost another
    way; and which it mapped that lockstep did not (`gained`): a count is made of both.
 
-Another machine, stood in (session 24): an AVX2-only CPU's kernels with benchmarks/avx2_stand_in.py
+Another machine, stood in: an AVX2-only CPU's kernels with benchmarks/avx2_stand_in.py
 (`PYTHONPATH=DIR SEMMAP_MODEL_DIR=... python benchmarks/bench_realtime.py --choice ...`: every process of the runs
 loads that onnxruntime), and slower cores with `--slower-cores 0.1` (a share of every core taken during each
 real-time run).
@@ -89,8 +89,8 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
 
 class SlowerCores:
     """One process per core busy `share` of every 33 ms while the block runs: every other process gets that much
-    less of each core, as on a CPU whose cores are slower by about that share (session 24: the AVX2 EPYC's core
-    takes ~11 % longer a detection than the VNNI EPYC's). A stand-in, not a measurement of such a CPU."""
+    less of each core, as on a CPU whose cores are slower by about that share (measured: an AVX2 EPYC's core
+    takes ~11 % longer a detection than a VNNI EPYC's). A stand-in, not a measurement of such a CPU."""
 
     LONGEST_S = 600.0  # a burner ends by itself after this, should the block never exit
 
@@ -145,7 +145,7 @@ def main() -> int:
     ap.add_argument("--realtime-args", default="",
                     help="more arguments for the real-time runs, e.g. another machine's choice: '--detectors 2 "
                          "--set detector.threads=1 --set detector.precision=fp32 --set detector.input_size=512x384' "
-                         "(the AVX2-only EPYC's, replayed on a VNNI machine in session 20)")  # fmt: skip
+                         "(an AVX2-only EPYC's, replayed on a VNNI machine)")  # fmt: skip
     args = ap.parse_args()
     root = find_data_root()
     data = root / "7scenes-redkitchen" if root is not None else None

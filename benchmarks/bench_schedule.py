@@ -16,7 +16,7 @@ pairs landmarks.
 
 Why: real time decides which frames are detected, and which frames are detected decides what is mapped (evenly
 spaced detections give more distinct views than the same number in pairs). Recording a live run's detections and
-replaying them in process gives exactly the live map (session 20), so the map of a simulated schedule is what a run
+replaying them in process gives exactly the live map, so the map of a simulated schedule is what a run
 with that schedule maps; what the simulation leaves out is how the detection times vary on the real machine.
 
 Prints per plan: detections per second of video (per seed), landmarks per seed, their share of the reference's,

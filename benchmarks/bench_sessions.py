@@ -1,4 +1,4 @@
-"""Two sessions of 7-Scenes redkitchen, the second relocalised against the first (issue 19's done-when).
+"""Two sessions of 7-Scenes redkitchen, the second relocalised against the first.
 
     python benchmarks/bench_sessions.py [--data ../shared/data/7scenes-redkitchen] [--work out/sessions]
         [--offset 2.0,-1.5,0.4,4,-6,35] [--drift-seed 1] [--prior-odometry gt] [--reuse-prior] [--merge]
@@ -19,11 +19,11 @@ drift, not relocalisation. Then prints:
 
 - the relocalisation: frame, agreeing landmarks, runner-up, residual, and the recovered transform's error
   against the offset and against the offset with the drift gathered by that frame (what places that frame's
-  camera right: the done-when's truth), at that frame's camera and at the session frame's origin; both for the
+  camera right: the truth it is judged by), at that frame's camera and at the session frame's origin; both for the
   associator's first fit on objects (relocalization.json) and for the transform the session ends with (the
   optimised pose of that frame against its odometry: after the keyframes registered to the prior run's);
 - session 1's objects against their session-1 places (same id) in the relocalised map: how many stayed within
-  10 cm, which moved further or changed class, and which of session 1's classes the map lost (issue 34);
+  10 cm, which moved further or changed class, and which of session 1's classes the map lost;
 - duplicates: landmarks session 2 added (ids after session 1's) with a same-class prior landmark within 0.3 m;
 - the final map against the single 1000-frame run: objects paired one-to-one (same class, nearest first), the
   centroid distances of the pairs, and what either map has that the other has not; then with classes the mapper
@@ -117,8 +117,8 @@ def prior_kept(s1: list[Landmark], s2: list[Landmark]) -> tuple[int, list[str]]:
     and which of session 1's classes the relocalised map has lost; returns (within 10 cm, classes lost).
 
     Why by id: a prior landmark keeps its id in the session that relocalised against it, so this is where the
-    map says that object is now, against where it said so yesterday (issue 34: 12-15 cm moves of objects that
-    stood still, and a class gone)."""
+    map says that object is now, against where it said so yesterday: objects that stood still but moved in
+    the map (by 12-15 cm where the session's views move its prior landmarks freely), and a class gone, show."""
     now = {lm.id: lm for lm in s2}
     within, lines = 0, []
     for lm in s1:
@@ -235,7 +235,7 @@ def main() -> None:
     kept, lost = prior_kept(s1, s2)
     full = read_map_json(work / "full" / "map.json")
     compare("final map vs one 1000-frame run", s2, full)
-    # issue 34: session 1's landmarks hold their session-1 places, so the session's own are what it placed
+    # session 1's landmarks hold their session-1 places, so the session's own are what it placed
     pairs, only_s2, only_full = pair(s2, full, confusable=True)
     own = [d for x, _, d in pairs if x.id not in prior_ids]
     print(
@@ -266,12 +266,12 @@ def main() -> None:
         "same objects as one 1000-frame run (confusable classes paired)": not only_s2 and not only_full,
         "session 2's own landmarks within 10 cm of the 1000-frame run's": all(d <= 0.10 for d in own),
         "no landmark marked missing that the 1000-frame run has": not wrongly_missing,
-        # issue 34: >= 11 of session 1's 13 objects within 10 cm of their session-1 place, no class lost
+        # >= 11 of session 1's 13 objects within 10 cm of their session-1 place, no class lost
         "session 1 objects within 10 cm of their session-1 place (>= 11 of 13)": kept * 13 >= 11 * len(s1),
         "no class of session 1 lost": not lost,
     }
     for what, ok in verdict.items():
-        print(f"done-when: {what}: {'yes' if ok else 'NO'}")
+        print(f"target: {what}: {'yes' if ok else 'NO'}")
     if (work / "merged" / "map.json").is_file():
         compare(
             "semmap merge of the two sessions vs the relocalised run", read_map_json(work / "merged" / "map.json"), s2

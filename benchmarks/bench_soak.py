@@ -4,7 +4,7 @@
         [--set section.key=value]...
 
 Runs the real pipeline (`semmap run 7-Scenes --lockstep --odometry gt+drift --no-viz`, int8 detector on every
-3rd frame: the settings of issue 20) with `run.loops=N`, so every place is revisited N times, and listens on the
+3rd frame) with `run.loops=N`, so every place is revisited N times, and listens on the
 run's bus from a separate Zenoh session (raw samples: nothing is decoded except the backend's corrected poses
 and the associator's map updates, whose messages carry the stage timings). It prints, per block of `--block`
 frames:

@@ -10,7 +10,7 @@ driven) and `--odometry file:SLAM` (a real SLAM's estimate of the same drive, KI
 prints for each, from the run's own files:
 
 - frames and throughput: over the first 1000 frames and over all (from `semmap run`'s progress lines, timed from
-  the first processed frame), and their ratio (issue 34: >= 0.8 means the cost per frame stays flat);
+  the first processed frame), and their ratio (>= 0.8 means the cost per frame stays flat);
 - landmarks by class, same-class pairs closer than 1 m (duplicates), revisits (places recognised again after drift,
   whose landmarks were fused into the old ones) and the landmarks they fused;
 - ATE (RMSE, SE(3)-aligned, `semmap eval`) of the odometry and of the optimised trajectory, and the change;

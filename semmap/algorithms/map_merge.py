@@ -17,8 +17,8 @@ within a gate of `max(gate_m, gate_radius_factor * larger radius)`: a large obje
   far as B's is worth (`held_place`, semmap/algorithms/associator/prior_anchor.py: B's registration and the
   object's size against A's anchor sigma), or B's when B's lies beyond `moved_sigmas` of that (a pair by the gate
   only: two overlapping clouds are one object in place), as a session relocalised against A places A's
-  landmarks (issue 34); before, the fused clouds' centre, which put a partly seen object 10-14 cm from A's place
-  (what the relocalised run did then too). Unpaired landmarks of B join with new ids after A's. The result is in
+  landmarks; not the fused clouds' centre, which puts a partly seen object 10-14 cm from A's place (as it
+  would in a relocalised run too). Unpaired landmarks of B join with new ids after A's. The result is in
   A's frame.
 """
 

@@ -61,7 +61,7 @@ def available_formats() -> dict[str, str]:
 
 
 def _open_synthetic(path: Path | None = None, **options: Any) -> Dataset:
-    if "trajectory" in options:  # the street world along a trajectory file (issue 34)
+    if "trajectory" in options:  # the street world along a trajectory file
         from .street import StreetDataset
 
         return StreetDataset(**options)

@@ -1,4 +1,4 @@
-"""A seeded synthetic street along a given trajectory (issue 34): `synthetic:trajectory=PATH`.
+"""A seeded synthetic street along a given trajectory: `synthetic:trajectory=PATH`.
 
 The camera follows the poses of a trajectory file (KITTI: 12 numbers a line, camera-to-world, z forward, frames
 at `rate_hz`; TUM: `t x y z qx qy qz qw`, stamps from the file) through a street generated from the path:

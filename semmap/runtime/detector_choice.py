@@ -1,8 +1,8 @@
 """Which detector configuration serves real time on this machine: chosen by measuring, cached per machine.
 
-Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI; on an AVX2-only one (issue 31) its 8-bit products
-saturate and its detections disagree with fp32, unless its weights have 7 bits (int8w7, session 26), so no fixed
-default is right everywhere. `measure_configs` times each configuration that could serve real time
+Why: int8 is ~2.3x faster than fp32 on a CPU with VNNI; on an AVX2-only one its 8-bit products saturate and its
+detections disagree with fp32, unless its weights have 7 bits (int8w7), so no fixed default is right everywhere.
+`measure_configs` times each configuration that could serve real time
 (precision fp32/int8/int8w7 x intra-op threads x letterbox size) on real frames, scores each against fp32 at full
 size (F1 of same-class IoU >= 0.5 matches, recall per class), and `choose` takes, among those that agree
 (F1 >= AGREEMENT_F1), the most faithful one that keeps up with real time, else the fastest. The result is
@@ -34,9 +34,9 @@ log = logging.getLogger(__name__)
 
 CHOICE_FILENAME = "detector_choice.json"
 CHOICE_VERSION = 5  # 2: with the layouts (replicas x threads) of the choice; 3: the most faithful that keeps up;
-# 4: ties at the threshold counted again (a cache measured without them, sessions 19-23, chose 640x480 on AVX2);
+# 4: ties at the threshold counted again (a cache measured without them chose 640x480 on AVX2);
 # 5: int8w7 (7-bit weights) among the candidates
-AGREEMENT_F1 = 0.9  # the int8 rule since round 2: detections must agree with fp32 at full size
+AGREEMENT_F1 = 0.9  # the int8 rule: detections must agree with fp32 at full size
 FAITHFUL_SHARE = 0.5  # `choose`: the most faithful configuration that still detects every 2nd frame in real time
 FRONT_END_KEEPS_UP = 0.9  # `setup_plan`: replicas only where the odometry posed this share of a real-time run
 TIE_MARGIN = 0.1  # scores this close below the confidence threshold are ties, not disagreements (`agreement`)
@@ -606,7 +606,7 @@ def format_table(doc: dict[str, Any]) -> str:
 
 # CPU the other services of a real-time run take per frame of video (player, odometry, tracker, associator,
 # backend, viewer), used until a run on this machine has measured it (then `record_pipeline_cost` keeps the
-# figure in the cache, per odometry mode). Measured on the 2-core AMD EPYC (7-Scenes, 30 fps, session 11).
+# figure in the cache, per odometry mode). Measured on a 2-core AMD EPYC (7-Scenes, 30 fps).
 DEFAULT_OTHERS_CPU_MS = {"gt": 30.0, "rgbd": 40.0}
 DEFAULT_OTHERS_FALLBACK_MS = 40.0
 MIN_FREE_CORES = 0.25
@@ -639,7 +639,7 @@ class CadencePlan:
             # replicas take turns by blocks of every_n frames (semmap/algorithms/detector/turns.py), each detecting
             # the first frame of its block it can: the nearest whole number of frames per detection of them all. At
             # every frame two replicas that each need two frames' time fall into step and detect frames n and n+1,
-            # then none for three (session 20: one distinct view per 0.13 s where turns give one per 0.07 s)
+            # then none for three (measured: one distinct view per 0.13 s where turns give one per 0.07 s)
             return max(1, math.floor(ratio + 0.5))
         if self.flat_out:
             return max(1, math.floor(ratio + 0.05))
@@ -810,9 +810,9 @@ def starved_front_end(doc: dict[str, Any] | None, odometry: str) -> float | None
     `FRONT_END_KEEPS_UP`; None where it kept up (or no run recorded it). `setup_plan` starts no replicas then.
 
     Why the posed share and not the load alone (`replica_plan`'s bound): a front end that cannot keep up skips
-    frames, so the CPU a run measures for it is what it got, not what it needs. On the AVX2 stand-in (session 24)
-    an `rgbd` run with one detector posed 283 of 1000 frames and measured 1.0 cores of others, under the +25 %
-    bound, so the next runs started replicas, and the odometry posed 192-205."""
+    frames, so the CPU a run measures for it is what it got, not what it needs. On the AVX2 stand-in
+    (benchmarks/avx2_stand_in.py) an `rgbd` run with one detector posed 283 of 1000 frames and measured 1.0 cores
+    of others, under the +25 % bound, so the next runs started replicas, and the odometry posed 192-205."""
     posed = ((doc or {}).get("front_end_posed_share") or {}).get(odometry.split(":", 1)[0])
     return float(posed) if posed is not None and float(posed) < FRONT_END_KEEPS_UP else None
 

@@ -214,7 +214,7 @@ def quantize_int8(
     `weight_bits=7` quantises the weights to [-64, 64] (onnxruntime's `reduce_range`). Why: a CPU without VNNI
     multiplies 8-bit activations by 8-bit weights in pairs summed into 16 bits, which saturate (255 x 127 x 2 >
     32767); its int8 detections then disagree with fp32 (F1 0.88 at 640x480 on an AVX2-only EPYC, books lost),
-    while with 7-bit weights no pair can saturate and they agree (F1 0.97, session 26), at int8's speed.
+    while with 7-bit weights no pair can saturate and they agree (F1 0.97), at int8's speed.
     `ranges_cache`: a JSON file of the activations' ranges (onnxruntime's calibration cache) that the first call
     writes and later ones read. Why: the ranges do not depend on the weights' width, so copies of one model on the
     same images share one calibration pass (the fp32 model run over every image) instead of one each.

@@ -2,8 +2,8 @@
 
 A street (KITTI 00's first 340 poses, ~300 m, anchored only at the start) under simulated drift leaves the newest
 poses and a new landmark free to swing together by tens of metres while each step is pinned to millimetres
-(condition number ~1e11): iSAM2's Cholesky threw "Indeterminate linear system" at frame 331 and the backend died
-(issue 34). Levenberg-Marquardt solves the same graph."""
+(condition number ~1e11): iSAM2's Cholesky throws "Indeterminate linear system" at frame 331, which would end
+the backend. Levenberg-Marquardt solves the same graph."""
 
 from __future__ import annotations
 

@@ -113,8 +113,8 @@ def test_the_access_control_list_grants_what_the_node_declares(node: dataflow.No
 
 
 def test_viz_reads_no_status_and_may_ask_the_map() -> None:
-    """(issue 33) viz subscribed to `status/**` and ignored it; the list granted it `observations` and `dynamic`,
-    which it never reads, and not the map query it makes at its start."""
+    """The list grants viz what it uses: not `status/**` (it would ignore it), not `observations` and `dynamic`
+    (it never reads them), but the map query it makes at its start."""
     viz = dataflow.node("viz")
     assert "status/**" not in viz.inputs and not {"observations", "dynamic"} & set(viz.inputs)
     assert viz.asks == ("map/query",)

@@ -1,4 +1,4 @@
-"""No function in semmap/ is longer than 120 lines (issue 33): a long function mixes several jobs, and each of
+"""No function in semmap/ is longer than 120 lines: a long function mixes several jobs, and each of
 them is easier to read, test and change as a piece with a name of its own."""
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ def test_query_cli_on_a_saved_map(saved: Path) -> None:
 
 
 def test_cli_errors_are_one_line_naming_the_flag(saved: Path, tmp_path: Path) -> None:
-    """Issue 30: no traceback, no bare Python message: the flag and what it expects."""
+    """No traceback, no bare Python message: the flag and what it expects."""
     near = _query(str(saved), "--near", "a,b,c")
     assert near.returncode == 2 and near.stderr.strip() == (
         "error: --near: expected three numbers x,y,z (metres), got 'a,b,c'"), near.stderr

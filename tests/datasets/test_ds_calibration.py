@@ -1,4 +1,4 @@
-"""The camera a run uses is stated and checked against the frames before the first one (issue 30): real
+"""The camera a run uses is stated and checked against the frames before the first one: real
 7-Scenes and Bonn frames pass; a TUM folder with a wrong camera.yaml (depth factor 5x off, depth factor 1,
 another camera's intrinsics, a principal point outside the image) is warned about or refused, naming the file
 and the key."""

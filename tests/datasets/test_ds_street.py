@@ -1,4 +1,4 @@
-"""The street world (issue 34): a generated street along a trajectory file, rendered by the synthetic renderer."""
+"""The street world: a generated street along a trajectory file, rendered by the synthetic renderer."""
 
 from __future__ import annotations
 

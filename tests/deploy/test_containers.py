@@ -294,7 +294,7 @@ def test_compose_stack_in_containers_maps_like_the_embedded_run(
 def test_the_image_measures_the_machine_it_runs_on_and_its_real_time_detector_takes_the_choice(
     podman_env: dict[str, str],
 ) -> None:
-    """Real time in containers on the CPU at hand (issue 31), as compose.yaml documents it: `docker compose run --rm
+    """Real time in containers on the CPU at hand, as compose.yaml documents it: `docker compose run --rm
     detector semmap models doctor` times the image's fp32 and int8 copies on this machine and keeps the choice in
     the `measurements` volume (the models belong to root, the services run as `semmap`: SEMMAP_CHOICE_DIR), and a
     real-time detector that `up` starts afterwards runs that choice instead of fp32 at full size."""

@@ -1,11 +1,11 @@
-"""The doctor's agreement facts on an AVX2-only CPU, real or stood in (issue 31, session 24).
+"""The doctor's agreement facts on an AVX2-only CPU, real or stood in.
 
-Machines are lent by chance: for six sessions every one had AVX-512 and VNNI, so the AVX2 path of
-`semmap models doctor` ran nowhere, and when its tie margin broke (a lowered threshold no longer reached the decode)
-no test saw that on an AVX2-only CPU no smaller letterbox agreed any more and real time fell back to 640x480.
+Machines are lent by chance, and on one with AVX-512 and VNNI the AVX2 path of `semmap models doctor` runs
+nowhere: were its tie margin to break (a lowered threshold no longer reaching the decode), no test there would see
+that on an AVX2-only CPU no smaller letterbox agrees any more and real time falls back to 640x480.
 benchmarks/avx2_stand_in.py makes onnxruntime take the AVX2 kernels on a CPU with AVX-512, AVX-VNNI or AMX (and
-changes nothing on an AVX2-only one; since session 26 it also turns off AVX-VNNI and AMX, which an Intel Xeon lent
-then had), so these facts are checked on either class: without VNNI the int8 copy with 8-bit weights disagrees
+changes nothing on an AVX2-only one; it also turns off AVX-VNNI and AMX, which an Intel Xeon may have), so these
+facts are checked on either class: without VNNI the int8 copy with 8-bit weights disagrees
 with fp32 and the one with 7-bit weights (int8w7) agrees, and fp32 512x384 agrees only because a score within 0.1
 of the threshold counts as a tie. Scores only; nothing is timed.
 """

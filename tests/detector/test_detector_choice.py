@@ -1,4 +1,4 @@
-"""The real-time detector choice (issue 31): input resizing, the agreement rule, the cache keyed by the machine,
+"""The real-time detector choice: input resizing, the agreement rule, the cache keyed by the machine,
 the frame budget and `semmap models doctor`. Nothing here times anything for pass/fail: the measured rows are
 made up; only their bookkeeping is checked."""
 
@@ -99,7 +99,7 @@ def test_choice_is_the_quickest_in_a_run_among_those_that_agree() -> None:
 
 
 def test_where_the_full_frame_keeps_up_the_most_faithful_configuration_wins() -> None:
-    """This VNNI EPYC (session 18's doctor): int8 640x480 agrees nearly fully (F1 0.99) and still detects every
+    """A VNNI EPYC's doctor: int8 640x480 agrees nearly fully (F1 0.99) and still detects every
     2nd frame of a run, so it beats the faster int8 512x384 (F1 0.92, which loses a far laptop and half a table);
     on the AVX2-only EPYC nothing at 640x480 keeps up, and the fastest agreeing one stays the choice."""
     vnni = [
@@ -132,7 +132,7 @@ def _chosen(rows: list[dc.Measured]) -> dc.DetectorConfigChoice:
 
 
 def test_without_vnni_the_7bit_int8_copy_takes_over_where_it_agrees_and_is_cheaper() -> None:
-    """Session 26's doctor on AVX2 kernels (stand-in): the 8-bit int8 copy disagrees at every size (its products
+    """The doctor on AVX2 kernels (stand-in): the 8-bit int8 copy disagrees at every size (its products
     saturate), the 7-bit one agrees where fp32 does and costs less CPU, so it is the choice; the same rule on a VNNI
     machine keeps the 8-bit copy, which is more faithful there at the same speed."""
     avx2 = [
@@ -309,7 +309,7 @@ def test_summary_reports_the_planned_and_the_achieved_cadence(tmp_path: Path) ->
 
 def test_a_run_says_what_its_smaller_letterbox_may_miss(tmp_path: Path, monkeypatch, capsys) -> None:  # noqa: ANN001
     """Real time at a smaller letterbox than lockstep's says so at the start and in the summary, with the doctor's
-    agreement and small-object recall, so that a map with fewer objects comes with its reason (issue 31)."""
+    agreement and small-object recall, so that a map with fewer objects comes with its reason."""
     from semmap.cli.run import detector_budget
     from semmap.core.config import load_config
     from semmap.runtime.summary import run_summary

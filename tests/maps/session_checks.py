@@ -1,10 +1,10 @@
-"""For the tests of sessions (issue 34): where a second session's odometry frame lies, drawn at random (seeded),
+"""For the tests of map sessions: where a second session's odometry frame lies, drawn at random (seeded),
 and what a relocalised map must keep of its prior map.
 
-Why drawn: maps across sessions were checked only against the one offset and drift seed the tests used, and
-another rigid offset moved prior landmarks and lost a class. A draw is a few metres of translation (1-3.5 m on x
+Why drawn: a check against one fixed offset and drift seed can pass where another rigid offset moves prior
+landmarks and loses a class. A draw is a few metres of translation (1-3.5 m on x
 and y, up to 0.6 m on z), 25-40 degrees about one axis (which one is drawn too) and 5-15 about the other two,
-and a `gt+drift` seed other than the fixed one the tests had used (1).
+and a `gt+drift` seed other than the fixed case's (1, benchmarks/bench_sessions.py's default).
 """
 
 from __future__ import annotations

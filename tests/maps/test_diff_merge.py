@@ -156,7 +156,7 @@ def test_merge_pairs_two_sides_of_one_object_by_their_clouds() -> None:
     """Two maps of one table, each from its own side: centres 40 cm apart (beyond the gate), clouds overlapping
     where both saw the top. With clouds they are one landmark; a same-class neighbour that does not touch is not.
     The landmark stays at A's place (B saw other parts of one object in place: no evidence that it moved, and a
-    session relocalised against A would hold it there too, issue 34) and spans both sides."""
+    session relocalised against A would hold it there too) and spans both sides."""
     rng = np.random.default_rng(0)
     top = rng.uniform([-0.6, -0.4, 0.7], [0.6, 0.4, 0.75], (800, 3))
     side_a, side_b = top[top[:, 0] < 0.2], top[top[:, 0] > -0.2]

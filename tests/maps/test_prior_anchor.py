@@ -47,7 +47,7 @@ def test_a_prior_landmark_keeps_its_place_and_class_against_the_sessions_views()
     """Session 2 boxes the microwave as a laptop (more often than session 1 boxed it at all) and its poses are 8 cm
     off: the landmark stays within 2.5 cm of its prior place (measured 1.4) and stays a microwave. Without the anchor
     the fused views would put it most of the way to the session's place (7.8 cm: 40 views of the session against 15
-    of the prior), and the votes would make it a laptop (as they did the 7-Scenes microwave, issue 34)."""
+    of the prior), and the votes would make it a laptop (as they would the 7-Scenes microwave)."""
     error = frame_offset([0.08, 0.0, 0.0, 0.0, 0.0, 0.0])
     before, lm, session = _relocalised(
         Sphere((0.0, 0.0, 0.8), 0.1, "microwave"), Sphere((0.0, 0.0, 0.8), 0.1, "laptop"), error
@@ -71,8 +71,8 @@ def test_a_prior_landmark_that_moved_follows_the_session() -> None:
 
 
 def test_prior_views_keep_their_weight() -> None:
-    """`max_views` caps this session's views of a prior landmark, not its prior views: the newest views won, and on
-    7-Scenes session 2 had thinned out session 1's views of a landmark until those left were 15-23 cm off."""
+    """`max_views` caps this session's views of a prior landmark, not its prior views: the newest views win, and on
+    7-Scenes session 2 would thin out session 1's views of a landmark until those left were 15-23 cm off."""
     params = MapperParams(max_views=8)
     before, lm, _ = _relocalised(
         Sphere((0.0, 0.0, 0.8), 0.05, "cup"), Sphere((0.0, 0.0, 0.8), 0.05, "cup"), np.eye(4), params

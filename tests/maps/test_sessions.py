@@ -69,7 +69,7 @@ def first_day(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LoopResul
 @pytest.mark.parametrize(("offset", "seed"), draws(34, 3))
 def test_sessions_line_up_on_any_offset(first_day: tuple[Path, LoopResult], offset: list[float], seed: int) -> None:
     """Measured (about 4 s each on a quiet machine): relocalised at frame 30; prior landmarks moved 0.3-0.6 cm
-    (2.1-3.3 cm before issue 34), the microwave kept (before, a laptop in all three draws)."""
+    (2.1-3.3 cm without the prior anchor), the microwave kept (without it, a laptop in all three draws)."""
     prior_map, day1 = first_day
     config = load_config(None, ["odometry.mode=gt+drift", f"odometry.seed={seed}", f"odometry.frame_offset={offset}"])
     day2 = run_loop(orbit_recording(240, SECOND_DAY), config, "gt+drift", prior_map=prior_map)

@@ -1,11 +1,11 @@
-"""Two sessions of 7-Scenes redkitchen through the real pipeline (issue 19's first and third done-when, issue 34's).
+"""Two sessions of 7-Scenes redkitchen through the real pipeline.
 
 Session 1 maps frames 0-499 on ground-truth odometry (so the prior map is in the ground truth's frame, and the
 recovered transform can be judged against it); session 2 plays frames 500-999 with `gt+drift` odometry in a
 frame of its own, with `--map` session 1. The frame offset and the drift seed are drawn at random, seeded
-(tests/maps/session_checks.py: a few metres, 25-40 degrees about one axis, 5-15 about the others): until issue 34
-they were one fixed case (2, -1.5, 0.4 m, 4, -6, 35 degrees, seed 1), and another offset and seed moved prior
-landmarks 12-15 cm and lost the microwave. It must relocalise with the transform within 10 cm and 3 degrees of
+(tests/maps/session_checks.py: a few metres, 25-40 degrees about one axis, 5-15 about the others): one fixed
+case (2, -1.5, 0.4 m, 4, -6, 35 degrees, seed 1) can pass where another offset and seed move prior landmarks
+12-15 cm and lose the microwave. It must relocalise with the transform within 10 cm and 3 degrees of
 the truth, map no duplicate of a prior landmark, keep >= 11 of session 1's 13 objects (the same share of however
 many it maps) within 10 cm of their session-1 places and lose none of its classes, its optimised trajectory must
 lie in the prior frame, and its final map must hold the objects of one 1000-frame run. Session 2 run alone and
@@ -33,7 +33,7 @@ from tests.maps.session_checks import draws, lined_up
 
 pytestmark = [pytest.mark.slow, pytest.mark.needs_data, pytest.mark.needs_model]
 OFFSET, DRIFT_SEED = draws(1934, 1)[0]  # (-3.16, -2.12, 0.51 m, 6.25, -27.01, -8.03 degrees; seed 963)
-# fp32 (lockstep's default): int8 agrees with fp32 only on CPUs with VNNI (issue 31); on an AVX2-only CPU its
+# fp32 (lockstep's default): int8 agrees with fp32 only on CPUs with VNNI; on an AVX2-only CPU its
 # detections lose objects and the two sessions' maps no longer register by their objects
 COMMON = ["--no-viz"]
 
@@ -80,8 +80,8 @@ def sessions(kitchen_dir: Path, kitchen_gt_run: Path, tmp_path_factory: pytest.T
 
 
 def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[str, Path]) -> None:
-    """The truth is the rigid transform the session's poses are given in (issue 19: "a rigid transform ... plus
-    gt+drift drift"), judged at the camera of the fit's frame. Not the drifted odometry's transform at that frame:
+    """The truth is the rigid transform the session's poses are given in (a rigid transform plus the
+    gt+drift drift), judged at the camera of the fit's frame. Not the drifted odometry's transform at that frame:
     the fit places landmarks mapped over the frames before it, and the drift can turn fast (with the old fixed
     case, seed 1, by 2 degrees between frames 20 and 35: the fit was 1.2 deg / 7 cm off the offset, 3.2 deg off the
     frame-35 drift)."""
@@ -153,9 +153,9 @@ def _paired(a: list, b: list, confusable: bool = False) -> tuple[list[float], li
 
 
 def test_session_1s_objects_keep_their_places_and_classes(sessions: dict[str, Path]) -> None:
-    """Issue 34's done-when: >= 11 of session 1's 13 objects (that share of however many it maps) within 10 cm of
-    their session-1 places in the relocalised map, no duplicate, no class of session 1 lost. Before issue 34, on
-    two other offsets and seeds: 11 and 10 of 13, the microwave a laptop; after: 13 of 13 (docs/MAPS.md). Measured
+    """>= 11 of session 1's 13 objects (that share of however many it maps) within 10 cm of their session-1
+    places in the relocalised map, no duplicate, no class of session 1 lost. Without the prior anchor, on two other
+    offsets and seeds: 11 and 10 of 13, the microwave a laptop; with it: 13 of 13 (docs/MAPS.md). Measured
     on this draw: 13 of 13 (the farthest 1.3 cm from its place in process)."""
     s1 = read_map_json(sessions["s1"] / "map.json")
     kept, dup, lost = lined_up(s1, read_map_json(sessions["s2"] / "map.json"))
@@ -164,9 +164,9 @@ def test_session_1s_objects_keep_their_places_and_classes(sessions: dict[str, Pa
 
 def test_the_final_map_holds_the_objects_of_one_1000_frame_run(sessions: dict[str, Path]) -> None:
     """Every object of one 1000-frame run is in the relocalised map and nothing else, one to one; the landmarks
-    session 2 mapped itself lie within 10 cm of the 1000-frame run's (before issue 34: 16 of 16, median 1.9, max 9.9
-    cm, one object over the run-to-run margin allowed). Session 1's landmarks hold their session-1 places (issue
-    34), so against the 1000-frame run they are as far as session 1's own partial views put them from all 1000
+    session 2 mapped itself lie within 10 cm of the 1000-frame run's (without the prior anchor: 16 of 16, median
+    1.9, max 9.9 cm, one object over the run-to-run margin allowed). Session 1's landmarks hold their session-1
+    places, so against the 1000-frame run they are as far as session 1's own partial views put them from all 1000
     frames' (measured: the screen 23 cm, the table and a book 12 cm): within the 0.5 m pairing, not bounded here.
     Classes pair where the mapper takes them for one object: the 1000-frame run elects the microwave a laptop from
     both halves' boxes, the relocalised map keeps session 1's microwave. Measured on this draw: 16 of 16 paired,
@@ -181,10 +181,10 @@ def test_the_final_map_holds_the_objects_of_one_1000_frame_run(sessions: dict[st
 
 
 def test_merge_of_the_two_sessions_gives_the_relocalised_runs_landmarks(sessions: dict[str, Path]) -> None:
-    """Before issue 34 (the fixed offset): 15 paired, all within 10 cm (max 4.4 cm); the relocalised run had one
-    more, a laptop seen 13 times at the end of session 2, whose tracklet (7 views in 1 s) missed the static test for
-    short tracklets by a hair under session 2 alone's own poses: a merge fuses only what both maps hold. A merge
-    holds A's places as the relocalised run holds the prior's (issue 34), so the pairs agree: measured on this
+    """Without the prior anchor (the fixed offset): 15 paired, all within 10 cm (max 4.4 cm); the relocalised run
+    had one more, a laptop seen 13 times at the end of session 2, whose tracklet (7 views in 1 s) missed the static
+    test for short tracklets by a hair under session 2 alone's own poses: a merge fuses only what both maps hold. A
+    merge holds A's places as the relocalised run holds the prior's, so the pairs agree: measured on this
     draw 16 paired, all within 3.3 cm (median 0.1), and the merge's one more, the laptop below."""
     dist, only_merged, only_s2 = _paired(
         read_map_json(sessions["merged"] / "map.json"), read_map_json(sessions["s2"] / "map.json")
@@ -209,6 +209,6 @@ def test_merging_the_relocalised_run_itself_keeps_its_landmarks(sessions: dict[s
     dist, only_merged, only_s2 = _paired(
         read_map_json(tmp_path / "map.json"), read_map_json(sessions["s2"] / "map.json")
     )
-    # (before issue 34 the relocalised run lost session 1's microwave, which came back from session 1's map: one
-    # more in the merge)
+    # (without the prior anchor the relocalised run loses session 1's microwave, which comes back from session 1's
+    # map: one more in the merge)
     assert len(only_merged) <= 1 and not only_s2 and max(dist) < 0.10, (dist, only_merged, only_s2)

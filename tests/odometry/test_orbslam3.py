@@ -1,5 +1,5 @@
 """ORB-SLAM3 as a front end (the real pyorbslam3 wheel and a real vocabulary file) and the repair of real SLAM
-trajectories on the Bonn crowd window (people walking): issue #29's mechanism on real data."""
+trajectories on the Bonn crowd window (people walking), on real data."""
 
 from __future__ import annotations
 
@@ -122,7 +122,7 @@ def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn_dir: Path, vocab
 def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path, run: int):
     """The three ORB-SLAM3 runs of the Bonn window (1.21-1.35 m ATE: it mapped the people) fed as `file:`, each of
     their steps checked by semmap's people-masked registration: every one comes out under 15 cm. CI repairs run 1
-    (about a minute each, 3.2 min for the three in session 27); `pytest -m soak` the other two, and
+    (about a minute each, 3.2 min for the three); `pytest -m soak` the other two, and
     `benchmarks/bench_real_slam.py` all three (docs/RESULTS.md)."""
     from semmap.runtime.inprocess import closed_loop
 

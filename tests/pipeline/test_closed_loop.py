@@ -1,4 +1,4 @@
-"""Issue 9: landmark constraints must pull the trajectory, in the real pipeline (`semmap run` + `semmap eval`),
+"""Landmark constraints must pull the trajectory, in the real pipeline (`semmap run` + `semmap eval`),
 and the two drivers of the pipeline's stages (semmap/runtime/pipeline.py) must agree: the bus pipeline and the
 in-process driver (semmap/runtime/inprocess.py) give the same map.json and optimised trajectory.
 
@@ -129,7 +129,7 @@ def test_7scenes_ground_truth_odometry_stays_below_1cm(kitchen_gt_run: Path) -> 
 @pytest.mark.needs_data
 @pytest.mark.needs_model
 def test_7scenes_ground_truth_map_has_one_landmark_per_object(kitchen_gt_run: Path) -> None:
-    """Issue 17: with exact poses no two landmarks of different classes lie within 10 cm of each other (a
+    """With exact poses no two landmarks of different classes lie within 10 cm of each other (a
     detector's class flip between views, e.g. microwave / tv / laptop on the counter, joins one landmark instead of
     making one per class), and same-class objects stay apart. Measured (pipeline and offline harness alike): 16
     landmarks, chair 5, cup 2, dining table 2, book 2, laptop 2, tv 1, sink 1, cell phone 1; closest pair of different

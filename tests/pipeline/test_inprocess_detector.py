@@ -1,6 +1,6 @@
 """The in-process driver detects as the detector service does: with `detector.input_size` set, the packaged model
-resized to that letterbox (until session 16 it ran the model at its own 640x480 whatever was set, so in-process
-figures for a smaller letterbox were 640x480's)."""
+resized to that letterbox (were it to run the model at its own 640x480 whatever was set, in-process figures for
+a smaller letterbox would be 640x480's)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""The in-process driver runs prior maps as the services do (issue 33: the prior-map policy lives in
-`AssociatorStage`, no longer in the associator service): a second session, in a frame of its own
+"""The in-process driver runs prior maps as the services do (the prior-map policy lives in
+`AssociatorStage`, not in the associator service): a second session, in a frame of its own
 (`odometry.frame_offset`), started from the first session's map, relocalises against it, maps in its frame and
 keeps every prior landmark under its id.
 

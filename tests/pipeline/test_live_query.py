@@ -1,6 +1,6 @@
-"""`semmap query` answers while a run lives (issue 30): each query is a fresh process with a fresh Zenoh session,
+"""`semmap query` answers while a run lives: each query is a fresh process with a fresh Zenoh session,
 which does not yet know the associator's queryable when it first asks; it asks again within its timeout instead
-of failing after ~2 s (before: 10 of 20 queries failed here)."""
+of failing after ~2 s (asking once, 10 of 20 queries failed here)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Every setting is validated before any process starts (issue 16): `semmap run` with a bad value exits 2 at
+"""Every setting is validated before any process starts: `semmap run` with a bad value exits 2 at
 once, naming the key; a service started by hand checks the same; `semmap config show` prints what a run uses."""
 
 from __future__ import annotations
@@ -14,8 +14,9 @@ from semmap.core.config import load_config
 
 PROJECT = Path(__file__).resolve().parents[2]
 
-# what issue 16 names: a raw TypeError deep in the tracker, a confidence that detects nothing, a word for a bool,
-# a fraction for a count, a list split into characters or of the wrong kind, a model file that is not there
+# bad values of each kind: one that would raise a raw TypeError deep in the tracker, a confidence that detects
+# nothing, a word for a bool, a fraction for a count, a list split into characters or of the wrong kind, a model
+# file that is not there
 BAD = [
     ("tracker.sigma_iou=banana", "tracker.sigma_iou"),
     ("detector.confidence=7", "detector.confidence"),

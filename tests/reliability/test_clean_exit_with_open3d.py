@@ -2,10 +2,10 @@
 
 Open3D counts its own allocations and, when the process ends with one still alive, prints "Memory Statistics" and
 ends the process with status 1 (its leak check, meant for its unit tests). A service's objects are not always freed
-before that check runs: a thread still holding them when the interpreter stops keeps them alive. The player
-stopped cleanly and still reported failure now and then (tests/reliability/test_startup_and_router_restart.py,
-session 27): the synthetic scene kept its triangles as an Open3D tensor. It keeps numpy arrays now, wrapped for
-Open3D per cast. This pins the scene, and the `rgbd` odometry with a previous frame (Open3D images that wrap numpy
+before that check runs: a thread still holding them when the interpreter stops keeps them alive. A player that
+stopped cleanly could still report failure now and then (tests/reliability/test_startup_and_router_restart.py)
+while the synthetic scene kept its triangles as an Open3D tensor, so it keeps numpy arrays, wrapped for Open3D
+per cast. This pins the scene, and the `rgbd` odometry with a previous frame (Open3D images that wrap numpy
 memory), in a thread the interpreter never finishes, so the check runs with them alive every time.
 """
 

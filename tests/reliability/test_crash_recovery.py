@@ -28,8 +28,8 @@ import pytest
 PROJECT = Path(__file__).resolve().parents[2]
 FRAMES = 120  # one loop round the room: 14 landmarks, made between frames 30 and 80; kills from 25 to 105
 DATA = f"synthetic:frames={FRAMES}"
-# a restart must not move a landmark: the maps agree to rounding (map.json holds 1e-5 m). Session 5 saw 0.02-1.4 mm
-# here: a restarted backend's corrections publisher started afresh (docs/RELIABILITY.md, "What a restart must
+# a restart must not move a landmark: the maps agree to rounding (map.json holds 1e-5 m). A restarted backend whose
+# corrections publisher starts afresh moves them 0.02-1.4 mm here (docs/RELIABILITY.md, "What a restart must
 # rebuild exactly").
 CENTROID_TOLERANCE_M = 1e-6
 

@@ -136,7 +136,7 @@ def test_generated_documents_never_crash_a_decoder(kind: type[Message]) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ALL_MESSAGES, ids=lambda k: k.__name__)
 def test_many_generated_documents_never_crash_a_decoder(kind: type[Message]) -> None:
-    # 400 each (12 kinds, 1.2 min on 2 cores; 1,000 took 4.3 min here in session 27, 3,000 ~10 min): the
+    # 400 each (12 kinds, 1.2 min on 2 cores; 1,000 take 4.3 min, 3,000 ~10 min): the
     # 10,000 mutations of a valid message above reach the decoders' edge cases more cheaply than hypothesis'
     # recursive documents, and with `derandomize` every run draws the same documents anyway
     _fuzz_generated(kind, 400)

@@ -46,7 +46,7 @@ def _check(stats: dict, frames: int, overloaded: bool = True) -> None:
 def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path, semmap_run) -> None:  # noqa: ANN001
     stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 300, 1, "--set", "detector.every_n_frames=1")
     _check(stats, 300)
-    # real time with the default `detector.precision: auto` takes this machine's measured choice (issue 31)
+    # real time with the default `detector.precision: auto` takes this machine's measured choice
     from semmap.runtime.detector_choice import resolve_setup
 
     setup = resolve_setup("auto", 0, "auto", realtime=True)

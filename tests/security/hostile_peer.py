@@ -1,4 +1,4 @@
-"""A hostile peer on an open bus: replays every forged message of issue 18 against a live run.
+"""A hostile peer on an open bus: replays every kind of forged message against a live run.
 
 `python -m tests.security.hostile_peer ENDPOINT --seconds S [--external]` joins the bus as a Zenoh client and,
 until S seconds have passed, puts each forged message several times a second in three disguises: unsigned,
@@ -69,7 +69,7 @@ def _pose(rng: np.random.Generator) -> np.ndarray:
 
 
 def forged_messages(rng: np.random.Generator) -> list[tuple[str, Message]]:
-    """(topic, message) for every forgery of the issue (the data ones with plausible frame ids)."""
+    """(topic, message) for every kind of forgery (the data ones with plausible frame ids)."""
     keys = Keys(ROBOT)
     patch = DepthPatch(100, 100, 2, np.full((20, 20), 1200, np.uint16))
     det = Detection((100.0, 100.0, 140.0, 140.0), "cup", 0.95, 1.2, patch)

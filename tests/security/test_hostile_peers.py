@@ -1,4 +1,4 @@
-"""Hostile peers on an open bus (issue 18): every forged message of the issue, replayed against a live run.
+"""Hostile peers on an open bus: every kind of forged message, replayed against a live run.
 
 A run joins a router-mode Zenoh process as clients; a hostile peer (tests/security/hostile_peer.py, its own
 process) joins the same router and forges controls, statuses, progress, frames with absurd ids, detector

@@ -1,4 +1,4 @@
-"""Operator faults (issue 18): each ends with one clear message that names the real cause, a non-zero exit code
+"""Operator faults: each ends with one clear message that names the real cause, a non-zero exit code
 where something was lost, no process left behind, and no output file truncated."""
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def _kitchen_copy(kitchen_dir: Path, dest: Path, frames: int, poses: bool = True
     for i in range(frames):
         stem = f"frame-{i:06d}"
         shutil.copy(kitchen_dir / f"{stem}.color.jpg", dest)
-        if depth_8bit:  # what the issue's operator had: depth saved as 8-bit PNGs
+        if depth_8bit:  # what an operator may have: depth saved as 8-bit PNGs
             depth = cv2.imread(str(kitchen_dir / f"{stem}.depth.png"), cv2.IMREAD_UNCHANGED)
             cv2.imwrite(str(dest / f"{stem}.depth.png"), (depth // 256).astype("uint8"))
         else:
@@ -287,7 +287,7 @@ def test_fewer_frames_processed_than_sent_or_none_fail_the_run(tmp_path: Path) -
         orch._check_frames()
 
 
-# -- issue 30: a finished run is left alone, a killed run leaves no process ----------------------------------
+# -- a finished run is left alone, a killed run leaves no process --------------------------------------------
 
 
 def _tree_digest(folder: Path) -> dict[str, tuple[str, int]]:

@@ -1,5 +1,5 @@
-"""`semmap view` on a machine without a display says "use --web" in one line instead of the viewer's winit error
-(issue 30); its native viewer's server binds loopback (`--bind 127.0.0.1`, checked in its log)."""
+"""`semmap view` on a machine without a display says "use --web" in one line instead of the viewer's winit error;
+its native viewer's server binds loopback (`--bind 127.0.0.1`, checked in its log)."""
 
 from __future__ import annotations
 

@@ -99,8 +99,8 @@ class LandmarkState:
     def _own_views(self) -> list[int]:
         """Indices of the views the `max_views` cap applies to: all, but for a prior landmark in a relocalised
         session (`anchor`) only this session's. Its prior views (frozen: negative frame ids) keep their weight:
-        the newest views win the cap, and on 7-Scenes session 2 had thinned a prior landmark's views until those
-        left put its centre 15-23 cm from where all of them had (issue 34)."""
+        the newest views win the cap, and on 7-Scenes session 2 would thin a prior landmark's views until those
+        left put its centre 15-23 cm from where all of them had."""
         if self.anchor is None:
             return list(range(len(self.views)))
         return [k for k, v in enumerate(self.views) if v.frame_id >= 0]
@@ -371,5 +371,5 @@ def _landmark_from_state(d: dict[str, Any]) -> LandmarkState:
     lm.views_at_full, lm.added_since_full = int(d["views_at_full"]), int(d["added_since_full"])
     lm.absent_streak, lm.absent_total = int(d["absent_streak"]), int(d["absent_total"])
     lm.last_full = float("-inf") if d["last_full"] is None else float(d["last_full"])
-    lm.anchor = None if d.get("anchor") is None else PriorAnchor.from_state(d["anchor"])  # (absent before issue 34)
+    lm.anchor = None if d.get("anchor") is None else PriorAnchor.from_state(d["anchor"])  # (absent in older states)
     return lm

@@ -70,7 +70,7 @@ def depth_unseen(points: np.ndarray, cloud: np.ndarray, centre: np.ndarray, q: f
     the landmark's fused cloud. A view cannot tell how deep an object is behind what it shows, so the bound is the
     whole footprint: a parked car 4.5 m, a chair 0.6-0.8 m. (Less what the view shows of it was tried and was not
     enough: cars along a street are mostly seen at a slant, whose visible side spans metres of depth while their
-    centre is still behind it; docs/RESULTS.md, session 16.)"""
+    centre is still behind it; docs/RESULTS.md.)"""
     depth, width = extent_along_across(points, centre, q)
     along, across = extent_along_across(cloud, centre, q) if len(cloud) >= 4 else (0.0, 0.0)
     return max(depth, width, along, across)

@@ -231,7 +231,7 @@ class LoopCloser:
         tracker's boxes of the frame: people, things seen moving) left out as `params.dynamic_mask` says.
 
         Why: a person in a keyframe's cloud is structure that is elsewhere by the next visit, and ICP may fit
-        it. Off by default (`none`): on Bonn crowd it gave no reliable gain (docs/RESULTS.md, session 14)."""
+        it. Off by default (`none`): on Bonn crowd it gave no reliable gain (docs/RESULTS.md)."""
         p = self.params
         if dynamic:
             depth = mask_dynamic(depth, list(dynamic), depth_scale, p.dynamic_mask)

@@ -130,7 +130,7 @@ class DetectorConfig(Section):
         "never mapped, only left out of the odometry's depth and the SLAM's features (the `dynamic` key), where a "
         "person missed (motion-blurred, half in view) drags the trajectory and a false one costs a few pixels. Bonn "
         "crowd, ORB-SLAM3 run 1 as file: 0.4 -> 0.047 m, 0.3 -> 0.046, 0.25 -> 0.044, 0.2 -> 0.042, 0.15 -> 0.106 "
-        "(false people covering whole frames; docs/RESULTS.md, session 19); {} = `confidence` for all",
+        "(false people covering whole frames; docs/RESULTS.md); {} = `confidence` for all",
     )
     iou: Probability = 0.45
     depth_min_m: NonNegative = Field(0.2, description="paper")
@@ -375,7 +375,7 @@ class BackendParams(Section):
         description="range sigma = hypot(sigma, factor * depth_unseen) for an observation that carries the "
         "associator's depth_unseen (the depth the view may not have seen, bounded by the object's footprint: a "
         "parked car ~4.5 m, a chair ~0.7 m); the bearing keeps sigma. KITTI 00 street, ORB estimate: 1.51 -> 1.19 m "
-        "(alone 1.30); Bonn crowd and 7-Scenes unchanged (docs/RESULTS.md, session 16). 0: the isotropic model "
+        "(alone 1.30); Bonn crowd and 7-Scenes unchanged (docs/RESULTS.md). 0: the isotropic model "
         "(observation_range_sigma_size_factor x size, for messages without it too)",
     )
     observation_min_range_m: NonNegative = 0.05

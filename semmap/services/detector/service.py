@@ -47,7 +47,7 @@ class DetectorService(Service):
         self.precision = cfg.precision
         if needs_model(self.kind) and cfg.model:
             model = Path(cfg.model)
-        elif needs_model(self.kind):  # the packaged YOLOv5s: this machine's measured choice (issue 31)
+        elif needs_model(self.kind):  # the packaged YOLOv5s: this machine's measured choice
             setup = resolve_setup(cfg.precision, cfg.threads, cfg.input_size, realtime=not self.lockstep)
             self.precision = setup.precision
             model = load_detector_model(setup)
