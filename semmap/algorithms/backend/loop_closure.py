@@ -375,8 +375,10 @@ class LoopCloser:
         wanted = np.array(sorted({*self.keyframes, cloud.frame_id}), dtype=np.int64)
         rows = np.minimum(np.searchsorted(ids, wanted), max(len(ids) - 1, 0))
         ok = ids[rows] == wanted if len(ids) else np.zeros(len(wanted), bool)
-        closure = self.process(cloud, wanted[ok], graph.corrected_rows(rows[ok]), graph.odometry_sigmas_between,
-                               against_prior)
+        # (a pair is tried where the odometry is declared less precise than a closure, however far it has earned
+        # trust since: a closure is also the witness of that trust, trust.py)
+        closure = self.process(cloud, wanted[ok], graph.corrected_rows(rows[ok]),
+                               lambda a, b: graph.odometry_sigmas_between(a, b, declared=True), against_prior)
         if closure is not None:
             self.add_to(graph, closure)
         return closure
@@ -397,8 +399,12 @@ class LoopCloser:
         sigma_t, sigma_r = self.params.sigma_translation_m, math.radians(self.params.sigma_rotation_deg)
         if closure.T_wa is not None:
             graph.add_pose_prior(closure.frame_b, closure.T_wa @ closure.T_ab, sigma_t, sigma_r)
-        else:
+        elif graph.witness_closure(closure.frame_a, closure.frame_b, closure.T_ab, sigma_t, sigma_r):
+            # as precise as the closures have shown themselves to be, never more than declared
+            sigma_t, sigma_r = graph.trust.closure_sigmas((sigma_t, sigma_r))
             graph.add_relative_pose_constraint(closure.frame_a, closure.frame_b, closure.T_ab, sigma_t, sigma_r)
+        else:  # the odometry earned more trust than the closure is precise: it only witnessed
+            self.counters["witnessed_only"] = self.counters.get("witnessed_only", 0) + 1
         graph.update()
 
 

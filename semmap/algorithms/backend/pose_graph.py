@@ -35,6 +35,7 @@ from semmap.core.geometry import carry_correction, correction, inv_rigid
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 from . import factors
+from .trust import OdometryTrust
 
 MAX_FRAMES_WAITING_FOR_ODOMETRY = 300  # frames whose observations arrived before their odometry
 # a node is read again when its iSAM2 delta changed by more than this (rad or m) since its last read
@@ -197,6 +198,9 @@ class PoseGraph:
             "pose_priors_on_settled": 0, "qr_refactorisations": 0,
         }
         self.refactorised_because = ""  # why iSAM2 was rebuilt with QR factorisation, if it was
+        # how far the odometry is trusted beyond its declared sigmas, as the closures that witnessed it earned
+        self.trust = OdometryTrust()
+        self.trust_factors = (1.0, 1.0)  # (translation, rotation): the chain sigmas are scaled by these
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -616,9 +620,38 @@ class PoseGraph:
         """The odometry 4x4 of one frame as the graph took it (KeyError if it never had odometry)."""
         return self._odom[int(frame_id)].pose.copy()
 
-    def odometry_sigmas_between(self, a: int, b: int) -> tuple[float, float]:
-        """(m, rad) sigmas the front end declares for the motion from frame a to frame b (a < b, both with
-        odometry): per-frame variances add up; frames without odometry count with b's sigmas."""
+    def witness_closure(self, frame_a: int, frame_b: int, T_ab: np.ndarray, sigma_translation: float,
+                        sigma_rotation: float) -> bool:
+        """A closure's measured relative pose of two frames, first as a witness of the odometry (trust.py): it
+        updates the trust the odometry earned (and the chain factors with it, when that changed by a quarter).
+        Returns whether the closure still says more than the odometry between the two frames, i.e. whether it
+        belongs in the graph."""
+        a, b = int(frame_a), int(frame_b)
+        odometry = inv_rigid(self._odom[a].pose) @ self._odom[b].pose
+        self.trust.witness(odometry, np.asarray(T_ab, float), self.odometry_sigmas_between(a, b, declared=True),
+                           (sigma_translation, sigma_rotation))
+        factors_now = self.trust.factors()
+        if any(abs(math.log(new / old)) > math.log(1.25) for new, old in zip(factors_now, self.trust_factors,
+                                                                             strict=True)):
+            self.trust_factors = factors_now
+            self._rebuild_all_chains()
+        self.counters["trust_translation_pct"] = round(100 * self.trust_factors[0])
+        self.counters["trust_rotation_pct"] = round(100 * self.trust_factors[1])
+        sigma_t, sigma_r = self.odometry_sigmas_between(a, b)
+        return sigma_t > sigma_translation or sigma_r > sigma_rotation
+
+    def _rebuild_all_chains(self) -> None:
+        """Every odometry factor between live nodes again, with the current trust factors."""
+        for a, b in zip(self._nodes, self._nodes[1:], strict=False):
+            if b > self._settled_horizon:
+                self._drop(("odo", a, b))
+                self._add_chain(a, b)
+        self.counters["trust_rebuilds"] = self.counters.get("trust_rebuilds", 0) + 1
+
+    def odometry_sigmas_between(self, a: int, b: int, declared: bool = False) -> tuple[float, float]:
+        """(m, rad) sigmas of the motion from frame a to frame b (a < b, both with odometry): the front end's
+        per-frame variances add up (frames without odometry count with b's sigmas), scaled by the trust the
+        odometry earned (`trust_factors`) unless `declared`."""
         i0, i1 = bisect.bisect_right(self._frames, a), bisect.bisect_right(self._frames, b)
         # prefix sums of the variances, extended lazily: O(log frames) for any span (a loop closure's spans
         # over thousands of frames, once per candidate, made this the loop-closure step's growing cost)
@@ -633,7 +666,8 @@ class PoseGraph:
         last = self._odom[b]
         var_t = cum_t[i1] - cum_t[i0] + missing * last.sigma_translation**2
         var_r = cum_r[i1] - cum_r[i0] + missing * last.sigma_rotation**2
-        return math.sqrt(max(var_t, 0.0)), math.sqrt(max(var_r, 0.0))
+        k_t, k_r = (1.0, 1.0) if declared else self.trust_factors
+        return k_t * math.sqrt(max(var_t, 0.0)), k_r * math.sqrt(max(var_r, 0.0))
 
     def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids int64 (M,), positions (M,3)) of landmarks in the graph, by surviving id (absorbed ids omitted)."""
