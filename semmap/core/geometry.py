@@ -28,6 +28,19 @@ def carry_correction(corrected_ref: np.ndarray, odometry_ref: np.ndarray, odomet
     return correction(corrected_ref, odometry_ref) @ odometry
 
 
+def interpolate_pose(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """The pose a fraction `w` (0..1) of the way from `a` to `b` (4x4): slerp on rotation, linear on translation.
+    The one place poses are interpolated: ground truth between samples, bag poses between messages, frames a SLAM
+    lost between the poses around the gap."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    w = min(max(float(w), 0.0), 1.0)
+    out = np.eye(4)
+    out[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]])))([w]).as_matrix()[0]
+    out[:3, 3] = (1.0 - w) * a[:3, 3] + w * b[:3, 3]
+    return out
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
     """Camera-to-world pose of an OpenCV camera (x right, y down, z forward) at `eye` looking at `target`."""
     up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float)

@@ -19,6 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from semmap.core.geometry import interpolate_pose
 from semmap.core.stamps import exceeds
 
 COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8")
@@ -209,21 +210,11 @@ def pose_at(stamps: list[float], poses: list[np.ndarray], t: float, max_gap: flo
         return poses[i - 1].copy()
     if i == 0 or i == len(stamps) or exceeds(stamps[i] - stamps[i - 1], max_gap):
         return None
-    return interpolate_pose(t, stamps[i - 1], poses[i - 1], stamps[i], poses[i])
+    return pose_between(t, stamps[i - 1], poses[i - 1], stamps[i], poses[i])
 
 
-def interpolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float, pose1: np.ndarray) -> np.ndarray:
-    """The pose at `t` between two stamped poses: linear in translation, spherical (slerp) in rotation."""
+def pose_between(t: float, t0: float, pose0: np.ndarray, t1: float, pose1: np.ndarray) -> np.ndarray:
+    """The pose at `t` between two stamped poses (clamped to them)."""
     if t1 <= t0:
         return pose0.copy()
-    from scipy.spatial.transform import Rotation, Slerp
-
-    a = min(max((t - t0) / (t1 - t0), 0.0), 1.0)
-    if a == 0.0:
-        return pose0.copy()
-    if a == 1.0:
-        return pose1.copy()
-    out = np.eye(4)
-    out[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([pose0[:3, :3], pose1[:3, :3]])))([a]).as_matrix()[0]
-    out[:3, 3] = (1 - a) * pose0[:3, 3] + a * pose1[:3, 3]
-    return out
+    return interpolate_pose(pose0, pose1, (t - t0) / (t1 - t0))

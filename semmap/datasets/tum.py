@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation, Slerp
+
+from semmap.core.geometry import interpolate_pose
 
 from .base import Dataset, DatasetError, FrameData, Intrinsics
 from .calibration import CameraSource
@@ -157,15 +158,6 @@ def tum_camera_name(root: Path) -> str:
     """'fr1' / 'fr2' / 'fr3' from the folder name (rgbd_dataset_freiburg2_desk -> fr2), else 'default'."""
     match = _FREIBURG_RE.search(root.resolve().name)
     return f"fr{match.group(1)}" if match else "default"
-
-
-def interpolate_pose(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
-    """The pose a fraction `w` of the way from `a` to `b` (4x4): slerp on rotation, linear on translation."""
-    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
-    out = np.eye(4)
-    out[:3, :3] = Slerp([0.0, 1.0], rots)([w]).as_matrix()[0]
-    out[:3, 3] = (1.0 - w) * a[:3, 3] + w * b[:3, 3]
-    return out
 
 
 def interpolate_missing(stamps: Sequence[float], poses: list[np.ndarray | None],

@@ -388,6 +388,8 @@ def run_loop(
             sigma_translation=front.sigmas[0],  # (read per frame: a vehicle's drift declares per step)
             sigma_rotation=front.sigmas[1],
             source=odometry,
+            bridged=odometry_poses is None and bool(getattr(front, "bridged", False)),
+            step="" if odometry_poses is not None else str(getattr(front, "step_source", "")),
         )
         odo_traj.append((stamp, pose.copy()))
         associator.odometry(i, odo.pose)

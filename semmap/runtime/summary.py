@@ -140,18 +140,38 @@ def repair_line(out_dir: Path) -> str | None:
     if not steps:
         return None
     replaced = int(c.get("repair_overruled", 0)) + int(c.get("repair_implausible", 0))
+    kept = int(c.get("repair_kept", 0))
     spans = report.get("overruled_spans", [])
     where = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans[:6]) + (" ..." if len(spans) > 6 else "")
-    slam = ""
+    lines = [f"  repair      {report.get('mode', '?')}: semmap overruled {replaced} of {steps} SLAM steps "
+             f"({100 * replaced / steps:.0f} %) where the static scene favoured its own measurement, kept the SLAM's "
+             f"step in {kept} other disagreements (weak or contrary evidence), the SLAM had no pose for "
+             f"{int(c.get('repair_slam_missing', 0))}" + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})"]
+    changed = trajectory_change(Path(out_dir))
+    if changed is not None:
+        lines.append(f"  changed     semmap moved the SLAM's trajectory by {changed:.3f} m RMS (trajectory_slam.tum -> "
+                     "trajectory_optimized.tum, aligned as ATE is)")
     try:
         from semmap.algorithms.evaluation import evaluate_run
 
         result = evaluate_run(Path(out_dir)) if (Path(out_dir) / "groundtruth.tum").is_file() else {}
         if result.get("ate_slam_m") is not None:
-            slam = (f"\n  SLAM alone  ATE {result['ate_slam_m']:.3f} m (its own poses, trajectory_slam.tum) -> "
-                    f"repaired {result['ate_odometry_m']:.3f} m -> optimised {result['ate_optimized_m']:.3f} m")
+            lines.append(f"  SLAM alone  ATE {result['ate_slam_m']:.3f} m (its own poses, trajectory_slam.tum) -> "
+                         f"repaired {result['ate_odometry_m']:.3f} m -> optimised {result['ate_optimized_m']:.3f} m")
     except (ValueError, OSError):
         pass
-    return (f"  repair      {report.get('mode', '?')}: semmap overruled {replaced} of {steps} SLAM steps "
-            f"({100 * replaced / steps:.0f} %), the SLAM had no pose for {int(c.get('repair_slam_missing', 0))}"
-            + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})" + slam)
+    return "\n".join(lines)
+
+
+def trajectory_change(out_dir: Path) -> float | None:
+    """How far semmap moved the SLAM's own trajectory: the RMS of the optimised poses against the SLAM's, after the
+    same SE(3) alignment ATE uses (so a different world frame is no change), or None without both files."""
+    from semmap.algorithms.evaluation import ate_rmse
+    from semmap.core.outputs import SLAM_TRAJECTORY
+    from semmap.datasets.trajectory_io import read_tum
+
+    try:
+        slam, optimized = read_tum(out_dir / SLAM_TRAJECTORY), read_tum(out_dir / "trajectory_optimized.tum")
+        return ate_rmse(slam, optimized) if len(slam) >= 3 and len(optimized) >= 3 else None
+    except (OSError, ValueError):
+        return None

@@ -31,7 +31,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from semmap.core.config import BackendParams
-from semmap.core.geometry import carry_correction, correction, inv_rigid
+from semmap.core.geometry import carry_correction, correction, interpolate_pose, inv_rigid
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 from . import factors
@@ -198,6 +198,8 @@ class PoseGraph:
             "pose_priors_on_settled": 0, "qr_refactorisations": 0,
         }
         self.refactorised_because = ""  # why iSAM2 was rebuilt with QR factorisation, if it was
+        self._bridged: list[int] = []  # frames bridged (no measurement) since the last measured one
+        self._last_measured: int | None = None
         # how far the odometry is trusted beyond its declared sigmas, as the closures that witnessed it earned
         self.trust = OdometryTrust()
         self.trust_factors = (1.0, 1.0)  # (translation, rotation): the chain sigmas are scaled by these
@@ -205,11 +207,13 @@ class PoseGraph:
     # ------------------------------------------------------------------------------------------ inputs
 
     def add_odometry(self, frame_id: int, stamp: float, pose: np.ndarray, sigma_translation: float,
-                     sigma_rotation: float, keyframe: bool = True) -> None:
+                     sigma_rotation: float, keyframe: bool = True, bridged: bool = False) -> None:
         """Record a frame's odometry pose (camera-to-world) with the front end's per-frame sigmas (m, rad).
 
         A keyframe (and the very first frame) becomes a node; a later message for the same frame replaces the
-        earlier one (and the node's odometry factors when it is a node).
+        earlier one (and the node's odometry factors when it is a node). `bridged` frames (the front end measured
+        nothing of them) are placed between their measured neighbours once the next measured frame arrives
+        (`_place_bridged`).
         """
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -230,9 +234,35 @@ class PoseGraph:
             self._rebuild_chains(frame_id)
         elif keyframe or not self._nodes:
             self._ensure_node(frame_id)
+        if bridged:
+            self._bridged.append(frame_id)
+        elif self._bridged:
+            self._place_bridged(frame_id)
+        if not bridged:
+            self._last_measured = frame_id
         waiting = self._unposed.pop(frame_id, None)
         if waiting:
             self.add_observations(frame_id, waiting)
+
+    def _place_bridged(self, frame_id: int) -> None:
+        """The frames bridged since the last measured one, placed between it and `frame_id` by time (linear in
+        translation, slerp in rotation): a gap is not one step of the motion model's per frame. The stand-in poses
+        guessed while the SLAM had lost track are replaced (TUM fr1_rpy, ORB-SLAM3 lost for 5 frames of a fast
+        turn: the motion model put them 5-7 cm off)."""
+        run, self._bridged = self._bridged, []
+        start = self._last_measured
+        if start is None or start not in self._odom:
+            return
+        a, b = self._odom[start], self._odom[frame_id]
+        for f in run:
+            o = self._odom.get(f)
+            if o is None or not a.stamp < o.stamp < b.stamp:
+                continue
+            o.pose = factors.pose3(interpolate_pose(a.pose, b.pose, (o.stamp - a.stamp) / (b.stamp - a.stamp))).matrix()
+            self._table.put(f, o.stamp, o.pose, appended=False)
+            self.counters["bridged_placed"] = self.counters.get("bridged_placed", 0) + 1
+            if f in self._node_set:
+                self._rebuild_chains(f)
 
     def add_observations(self, frame_id: int, observations: Iterable[Observation]) -> None:
         """Landmark centroids seen from `frame_id` (camera frame). Buffered if that frame has no odometry yet."""
@@ -371,7 +401,8 @@ class PoseGraph:
         self.counters["pose_priors"] += 1
 
     def add_odometry_message(self, msg: OdometryPose) -> None:
-        self.add_odometry(msg.frame_id, msg.stamp, msg.pose, msg.sigma_translation, msg.sigma_rotation, msg.keyframe)
+        self.add_odometry(msg.frame_id, msg.stamp, msg.pose, msg.sigma_translation, msg.sigma_rotation, msg.keyframe,
+                          msg.bridged)
 
     def add_observations_message(self, msg: Observations) -> None:
         """Merges first (the message's observations may already use surviving ids), then observations."""

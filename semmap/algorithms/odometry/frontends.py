@@ -229,6 +229,11 @@ class CheckedSlamFrontEnd(FrontEnd):
         return pose
 
     @property
+    def bridged(self) -> bool:
+        """The SLAM had no pose of this frame: its pose is a stand-in (OdometryPose.bridged)."""
+        return self.check.repair.bridged
+
+    @property
     def step_source(self) -> str:
         """Whose step this frame's pose took: slam | semmap | motion (the motion model) | copied (no check)."""
         return self.check.repair.last_winner if self.check.checks else "copied"

@@ -118,7 +118,8 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._anchor: np.ndarray | None = None  # world <- ORB-SLAM3's map of the first frame
         self._restored = False
-        self.counters.update({"orb_lost": 0, "orb_not_initialized": 0, "orb_blanked_permille": 0, "orb_weak": 0})
+        self.counters.update({"orb_lost": 0, "orb_recently_lost": 0, "orb_not_initialized": 0,
+                              "orb_blanked_permille": 0, "orb_weak": 0})
         self._blanked_sum, self._frames = 0.0, 0  # the blanked share of the image, summed (a running mean)
 
     def _start(self, frame: OdometryInput) -> None:
@@ -163,8 +164,11 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
             self.counters["orb_weak"] += int(weak)
         elif state == "NOT_INITIALIZED":
             self.counters["orb_not_initialized"] += 1
-        else:
+        elif state == "RECENTLY_LOST":  # (it may find its map again: the gap is then bridged by its own motion)
+            self.counters["orb_recently_lost"] += 1
+        else:  # LOST: its next map starts anew, in a frame of its own
             self.counters["orb_lost"] += 1
+            self.check.break_chain()
         pose = self.checked_pose(frame, slam_pose, weak)
         self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
         return pose

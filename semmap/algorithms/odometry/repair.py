@@ -60,6 +60,7 @@ class RepairParams:
     # the motion model carries at most this long in a row, then the SLAM's steps count; off (inf) by default: on
     # Bonn crowd a SLAM dragged by people stays wrong for seconds, and 1 s let it back in (1.16 m stayed 1.27 m)
     max_coast_s: float = float("inf")
+    motion_steps: int = 5  # the motion model is the mean of the last steps taken (a sixth of a second at 30 Hz)
     # without a witness a step breaks the recent motion only if it also differs by this share of the step's length:
     # a SLAM's jitter on a car's metre-long steps is centimetres, a person dragging a hand-held camera doubles them
     jump_share: float = 0.25
@@ -82,6 +83,7 @@ class RepairReport:
     outvoted: int = 0  # the registration disagreed, but the SLAM's step continued the recent motion and it did not
     kept: int = 0  # the registration disagreed, but the static scene did not clearly favour it: the SLAM's step
     slam_weak: int = 0  # the registration disagreed and the SLAM itself said its tracking was weak: overruled
+    gaps_rejoined: int = 0  # the SLAM came back after frames without a pose, in the same map: re-anchored
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
     # per judged step (the first `max_judged`): what disagreed, the evidence and who won (odometry_repair.json)
@@ -90,7 +92,7 @@ class RepairReport:
 
     # the counted fields; older saved states listed the first eight as a plain list, in this order
     COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted",
-               "kept", "slam_weak")
+               "kept", "slam_weak", "gaps_rejoined")
 
     def counters(self) -> dict[str, int]:
         return {f"repair_{name}": getattr(self, name) for name in self.COUNTED}
@@ -241,7 +243,14 @@ class SlamRepair:
         self._start = None if start is None else np.asarray(start, float)
         self._pose: np.ndarray | None = None  # the last repaired pose
         self._slam_prev: np.ndarray | None = None  # the SLAM's previous pose (None: it had none)
-        self._last_step = np.eye(4)  # the last step taken (constant velocity when nothing is known)
+        # the SLAM's last pose in its current map and the output pose of that frame: a SLAM back after a gap
+        # continues from there
+        self._slam_last: np.ndarray | None = None
+        self._out_at_slam_last: np.ndarray | None = None
+        # the last steps taken: their mean is the camera's recent motion (the motion model), not the last step
+        # alone, which is often the glitch that precedes a SLAM losing track (TUM fr1_rpy: a 2 cm step carried
+        # on over 5 lost frames put them 10-18 cm off)
+        self._recent: deque[np.ndarray] = deque(maxlen=max(1, self.params.motion_steps))
         self._dynamic_seen: float | None = None  # stamp of the last frame with a dynamic object in view
         self._stamp: float | None = None  # of the previous frame (the gates scale with the frame interval)
         self._coast_since: float | None = None  # stamp where the motion model began to carry the chain
@@ -250,6 +259,7 @@ class SlamRepair:
         self.measured_sigmas = measured_sigmas_after > 0
         self.took_slam_step = False  # this frame's step is the SLAM's own (not semmap's, not the motion model's)
         self.last_winner = "slam"  # whose step this frame took: slam | semmap | motion (the motion model)
+        self.bridged = False  # this frame had no SLAM pose: its pose is a stand-in
         # the static scene's verdicts over the recent disagreements, summed with a fading memory (> 0: semmap's)
         self.evidence = 0.0
         self._verdict: Verdict | None = None  # the last verdict weighed
@@ -268,14 +278,18 @@ class SlamRepair:
         r.steps += 1
         if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
             slam_pose = None
-        if slam_pose is None or self._slam_prev is None:
+        self.bridged = slam_pose is None
+        if slam_pose is not None and self._slam_prev is None and self._slam_last is not None:
+            r.gaps_rejoined += 1  # (back after a gap in the same map: its motion over the gap, see `update`)
+            self._pose = self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose
+        elif slam_pose is None or self._slam_prev is None:
             r.slam_missing += 1
-            step = self._last_step
+            self._pose = self._pose @ self._velocity()
         else:
             step = np.linalg.inv(self._slam_prev) @ slam_pose
-        self._slam_prev = None if slam_pose is None else slam_pose.copy()
-        self._last_step = np.asarray(step, float).copy()
-        self._pose = self._pose @ self._last_step
+            self._recent.append(step)
+            self._pose = self._pose @ step
+        self._remember_slam(slam_pose, None)
         return self._pose.copy()
 
     def declared_sigmas(self, fixed: tuple[float, float]) -> tuple[float, float]:
@@ -297,8 +311,8 @@ class SlamRepair:
             return False
         if self.report.steps <= 1 or scale <= 1.0:  # (at the gates' own rate the registration is the witness)
             return True
-        dt, dr = step_difference(step, self._last_step)
-        length = max(float(np.linalg.norm(step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
+        dt, dr = step_difference(step, self._velocity())
+        length = max(float(np.linalg.norm(step[:3, 3])), float(np.linalg.norm(self._velocity()[:3, 3])))
         return (dt <= max(p.check_jump_gates * p.translation_m * scale, 2.0 * p.jump_share * length)
                 and dr <= p.check_jump_gates * p.rotation_deg * scale)
 
@@ -334,6 +348,7 @@ class SlamRepair:
         in_scope = self.in_scope(moving_in_view, stamp, undecided)
         if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
             slam_pose = None
+        self.bridged = slam_pose is None
         if self._pose is None:  # the first frame: the anchor
             if slam_pose is not None:
                 self._pose = slam_pose.copy() if self._start is None else self._start.copy()
@@ -341,18 +356,28 @@ class SlamRepair:
                 self._pose = self._start.copy()
             else:
                 self._pose = np.eye(4)
-            self._slam_prev = None if slam_pose is None else slam_pose.copy()
+            self._remember_slam(slam_pose, stamp)
             self._slam_window.append(self._slam_prev)
             return self._pose.copy()
         r.steps += 1
         scale = self._gate_scale(stamp)
         trusted = self._trusted(check_step, fitness, scale)
         slam_step = None
+        if slam_pose is not None and self._slam_prev is None and self._slam_last is not None:
+            # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
+            # bridged it (a gap is never one step, and what carried it was a stand-in)
+            r.gaps_rejoined += 1
+            self._pose = self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose
+            self._remember_slam(slam_pose, stamp)
+            self.took_slam_step, self.last_winner = True, "slam"
+            self._slam_window.append(self._slam_prev)
+            self._semmap_window.append(self._velocity())
+            return self._pose.copy()
         if slam_pose is None or self._slam_prev is None:
-            # no SLAM step (lost, or the first pose after it was lost: a new map's origin says nothing)
+            # no SLAM step (lost, or the first pose of a new map: its origin says nothing)
             r.slam_missing += 1
             self.agreement.add_slam_step(None)
-            step = check_step if trusted else self._last_step
+            step = check_step if trusted else self._velocity()
         else:
             slam_step = np.linalg.inv(self._slam_prev) @ slam_pose
             self.agreement.add_slam_step(slam_step)
@@ -368,14 +393,33 @@ class SlamRepair:
                 step = self._arbitrate(frame_id, slam_pose, slam_step, check_step, fitness, scale, judge, slam_weak)
         self.took_slam_step = slam_step is not None and step is slam_step
         self.last_winner = "slam" if self.took_slam_step else ("semmap" if trusted and step is check_step else "motion")
-        self._slam_prev = None if slam_pose is None else slam_pose.copy()
-        self._slam_window.append(self._slam_prev)
+        self._slam_window.append(None if slam_pose is None else slam_pose.copy())
         self._semmap_window.append(np.asarray(check_step if trusted else step, float).copy())
-        self._last_step = np.asarray(step, float).copy()
-        self._pose = self._pose @ self._last_step
+        self._recent.append(np.asarray(step, float).copy())
+        self._pose = self._pose @ step
+        self._remember_slam(slam_pose, stamp)
+        return self._pose.copy()
+
+    def _velocity(self) -> np.ndarray:
+        """The motion model: the mean of the last steps taken (identity before any)."""
+        if not self._recent:
+            return np.eye(4)
+        if len(self._recent) == 1:
+            return self._recent[0].copy()
+        steps = np.stack(self._recent)
+        mean = np.eye(4)
+        mean[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(steps[:, :3, :3]).as_rotvec().mean(axis=0)).as_matrix()
+        mean[:3, 3] = steps[:, :3, 3].mean(axis=0)
+        return mean
+
+    def _remember_slam(self, slam_pose: np.ndarray | None, stamp: float | None) -> None:
+        """After this frame's pose is decided: the SLAM's pose as the next step's start, and, where it had one,
+        as the anchor a return after a gap is measured from."""
+        self._slam_prev = None if slam_pose is None else slam_pose.copy()
+        if slam_pose is not None:
+            self._slam_last, self._out_at_slam_last = slam_pose.copy(), self._pose.copy()
         if stamp is not None:
             self._stamp = float(stamp)
-        return self._pose.copy()
 
     def _arbitrate(self, frame_id: int, slam_pose: np.ndarray, slam_step: np.ndarray, check_step: np.ndarray,
                    fitness: float, scale: float, judge: Judge | None, slam_weak: bool) -> np.ndarray:
@@ -438,7 +482,7 @@ class SlamRepair:
         if self.report.steps <= 1:
             return False
         p = self.params
-        dt, dr = step_difference(step, self._last_step)
+        dt, dr = step_difference(step, self._velocity())
         return dt <= p.translation_m * scale and dr <= p.rotation_deg * scale
 
     def _without_witness(self, frame_id: int, slam_pose: np.ndarray, slam_step: np.ndarray, stamp: float | None,
@@ -449,8 +493,8 @@ class SlamRepair:
         favours the motion model does it carry this frame, and not for longer than `max_coast_s` in a row (a
         camera that changed its speed for good, a car braking, would otherwise be held at its old speed)."""
         p, r = self.params, self.report
-        dt, dr = step_difference(slam_step, self._last_step)
-        length = max(float(np.linalg.norm(slam_step[:3, 3])), float(np.linalg.norm(self._last_step[:3, 3])))
+        dt, dr = step_difference(slam_step, self._velocity())
+        length = max(float(np.linalg.norm(slam_step[:3, 3])), float(np.linalg.norm(self._velocity()[:3, 3])))
         first = r.steps <= 1  # no motion known yet (the identity is no witness of a camera at rest)
         share = scale > 1.0 and dt <= p.jump_share * length  # (a slower stream: a car's metre-long steps)
         if first or (dt <= p.translation_m * scale or share) and dr <= p.rotation_deg * scale:
@@ -461,8 +505,8 @@ class SlamRepair:
             r.coast_limit += 1
             self._coast_since = None
             return slam_step
-        difference = step_difference(slam_step, self._last_step)
-        if not self._weigh(self._judge(slam_pose, self._last_step, judge)):  # (a fast turn: the SLAM's to make)
+        difference = step_difference(slam_step, self._velocity())
+        if not self._weigh(self._judge(slam_pose, self._velocity(), judge)):  # (a fast turn: the SLAM's to make)
             r.kept += 1
             r.note_judgement(frame_id, "slam", difference, self._verdict, 0.0)
             return slam_step
@@ -471,17 +515,19 @@ class SlamRepair:
         r.implausible += 1
         self._note(frame_id)
         r.note_judgement(frame_id, "motion", difference, self._verdict, 0.0)
-        return self._last_step
+        return self._velocity()
 
     def break_chain(self) -> None:
         """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
-        self._slam_prev = None
+        self._slam_prev = self._slam_last = self._out_at_slam_last = None
         self._slam_window.clear()
         self._semmap_window.clear()
 
     def state(self) -> dict:
         r = self.report
-        return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev), "last_step": _flat(self._last_step),
+        return {"pose": _flat(self._pose), "slam_prev": _flat(self._slam_prev),
+                "recent": [_flat(step) for step in self._recent],
+                "slam_last": _flat(self._slam_last), "out_at_slam_last": _flat(self._out_at_slam_last),
                 "counters": r.counters(),
                 "dynamic_seen": self._dynamic_seen, "stamp": self._stamp, "coast_since": self._coast_since,
                 "frames": list(r.overruled_frames), "agreement": self.agreement.state()}
@@ -489,8 +535,12 @@ class SlamRepair:
     def restore(self, state: dict) -> None:
         self._pose = _unflat(state.get("pose"), (4, 4))
         self._slam_prev = _unflat(state.get("slam_prev"), (4, 4))
-        last = _unflat(state.get("last_step"), (4, 4))
-        self._last_step = np.eye(4) if last is None else last
+        self._slam_last = _unflat(state.get("slam_last"), (4, 4))
+        self._out_at_slam_last = _unflat(state.get("out_at_slam_last"), (4, 4))
+        self._recent.clear()
+        self._recent.extend(_unflat(step, (4, 4)) for step in state.get("recent", []))
+        if not self._recent and state.get("last_step") is not None:  # (a state saved before the mean was kept)
+            self._recent.append(_unflat(state["last_step"], (4, 4)))
         r = self.report
         r.set_counters(state.get("counters"))
         self._dynamic_seen = state.get("dynamic_seen")

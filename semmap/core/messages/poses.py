@@ -28,7 +28,10 @@ class OdometryPose(Message, tag="semmap.odometry/1"):
     """A camera pose from the SLAM front end (ours or an external one) for one frame.
 
     sigma_translation / sigma_rotation: the front end's 1-sigma uncertainty of the motion since the previous
-    frame (metres, radians); the backend scales them by sqrt(frames) between two of its nodes.
+    frame (metres, radians); the backend scales them by sqrt(frames) between two of its nodes. `bridged`: the
+    front end measured nothing of this frame (its SLAM had lost track) and the pose is a stand-in (the motion
+    model's); the backend places such frames between their measured neighbours once the next measured frame comes.
+    `step`: whose step this pose took, where semmap checked a SLAM (slam | semmap | motion | copied).
     """
 
     robot: RobotName
@@ -40,6 +43,8 @@ class OdometryPose(Message, tag="semmap.odometry/1"):
     sigma_rotation: Positive = 0.005
     source: str = "external"
     sent_at: Finite = 0.0
+    bridged: bool = False
+    step: str = ""
 
     def __post_init__(self) -> None:
         self.pose = validate_pose(self.pose) if decoding() else as_matrix(self.pose, 4, "pose")

@@ -133,7 +133,9 @@ class OdometryService(StageService):
         sigma_t, sigma_r = self.frontend.sigmas
         keyframe = slam.keyframe if slam is not None else frame.frame_id % self.keyframe_every == 0
         message = OdometryPose(self.robot, frame.frame_id, frame.stamp, pose, keyframe=keyframe,
-                               sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode)
+                               sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode,
+                               bridged=bool(getattr(self.frontend, "bridged", False)),
+                               step=str(getattr(self.frontend, "step_source", "")))
         self.trajectory.append((frame.stamp, pose))
         self.metrics.count("poses_published")
         self.complete_frame(frame.frame_id, [(self.pose_pub, message)],
@@ -166,11 +168,13 @@ class OdometryService(StageService):
             write_tum(self.out_dir / SLAM_TRAJECTORY, [(t, self.to_session @ pose) for t, pose in slam])
         spans = getattr(self.frontend, "overruled", None)
         if self.out_dir is not None and spans is not None:
-            # where semmap overruled the SLAM (the summary reads it): counters and frame spans
+            # where semmap overruled the SLAM and why (the summary reads it): counters, frame spans and, per
+            # disagreement, the evidence and who won
+            judged = getattr(self.frontend, "judged", list)
             counters = dict(getattr(self.frontend, "counters", {}))
             write_json_atomic(self.out_dir / REPAIR_REPORT, {
-                "schema": "semmap.repair/1", "mode": self.mode, "counters": counters,
-                "overruled_spans": [list(span) for span in spans()]})
+                "schema": "semmap.repair/2", "mode": self.mode, "counters": counters,
+                "overruled_spans": [list(span) for span in spans()], "judged": judged()})
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
