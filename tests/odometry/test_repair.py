@@ -5,7 +5,23 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from semmap.algorithms.odometry.arbiter import Verdict
 from semmap.algorithms.odometry.repair import RepairParams, SlamRepair, step_difference
+
+
+def favours_semmap(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+    """The static scene's verdict where semmap's registration is right (a person drags the SLAM)."""
+    return Verdict(10.0, 200, 3.0, 0.8)
+
+
+def favours_slam(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+    """... and where the SLAM is (motion blur fooled the registration)."""
+    return Verdict(-10.0, 200, 0.8, 3.0)
+
+
+def weak(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+    """Too few static matches to say anything."""
+    return Verdict(0.0, 5, float("nan"), float("nan"))
 
 
 def _pose(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
@@ -31,10 +47,11 @@ def _noisy(step: np.ndarray, rng: np.random.Generator, sigma_m: float = 0.0005) 
 
 
 def _run(repair: SlamRepair, slam: list[np.ndarray | None], checks: list[np.ndarray | None],
-         fitness: list[float] | None = None) -> list[np.ndarray]:
+         fitness: list[float] | None = None, judge=favours_semmap) -> list[np.ndarray]:  # noqa: ANN001
     out = [repair.update(0, slam[0], None)]
     for i in range(1, len(slam)):
-        out.append(repair.update(i, slam[i], checks[i - 1], 1.0 if fitness is None else fitness[i - 1]))
+        out.append(repair.update(i, slam[i], checks[i - 1], 1.0 if fitness is None else fitness[i - 1],
+                                 judge=judge))
     return out
 
 
@@ -54,8 +71,9 @@ def test_agreeing_steps_are_the_slams_own():
 
 
 def test_wrong_steps_are_overruled_where_they_happened():
-    """A SLAM dragged by a person for a few frames (3 cm a frame sideways): those steps are replaced, the
-    trajectory ends within millimetres of the truth, and the report names the frames."""
+    """A SLAM dragged by a person for a few frames (3 cm a frame sideways), where the static scene favours semmap's
+    registration: those steps are replaced, the trajectory ends within millimetres of the truth, and the report
+    names the frames and the evidence of each."""
     truth = _truth()
     dragged = set(range(40, 46))
     slam, offset = [], np.eye(4)
@@ -71,6 +89,64 @@ def test_wrong_steps_are_overruled_where_they_happened():
     assert _error(out, truth) < 0.01
     assert set(repair.report.overruled_frames) == dragged
     assert repair.report.spans() == [(40, 45)]
+    judged = repair.report.judged
+    assert [j["frame"] for j in judged] == sorted(dragged) and {j["winner"] for j in judged} == {"semmap"}
+    assert judged[0]["t"] == 10.0 and judged[0]["matches"] == 200 and judged[0]["differ_mm"] > 20
+
+
+def test_where_the_evidence_is_weak_or_contrary_the_slam_keeps_its_step():
+    """The same disagreement while an object whose motion is not known yet is in view (a person who just came
+    into view), but the static scene does not favour semmap's registration (too few matches, or the SLAM's motion
+    explains them better: a fast turn that blurred the frames): the SLAM keeps every step. Without any judge at
+    all (no images), the same."""
+    truth = _truth()
+    rng = np.random.default_rng(1)
+    wrong_checks = [_pose(0.03) @ _noisy(s, rng) for s in _steps(truth)]
+    for judge in (weak, favours_slam, None):
+        repair = SlamRepair()
+        out = [repair.update(0, truth[0], None)]
+        for i in range(1, len(truth)):
+            out.append(repair.update(i, truth[i], wrong_checks[i - 1], 1.0, moving_in_view=False, undecided=True,
+                                     judge=judge))
+        assert _error(out, truth) < 1e-9, judge
+        assert repair.report.overruled == 0 and repair.report.kept == len(truth) - 1
+
+
+def test_a_walker_in_view_is_evidence_too_but_a_contrary_scene_still_keeps_the_slams_step():
+    """An object seen moving is itself evidence that a SLAM tracking it may be dragged: with a walker in view,
+    semmap's registration wins a disagreement unless the static scene favours the SLAM's motion (a fast turn
+    whose blur fooled the registration: the SLAM keeps its step)."""
+    truth = _truth()
+    rng = np.random.default_rng(1)
+    wrong_checks = [_pose(0.03) @ _noisy(s, rng) for s in _steps(truth)]
+    repair = SlamRepair()
+    _run(repair, truth, wrong_checks, judge=weak)
+    assert repair.report.overruled == len(truth) - 1 - 2  # (the first two steps have no window yet)
+    repair = SlamRepair()
+    out = _run(repair, truth, wrong_checks, judge=favours_slam)
+    assert repair.report.overruled == 0 and _error(out, truth) < 1e-9
+
+
+def test_the_evidence_of_a_few_consecutive_judgements_adds_up():
+    """Each judgement alone favours semmap by 2 standard errors (below `min_t` 3): the fading sum of consecutive
+    ones passes it from the second on, so a SLAM dragged for a while is repaired although no single frame pair
+    shows it; a contrary judgement pulls the sum back."""
+    truth = _truth(30)
+    slam = [p @ _pose(0.01 * i) for i, p in enumerate(truth)]  # dragged 1 cm a frame
+    checks = _steps(truth)
+    verdicts = [2.0] * 20 + [-10.0] * 9
+
+    def judge(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+        return Verdict(verdicts[min(repair.report.steps - 1, len(verdicts) - 1)], 200, 1.0, 1.0)
+
+    repair = SlamRepair()
+    repair.update(0, slam[0], None)
+    for i in range(1, len(slam)):  # (a person who came into view: no walker's evidence to add to the scene's)
+        repair.update(i, slam[i], checks[i - 1], 1.0, moving_in_view=False, undecided=True, judge=judge)
+    judged = [j for j in repair.report.judged if "t" in j]  # (the first frames: no window to judge over yet)
+    winners = [j["winner"] for j in judged]
+    assert winners[0] == "slam" and set(winners[1:17]) == {"semmap"}
+    assert winners[-1] == "slam"
 
 
 def test_lost_slam_is_carried_by_the_registration_then_by_constant_velocity():
@@ -78,23 +154,41 @@ def test_lost_slam_is_carried_by_the_registration_then_by_constant_velocity():
     slam: list[np.ndarray | None] = list(truth)
     for i in range(20, 30):
         slam[i] = None  # lost: ten frames without a pose
-    # when it comes back, its map has a new origin: its first pose after the loss says nothing about the step
+    # when it comes back in a new map (ORB-SLAM3 LOST), its first pose after the loss says nothing about the step
     shift = _pose(5.0, 2.0, 30.0)
     slam = [p if p is None or i < 30 else shift @ p for i, p in enumerate(slam)]
     checks: list[np.ndarray | None] = _steps(truth)
+    for registered in (True, False):
+        repair = SlamRepair()
+        out = [repair.update(0, slam[0], None)]
+        for i in range(1, len(slam)):
+            if i == 20:
+                repair.break_chain()  # (the front end says so: a new map)
+            out.append(repair.update(i, slam[i], checks[i - 1] if registered else None, 1.0))
+            assert repair.bridged == (slam[i] is None)
+        assert repair.report.slam_missing == 11  # ten lost frames and the first one back
+        # with registrations, their steps; without any, the mean of the last steps (the motion model)
+        assert _error(out, truth) < (1e-6 if registered else 0.002)
+
+
+def test_a_slam_back_in_the_same_map_continues_from_its_own_motion_over_the_gap():
+    """ORB-SLAM3 RECENTLY_LOST, or a trajectory file without poses for a few frames: the frames in between were
+    carried by a stand-in (here a registration 5 mm off per frame), but when the SLAM is back in the same map its
+    motion over the whole gap places the next pose, so the stand-in's error does not stay in the trajectory."""
+    truth = _truth(60)
+    slam: list[np.ndarray | None] = [None if 20 <= i < 30 else p for i, p in enumerate(truth)]
+    checks = [_pose(0.005) @ s for s in _steps(truth)]
     repair = SlamRepair()
-    out = _run(repair, slam, checks)
-    assert _error(out, truth) < 1e-6
-    assert repair.report.slam_missing == 11  # ten lost frames and the first one back
-    # without any registration either, the last step is repeated (the camera's own motion model)
-    repair = SlamRepair()
-    out = _run(repair, slam, [None] * (len(truth) - 1))
-    assert _error(out, truth) < 0.002
+    out = _run(repair, slam, checks, judge=favours_slam)
+    assert repair.report.gaps_rejoined == 1 and repair.report.slam_missing == 10
+    assert _error(out[30:], truth[30:]) < 1e-9  # back on the SLAM exactly
+    assert _error(out[20:30], truth[20:30]) > 0.02  # (the stand-in drifted meanwhile)
 
 
 def test_without_a_trustworthy_witness_a_jump_breaks_the_recent_motion():
     """Low-fitness registrations witness nothing; a SLAM step that jumps away from the camera's recent motion is
-    still refused (counted as implausible), one that continues it stands (counted as unchecked)."""
+    refused where the static scene favours the motion model (counted as implausible), one that continues it stands
+    (counted as unchecked). Where the scene favours the SLAM's jump (a fast turn), it stands too."""
     truth = _truth(40)
     slam = list(truth)
     slam[20:] = [_pose(0.2) @ p for p in truth[20:]]  # a 20 cm jump at frame 20
@@ -104,6 +198,10 @@ def test_without_a_trustworthy_witness_a_jump_breaks_the_recent_motion():
     out = _run(repair, slam, checks, fitness)
     assert repair.report.implausible == 1 and repair.report.unchecked == len(truth) - 2
     assert _error(out, truth) < 0.01
+    repair = SlamRepair(RepairParams(min_fitness=0.15))
+    out = _run(repair, slam, checks, fitness, judge=favours_slam)
+    assert repair.report.implausible == 0 and repair.report.kept >= 1
+    assert _error(out, slam) < 1e-9
 
 
 def test_untrusted_registrations_never_overrule():
@@ -126,14 +224,14 @@ def test_state_restores_the_same_continuation():
     _run(first, slam[:50], checks[:49])
     second = SlamRepair()
     second.restore(first.state())
-    rest = [second.update(i, slam[i], checks[i - 1]) for i in range(50, 80)]
+    rest = [second.update(i, slam[i], checks[i - 1], judge=favours_semmap) for i in range(50, 80)]
     assert _error(rest, expected[50:]) < 1e-12
     assert second.report.counters() == whole.report.counters()
     assert first.state()["counters"] == first.report.counters()  # saved by name, not by position
 
 
 def test_a_state_saved_with_positional_counters_still_restores():
-    """States journalled before the counters were named held a list (6 long before `coast_limit`, then 8)."""
+    """Older journalled states held the counters as a list (6 long before `coast_limit`, then 8)."""
     repair = SlamRepair()
     state = repair.state()
     state["counters"] = [12, 3, 1, 2, 0, 4]
@@ -150,19 +248,20 @@ def test_step_difference():
 
 
 def test_static_scenes_keep_the_slams_steps():
-    """With scope `dynamic` (the default) a step is checked only while dynamic objects are in view and for
-    `hold_s` after: on a static scene a SLAM is better than frame-to-frame registration, so a noisy or even wrong
-    registration changes nothing there; once a person appears, the check is back."""
+    """With scope `moving` (the default) a step is checked only while an object is seen moving and for `hold_s`
+    after: on a static scene a SLAM is better than frame-to-frame registration, so a noisy or even wrong
+    registration changes nothing there; once a walker appears, the check is back."""
     truth = _truth(200)
     # registration 1 cm off on every step (beyond the 5 mm gate; within what a camera's motion may change, so it
     # is trusted: a registration breaking the recent motion by more witnesses nothing, see the car test)
     wrong_checks = [_pose(0.01) @ s for s in _steps(truth)]
     stamps = [i / 30 for i in range(len(truth))]
     repair = SlamRepair()
-    out = [repair.update(0, truth[0], None, stamp=0.0, dynamic_in_view=False)]
+    out = [repair.update(0, truth[0], None, stamp=0.0, moving_in_view=False)]
     for i in range(1, 200):
-        person = 50 <= i < 55
-        out.append(repair.update(i, truth[i], wrong_checks[i - 1], 1.0, dynamic_in_view=person, stamp=stamps[i]))
+        walker = 50 <= i < 55
+        out.append(repair.update(i, truth[i], wrong_checks[i - 1], 1.0, moving_in_view=walker, stamp=stamps[i],
+                                 judge=favours_semmap))
     r = repair.report
     # frames 50-54 hold a person, then 2 s (60 frames) of hold: 65 checked steps (the SLAM's steps continue the
     # recent motion and the wrong check's do not: the SLAM outvotes it, see the next test)
@@ -170,7 +269,8 @@ def test_static_scenes_keep_the_slams_steps():
     assert _error(out[:50], truth[:50]) < 1e-9
     always = SlamRepair(RepairParams(scope="always"))
     _run(always, truth, wrong_checks)
-    assert always.report.overruled + always.report.outvoted == 199
+    # (the first two steps have no window of earlier frames to judge over: the SLAM keeps them)
+    assert always.report.overruled == 197 and always.report.kept == 2
 
 
 def test_a_registration_that_breaks_the_recent_motion_is_outvoted():
@@ -186,7 +286,8 @@ def test_a_registration_that_breaks_the_recent_motion_is_outvoted():
     repair = SlamRepair()
     out = [repair.update(0, slam[0], None, stamp=0.0)]
     for i in range(1, 60):
-        out.append(repair.update(i, slam[i], checks[i - 1], 1.0, dynamic_in_view=True, stamp=stamps[i]))
+        out.append(repair.update(i, slam[i], checks[i - 1], 1.0, moving_in_view=True, stamp=stamps[i],
+                                 judge=favours_semmap))
     assert repair.report.outvoted == 1 and repair.report.overruled == 1
     assert _error(out, truth) < 1e-6
 
@@ -199,7 +300,8 @@ def test_copy_is_the_slam_itself():
     repair = SlamRepair()
     out = [repair.copy(i, p) for i, p in enumerate(slam)]
     assert _error(out[:10], truth[:10]) < 1e-12
-    assert _error(out, truth) < 0.003 and repair.report.slam_missing == 2 and repair.report.overruled == 0
+    assert repair.report.slam_missing == 1 and repair.report.gaps_rejoined == 1 and repair.report.overruled == 0
+    assert _error(out, truth) < 0.003 and _error(out[11:], truth[11:]) < 1e-9  # (back on the SLAM after the gap)
 
 
 def _car(n: int, speeds: list[float]) -> tuple[list[np.ndarray], list[float]]:
@@ -225,7 +327,8 @@ def test_a_car_at_10_hz_keeps_its_slams_steps():
     repair = SlamRepair()
     out = [repair.update(0, slam[0], None, stamp=0.0)]
     for i in range(1, 100):
-        out.append(repair.update(i, slam[i], checks[i - 1], 1.0, dynamic_in_view=True, stamp=stamps[i]))
+        out.append(repair.update(i, slam[i], checks[i - 1], 1.0, moving_in_view=True, stamp=stamps[i],
+                                 judge=favours_semmap))
     assert _error(out, slam) < 1e-9
     assert repair.report.overruled == 0 and repair.report.implausible == 0
 
@@ -238,7 +341,8 @@ def test_the_motion_model_carries_no_longer_than_max_coast_s():
     repair = SlamRepair(RepairParams(max_coast_s=0.5))
     out = [repair.update(0, truth[0], None, stamp=0.0)]
     for i in range(1, len(truth)):
-        out.append(repair.update(i, truth[i], None, 0.0, dynamic_in_view=True, stamp=stamps[i]))
+        out.append(repair.update(i, truth[i], None, 0.0, moving_in_view=True, stamp=stamps[i],
+                                 judge=favours_semmap))
     r = repair.report
     assert 10 <= r.implausible <= 16 and r.coast_limit == 1  # refused for half a second, then followed
     steps = _steps(out)
@@ -263,9 +367,9 @@ def _measured_run(truth: list[np.ndarray], stamps: list[float], noise_m: float, 
     checks = [_noisy(s, rng, check_noise_m) if check_noise_m else s for s in steps]
     repair = SlamRepair(measured_sigmas_after=50)
     declared = [repair.declared_sigmas(fixed)]
-    repair.update(0, slam[0], None, stamp=0.0, dynamic_in_view=False)
+    repair.update(0, slam[0], None, stamp=0.0, moving_in_view=False)
     for i in range(1, len(truth)):
-        repair.update(i, slam[i], checks[i - 1], 1.0, dynamic_in_view=False, stamp=stamps[i])
+        repair.update(i, slam[i], checks[i - 1], 1.0, moving_in_view=False, stamp=stamps[i])
         declared.append(repair.declared_sigmas(fixed))
     return repair, declared, slam
 
@@ -312,7 +416,8 @@ def test_declared_sigmas_take_the_registrations_disagreement_where_it_witnessed(
     # the steps), the next one of the SLAM's own the measured ones again
     fixed = (0.01, np.radians(0.5))
     step = _steps(truth)[-1]
-    repair.update(300, truth[-1] @ step @ _pose(0.05), step, 1.0, dynamic_in_view=True, stamp=10.0)
+    repair.update(300, truth[-1] @ step @ _pose(0.05), step, 1.0, moving_in_view=True, stamp=10.0, judge=favours_semmap)
     assert repair.report.overruled == 1 and repair.declared_sigmas(fixed) == fixed
-    repair.update(301, truth[-1] @ step @ _pose(0.05) @ step, step, 1.0, dynamic_in_view=True, stamp=10.0 + 1 / 30)
+    repair.update(301, truth[-1] @ step @ _pose(0.05) @ step, step, 1.0, moving_in_view=True, stamp=10.0 + 1 / 30,
+                  judge=favours_semmap)
     assert repair.report.overruled == 1 and repair.declared_sigmas(fixed) != fixed

@@ -40,10 +40,12 @@ class ArbiterParams:
     """How the evidence is gathered and weighed (the `odometry.arbiter_*` settings)."""
 
     window_frames: int = 3  # the reference frame is this many frames back
+    long_window_frames: int = 0  # ... and a second judgement from this far back (a slow drag shows over half a second)
     min_t: float = 3.0  # semmap's motion must be better by this many standard errors of the paired difference
     min_matches: int = 40  # fewer static matches: weak evidence
     features: int = 1000
     max_reprojection_px: float = 6.0  # a match this far off under both motions is a wrong match, not evidence
+    walker_prior: float = 6.0
     evidence_memory: float = 0.9  # each judgement adds its t to the sum of the earlier ones, faded by this
     evidence_clip: float = 10.0  # ... at most this much: no single frame pair decides alone
 
@@ -56,6 +58,7 @@ class Verdict:
     matches: int
     slam_px: float  # median reprojection error of the matches under the SLAM's motion
     semmap_px: float  # ... and under semmap's
+    t_long: float = 0.0  # the long window's t, where it was judged too
 
     def favours_semmap(self, params: ArbiterParams) -> bool:
         return self.matches >= params.min_matches and self.t >= params.min_t
@@ -76,8 +79,9 @@ def depth_sigma(z: np.ndarray) -> np.ndarray:
 
 
 class StepArbiter:
-    """Remembers the last `window_frames` + 1 frames (`push`) and judges two motions from the oldest of them to
-    the newest (`judge`). Features are computed only when a judgement needs them (most frames need none)."""
+    """Remembers the last frames (`push`: as many as the longer window needs) and judges two motions from a frame
+    `steps` back to the newest (`judge`). Features are computed only when a judgement needs them (most frames need
+    none), once per frame."""
 
     def __init__(self, params: ArbiterParams | None = None) -> None:
         self.params = params or ArbiterParams()
@@ -92,7 +96,7 @@ class StepArbiter:
         gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
         self._frames[int(frame_id)] = _Frame(gray, depth, float(depth_scale), np.asarray(intrinsics, float),
                                              list(boxes))
-        while len(self._frames) > self.params.window_frames + 1:
+        while len(self._frames) > max(self.params.window_frames, self.params.long_window_frames) + 1:
             old, _ = self._frames.popitem(last=False)
             self._features.pop(old, None)
 
@@ -104,19 +108,16 @@ class StepArbiter:
         self._frames.clear()
         self._features.clear()
 
-    def reference(self) -> int | None:
-        """The frame the next judgement measures from (the oldest remembered), or None with fewer than two."""
-        return next(iter(self._frames)) if len(self._frames) >= 2 else None
-
-    def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray) -> Verdict:
-        """Both motions from `reference()` to the newest frame (T_ref^-1 T_cur, camera-to-world convention)."""
+    def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+        """Both motions from the frame `steps` back to the newest (T_ref^-1 T_cur, camera-to-world convention)."""
         self.judged += 1
         ids = list(self._frames)
-        if len(ids) < 2:
+        if len(ids) < steps + 1:
             return Verdict(0.0, 0, math.nan, math.nan)
-        ref, cur = self._frames[ids[0]], self._frames[ids[-1]]
+        ref, cur = self._frames[ids[-steps - 1]], self._frames[ids[-1]]
+        ref_id = ids[-steps - 1]
         boxes = ref.boxes + cur.boxes  # static in both frames
-        pa, da = _outside(*self._static_features(ids[0], ref), boxes)
+        pa, da = _outside(*self._static_features(ref_id, ref), boxes)
         pb, db = _outside(*self._static_features(ids[-1], cur), boxes)
         if da is None or db is None or len(pa) < 2 or len(pb) < 2:
             return Verdict(0.0, 0, math.nan, math.nan)

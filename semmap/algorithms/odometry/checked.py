@@ -42,7 +42,8 @@ class CheckedSlam:
     def checks(self) -> bool:
         return self.registration is not None
 
-    def pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False) -> np.ndarray:
+    def pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False,
+             same_map: bool | None = None) -> np.ndarray:
         if self.registration is None or self.arbiter is None:
             return self.repair.copy(frame.frame_id, slam_pose)
         boxes = list(frame.dynamic or [])
@@ -59,7 +60,7 @@ class CheckedSlam:
             self.registration.remember(frame)
         self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
-                                  judge=self._judge, slam_weak=slam_weak, undecided=undecided)
+                                  judge=self._judge, slam_weak=slam_weak, undecided=undecided, same_map=same_map)
         k = np.asarray(frame.intrinsics, float)
         self.moving.observe(float(frame.stamp), boxes, pose, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
                             frame.depth.shape[1], frame.depth.shape[0])
@@ -67,9 +68,9 @@ class CheckedSlam:
 
     def _judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
         assert self.arbiter is not None
-        if self.arbiter.frames_held != steps + 1:  # (a window that a restart or a lost SLAM cut short)
+        if self.arbiter.frames_held < steps + 1:  # (a window that a restart cut short)
             return Verdict(0.0, 0, math.nan, math.nan)
-        return self.arbiter.judge(slam_motion, semmap_motion)
+        return self.arbiter.judge(slam_motion, semmap_motion, steps)
 
     def counters(self) -> dict[str, int]:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,

@@ -220,10 +220,11 @@ class CheckedSlamFrontEnd(FrontEnd):
         self.counters: dict[str, int] = {}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the SLAM's own poses, before the repair
 
-    def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False) -> np.ndarray:
+    def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False,
+                     same_map: bool | None = None) -> np.ndarray:
         if slam_pose is not None:
             self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
-        pose = self.check.pose(frame, slam_pose, slam_weak)
+        pose = self.check.pose(frame, slam_pose, slam_weak, same_map)
         self.sigmas = self.check.repair.declared_sigmas(self.fixed_sigmas)
         self.counters.update({**self.check.counters(), **_declared_counters(self.sigmas)})
         return pose

@@ -169,7 +169,7 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
         else:  # LOST: its next map starts anew, in a frame of its own
             self.counters["orb_lost"] += 1
             self.check.break_chain()
-        pose = self.checked_pose(frame, slam_pose, weak)
+        pose = self.checked_pose(frame, slam_pose, weak, same_map=True)  # (LOST broke the chain above)
         self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
         return pose
 

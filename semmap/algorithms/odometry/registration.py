@@ -46,8 +46,8 @@ class PairRegistration:
     def remember(self, frame: OdometryInput) -> None:
         """Keep the frame as the next registration's previous one without registering it (a step nobody asks
         about costs nothing; the next one can still be measured)."""
-        if frame.rgb is None or frame.depth is None:
-            raise OdometryError("RGB-D registration needs RGB and depth")
+        if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
+            raise OdometryError("RGB-D registration needs RGB, depth and intrinsics")
         self._prev = (frame.rgb, frame.depth, list(frame.dynamic or []))
 
     def register(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:

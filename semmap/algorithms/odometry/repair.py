@@ -26,6 +26,7 @@ Everything here is pure: steps in, poses and counters out (the front ends in fro
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
@@ -61,6 +62,8 @@ class RepairParams:
     # Bonn crowd a SLAM dragged by people stays wrong for seconds, and 1 s let it back in (1.16 m stayed 1.27 m)
     max_coast_s: float = float("inf")
     motion_steps: int = 5  # the motion model is the mean of the last steps taken (a sixth of a second at 30 Hz)
+    rejoin_m: float = 0.1  # a SLAM back after a gap continues from its own motion over it if that agrees this well
+    rejoin_deg: float = 10.0
     # without a witness a step breaks the recent motion only if it also differs by this share of the step's length:
     # a SLAM's jitter on a car's metre-long steps is centimetres, a person dragging a hand-held camera doubles them
     jump_share: float = 0.25
@@ -110,7 +113,7 @@ class RepairReport:
             record = {"frame": int(frame_id), "winner": winner, "differ_mm": round(difference[0] * 1e3, 2),
                       "differ_deg": round(difference[1], 3), "fitness": round(float(fitness), 3)}
             if verdict is not None:
-                record.update(t=round(verdict.t, 2), matches=verdict.matches,
+                record.update(t=round(verdict.t, 2), t_long=round(verdict.t_long, 2), matches=verdict.matches,
                               slam_px=_rounded(verdict.slam_px), semmap_px=_rounded(verdict.semmap_px))
             self.judged.append(record)
 
@@ -260,12 +263,13 @@ class SlamRepair:
         self.took_slam_step = False  # this frame's step is the SLAM's own (not semmap's, not the motion model's)
         self.last_winner = "slam"  # whose step this frame took: slam | semmap | motion (the motion model)
         self.bridged = False  # this frame had no SLAM pose: its pose is a stand-in
+        self._walker = False
         # the static scene's verdicts over the recent disagreements, summed with a fading memory (> 0: semmap's)
         self.evidence = 0.0
         self._verdict: Verdict | None = None  # the last verdict weighed
         # the window the arbiter judges: the SLAM's last poses and semmap's own last steps (its registration where
         # it was a witness, else the step taken), newest last
-        window = max(1, self.params.arbiter.window_frames)
+        window = max(1, self.params.arbiter.window_frames, self.params.arbiter.long_window_frames)
         self._slam_window: deque[np.ndarray | None] = deque(maxlen=window)  # poses of the frames before this one
         self._semmap_window: deque[np.ndarray] = deque(maxlen=window - 1)  # steps between them
 
@@ -338,14 +342,18 @@ class SlamRepair:
 
     def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
                fitness: float = 1.0, moving_in_view: bool = True, stamp: float | None = None,
-               judge: Judge | None = None, slam_weak: bool = False, undecided: bool = False) -> np.ndarray:
+               judge: Judge | None = None, slam_weak: bool = False, undecided: bool = False,
+               same_map: bool | None = None) -> np.ndarray:
         """`moving_in_view`: an object in this frame is seen moving (motion.py); with scope `moving` a step is
         checked only then and for `hold_s` seconds (by `stamp`) after. `judge` weighs the static scene's evidence
         where the two estimates disagree (without one the evidence is weak and the SLAM keeps its step);
         `slam_weak`: the SLAM said its own tracking of this frame was weak (few tracked points); `undecided`: an
-        object is in view whose motion is not known yet (checked too, see `in_scope`)."""
+        object is in view whose motion is not known yet (checked too, see `in_scope`); `same_map`: the SLAM says
+        whether a pose after a gap is in the map it left (None: it does not say, see `_rejoins`)."""
         r = self.report
         in_scope = self.in_scope(moving_in_view, stamp, undecided)
+        # a walker seen in view (or within `hold_s`) is itself evidence against the SLAM's step
+        self._walker = in_scope and self.params.scope != "always" and not undecided or moving_in_view
         if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
             slam_pose = None
         self.bridged = slam_pose is None
@@ -363,7 +371,7 @@ class SlamRepair:
         scale = self._gate_scale(stamp)
         trusted = self._trusted(check_step, fitness, scale)
         slam_step = None
-        if slam_pose is not None and self._slam_prev is None and self._slam_last is not None:
+        if slam_pose is not None and self._slam_prev is None and self._rejoins(slam_pose, same_map):
             # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
             # bridged it (a gap is never one step, and what carried it was a stand-in)
             r.gaps_rejoined += 1
@@ -399,6 +407,21 @@ class SlamRepair:
         self._pose = self._pose @ step
         self._remember_slam(slam_pose, stamp)
         return self._pose.copy()
+
+    def _rejoins(self, slam_pose: np.ndarray, same_map: bool | None) -> bool:
+        """Whether the SLAM, back after a gap, is back in the map it left: where it says so (`same_map`, ORB-SLAM3
+        after RECENTLY_LOST), else where its motion over the gap roughly agrees with what bridged it (within
+        `rejoin_m` or half the bridge's length, and `rejoin_deg`). A SLAM that started a new map (a trajectory file
+        whose later part has its own origin) does not, and its first pose says nothing of the step."""
+        if self._slam_last is None or self._out_at_slam_last is None or self._pose is None or same_map is False:
+            return False
+        if same_map:
+            return True
+        slam_motion = np.linalg.inv(self._slam_last) @ slam_pose
+        bridge = np.linalg.inv(self._out_at_slam_last) @ self._pose @ self._velocity()
+        dt, dr = step_difference(slam_motion, bridge)
+        p = self.params
+        return dt <= max(p.rejoin_m, 0.5 * float(np.linalg.norm(bridge[:3, 3]))) and dr <= p.rejoin_deg
 
     def _velocity(self) -> np.ndarray:
         """The motion model: the mean of the last steps taken (identity before any)."""
@@ -460,20 +483,41 @@ class SlamRepair:
         a = self.params.arbiter
         self._verdict = verdict
         if verdict is None or verdict.matches < a.min_matches:
-            return self.evidence >= a.min_t and verdict is not None
-        self.evidence = a.evidence_memory * self.evidence + max(-a.evidence_clip, min(a.evidence_clip, verdict.t))
-        return self.evidence >= a.min_t
+            return self.evidence >= self._threshold() and verdict is not None
+        def clipped(t: float) -> float:
+            return max(-a.evidence_clip, min(a.evidence_clip, t))
+
+        self.evidence = a.evidence_memory * self.evidence + clipped(verdict.t) + clipped(verdict.t_long)
+        return self.evidence >= self._threshold()
+
+    def _threshold(self) -> float:
+        a = self.params.arbiter
+        return a.min_t - a.walker_prior if self._walker else a.min_t
 
     def _judge(self, slam_pose: np.ndarray, check_step: np.ndarray, judge: Judge | None) -> Verdict | None:
         """The static scene's verdict on the two motions over the window: the SLAM's from its pose at the window's
-        start to this one, semmap's its own steps over the window then this registration. None without a judge or
-        without the SLAM's pose at the window's start (it was lost there: nothing to compare)."""
-        if judge is None or not self._slam_window or self._slam_window[0] is None:
+        start to this one, semmap's its own steps over the window then this registration; and the same over the
+        long window, where the history reaches back that far (its `t_long`). None without a judge or without the
+        SLAM's pose at the window's start (it was lost there: nothing to compare)."""
+        a = self.params.arbiter
+        verdicts = [self._judge_over(a.window_frames, slam_pose, check_step, judge)]
+        if a.long_window_frames > a.window_frames:
+            verdicts.append(self._judge_over(a.long_window_frames, slam_pose, check_step, judge))
+        short = verdicts[0]
+        long = verdicts[-1] if len(verdicts) > 1 else None
+        if short is None:
+            return long
+        if long is not None and long.matches >= a.min_matches:
+            return dataclasses.replace(short, t_long=long.t)
+        return short
+
+    def _judge_over(self, steps: int, slam_pose: np.ndarray, check_step: np.ndarray,
+                    judge: Judge | None) -> Verdict | None:
+        if judge is None or len(self._slam_window) < steps or self._slam_window[-steps] is None:
             return None
-        steps = len(self._semmap_window) + 1
-        slam_motion = np.linalg.inv(self._slam_window[0]) @ slam_pose
+        slam_motion = np.linalg.inv(self._slam_window[-steps]) @ slam_pose
         semmap_motion = np.eye(4)
-        for step in self._semmap_window:
+        for step in list(self._semmap_window)[len(self._semmap_window) - (steps - 1):]:
             semmap_motion = semmap_motion @ step
         return judge(slam_motion, semmap_motion @ check_step, steps)
 
@@ -504,6 +548,7 @@ class SlamRepair:
         if stamp is not None and self._coast_since is not None and stamp - self._coast_since >= p.max_coast_s:
             r.coast_limit += 1
             self._coast_since = None
+            self._recent.clear()  # (the camera changed its speed for good: its old motion is no model any more)
             return slam_step
         difference = step_difference(slam_step, self._velocity())
         if not self._weigh(self._judge(slam_pose, self._velocity(), judge)):  # (a fast turn: the SLAM's to make)

@@ -316,6 +316,9 @@ class OdometryConfig(Section):
         "frames are scored on the static scene's ORB matches between the window's ends (a dragged SLAM drifts frame "
         "after frame; one frame pair's noise hides it)",
     )
+    arbiter_long_window_frames: Count = Field(
+        0, description="repair: ... and again over this many frames (a SLAM dragged slowly shows over half a second)"
+    )
     arbiter_min_t: Positive = Field(
         3.0,
         description="repair: semmap's step replaces the SLAM's only when its motion explains the matches better by "
