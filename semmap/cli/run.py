@@ -292,9 +292,17 @@ def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[li
 
     section = config.odometry
     overrides: list[str] = []
-    vocabulary = section.orbslam3_vocabulary
-    if not vocabulary and installed():
+    vocabulary, vocabulary_how, no_vocabulary = section.orbslam3_vocabulary, "", ""
+    if not vocabulary and installed() and not synthetic and section.mode in (AUTO, "orbslam3"):
         found = default_vocabulary()
+        if found is None and data and Path(data).exists():
+            from semmap.runtime.model_store import VOCABULARY_NAME, get_model_dir
+            from semmap.runtime.orb_vocabulary import vocabulary_for
+
+            print("semmap: no ORB vocabulary here: building one from this recording's frames (once) ...",
+                  file=sys.stderr, flush=True)
+            found, vocabulary_how = vocabulary_for(data, get_model_dir() / VOCABULARY_NAME)
+            no_vocabulary = vocabulary_how if found is None else ""
         if found is not None:
             vocabulary = str(found)
             overrides.append(f"odometry.orbslam3_vocabulary={vocabulary}")
@@ -310,11 +318,14 @@ def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[li
         return overrides, (f"odometry: {mode} -- SIMULATED odometry made from the data's ground truth, not measured: "
                            "its drift and the correction of it are semmap's own invention (a real front end: "
                            "--odometry orbslam3, rgbd or file:TRAJ.tum)")
-    how = {"orbslam3": f"ORB-SLAM3 RGB-D, vocabulary {vocabulary}", "rgbd": "Open3D RGB-D odometry"}.get(
-        kind.name, kind.description)
-    repair = ", each SLAM step checked by semmap's own registration (odometry.repair)" if (
+    how = {"orbslam3": f"ORB-SLAM3 RGB-D, {vocabulary_how or f'vocabulary {vocabulary}'}",
+           "rgbd": "Open3D RGB-D odometry"}.get(kind.name, kind.description)
+    repair = (", its steps checked by semmap where objects are seen moving, each disagreement judged on the static "
+              "scene (odometry.repair)") if (
         kind.name in ("orbslam3", "file") and section.repair) else ""
-    why = " (auto: no pyorbslam3 wheel or vocabulary here)" if section.mode == AUTO and mode == "rgbd" else ""
+    why = ""
+    if section.mode == AUTO and mode == "rgbd":
+        why = f" (auto: {no_vocabulary if installed() and no_vocabulary else 'no pyorbslam3 wheel here'})"
     return overrides, f"odometry: {mode} ({how}{repair}){why}"
 
 

@@ -52,7 +52,8 @@ def register(
 def available() -> dict[str, str]:
     """{mode as written: description} of every registered front end."""
     modes = {f"{k.name}:PATH" if k.takes_argument else k.name: k.description for k in _REGISTRY.values()}
-    return {AUTO: "orbslam3 where the pyorbslam3 wheel and a vocabulary are at hand, else rgbd", **modes}
+    return {AUTO: "orbslam3 where the pyorbslam3 wheel is installed (with a vocabulary set, in the model dir, or built "
+                  "from the recording's frames), else rgbd", **modes}
 
 
 def check_mode(mode: str) -> tuple[FrontEndKind, str]:
@@ -167,8 +168,8 @@ register(
     needs_groundtruth=True, simulated=True,
 )
 register("rgbd", _rgbd, "Open3D RGB-D odometry between consecutive frames (dynamic objects left out)")
-register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time, each step checked "
-         "against semmap's own registration (odometry.repair)", takes_argument=True)
-register("external", _external, "a live SLAM's poses from the `slam` key (client, ROS 2), each step checked "
-         "against semmap's own registration (semmap run external --check-slam)")
+register("file", _file, "a TUM trajectory written by any SLAM, matched to frames by time, its steps checked by "
+         "semmap where objects move (odometry.repair)", takes_argument=True)
+register("external", _external, "a live SLAM's poses from the `slam` key (client, ROS 2), its steps checked by "
+         "semmap where objects move (semmap run external --check-slam)")
 register("orbslam3", _orbslam3, "ORB-SLAM3 RGB-D (pyorbslam3 wheel) with semmap's dynamic masks and step check")

@@ -264,6 +264,7 @@ class VizService(Service):
         self.landmarks: dict[int, Landmark] = {}
         self.tiles = MapTiles()
         self.odometry: dict[int, np.ndarray] = {}  # frame id -> 4x4
+        self._last_step_source = ""  # whose step the last odometry pose took (logged when it changes)
         self.optimized: dict[int, np.ndarray] = {}  # frame id -> corrected pose (the backend sends deltas)
         self.optimized_drawn_at = 0.0
         self.odometry_path, self.optimized_path = PathParts(), PathParts()  # what is drawn of each, by part
@@ -330,6 +331,13 @@ class VizService(Service):
         self.odometry_path.set(pose.frame_id, pose.pose[:3, 3])
         if pose.frame_id % 5 == 0:
             self._draw_path("world/trajectory/odometry", self.odometry_path, (230, 120, 30), 0.005)
+        if pose.step and pose.step != self._last_step_source:  # whose step the pose took, where semmap checked a SLAM
+            why = {"slam": "the SLAM's own step", "semmap": "semmap's registration (the static scene favoured it)",
+                   "motion": "the motion model (no witness; the scene favoured it over the SLAM's jump)",
+                   "copied": "the SLAM's step, unchecked"}.get(pose.step, pose.step)
+            rr.log("world/camera/repair", rr.TextLog(f"frame {pose.frame_id}: {why}"
+                                                     + (" (bridged: the SLAM had no pose)" if pose.bridged else "")))
+            self._last_step_source = pose.step
 
     def on_corrected(self, poses: CorrectedPoses) -> None:
         changed = poses.apply_to(self.optimized)
