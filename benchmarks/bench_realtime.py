@@ -1,7 +1,13 @@
 """Real time on the CPU at hand: the measured detector choice and what `semmap run --realtime` achieves.
 
-    .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry gt,rgbd] [--json-out F]
+    .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry orbslam3]
+        [--data 7scenes,bonn,rpy] [--write docs/RESULTS.md] [--json-out F]
         [--realtime-args '--detectors 2 --set detector.precision=fp32 ...']
+
+The front end is the one a user gets, ORB-SLAM3 (`--odometry orbslam3`); `gt` (simulated from ground truth) only as a
+labelled reference (`--odometry orbslam3,gt`). Per run it also prints the share of the frames the front end posed
+(`posed`), the ATE of the SLAM alone (its own poses) and of the final trajectory, and whether a person became a
+landmark; `--write` puts the table between the `results:realtime` markers of a page.
 
 1. `--choice`: measures every detector configuration on this machine (as `semmap models doctor --remeasure`) and
    prints the table: latency alone, CPU per frame, expected time per detection in a real-time run, F1 against
@@ -31,7 +37,6 @@ import json
 import os
 import resource
 import shlex
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -42,13 +47,16 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from results_page import write_between_markers  # noqa: E402
+
+from semmap.algorithms.evaluation import evaluate_run  # noqa: E402
 from semmap.algorithms.map_merge import MatchParams, diff_maps  # noqa: E402
 from semmap.core.messages import Landmark  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.runtime import detector_choice as dc  # noqa: E402
 from semmap.runtime.map_store import read_map_json  # noqa: E402
 
-VIDEO_S = 1000 / 30.0
+RECORDINGS = {"7scenes": "7scenes-redkitchen", "bonn": "bonn_crowd", "rpy": "tum_freiburg1_rpy"}
 
 
 def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] | None = None,
@@ -68,19 +76,26 @@ def run(data: Path, out: Path, odometry: str, realtime: bool, extra: list[str] |
     stats = json.loads((out / "stats.json").read_text())
     mapped = read_map_json(out / "map.json")
     frames = stats["frames"]
-    answered = sum(s["counters"].get("poses_published", 0) for s in stats["services"].values()
-                   if s.get("service") == "odometry")  # fmt: skip
+    video_s = frames["published"] / 30.0
+    odometry_services = [s for s in stats["services"].values() if s.get("service") == "odometry"]
+    answered = sum(s["counters"].get("poses_published", 0) for s in odometry_services)
+    # frames the front end posed itself (not bridged by semmap's stand-in where the SLAM had lost track)
+    missing = sum(s["counters"].get("repair_slam_missing", 0) for s in odometry_services)
     budget = stats.get("detector_budget") or {}
     # what the detectors got of the CPU, and what everything else took from them (start-up included)
     detector_cpu = sum(s.get("cpu_s", 0.0) for s in stats["services"].values() if s.get("service") == "detector")
     services_cpu = sum(s.get("cpu_s", 0.0) for s in stats["services"].values())
+    ate = evaluate_run(out) if (out / "groundtruth.tum").is_file() else {}
     return {
-        "odometry": odometry, "mode": "realtime" if realtime else "lockstep", "wall_s": round(wall, 1),
-        "x_video": round(wall / VIDEO_S, 2), "load_before": round(load, 2), "detected": frames["detected"],
-        "per_0.1s": round(frames["detected"] / VIDEO_S / 10, 2), "dropped": frames["dropped"],
-        "processed": frames["processed"], "published": frames["published"], "landmarks": len(mapped),
+        "data": data.name, "odometry": odometry, "mode": "realtime" if realtime else "lockstep",
+        "wall_s": round(wall, 1), "x_video": round(wall / video_s, 2), "load_before": round(load, 2),
+        "detected": frames["detected"], "per_0.1s": round(frames["detected"] / video_s / 10, 2),
+        "dropped": frames["dropped"], "processed": frames["processed"], "published": frames["published"],
+        "landmarks": len(mapped), "people": sum(lm.class_name == "person" for lm in mapped),
         "planned": budget.get("planned", {}).get("every_n_frames"),
         "detect_ms_p50": (budget.get("achieved") or {}).get("detect_ms_p50"), "poses": answered,
+        "posed": round((answered - missing) / max(1, frames["published"]), 3),
+        "ate_slam": ate.get("ate_slam_m"), "ate_final": ate.get("ate_optimized_m"),
         "cadence_ms": {k: round(v) for k, v in (stats.get("detection_interval_ms") or {}).items()},
         "detector": budget.get("detector"), "detector_cpu_s": round(detector_cpu, 1),
         "others_cpu_s": round(services_cpu - detector_cpu, 1), "run_cpu_s": round(cpu - services_cpu, 1),
@@ -132,12 +147,54 @@ def missed_and_gained(reference: list[Landmark], mapped: list[Landmark]) -> tupl
             [f"{lm.class_name} @{lm.first_seen:.1f}s ({lm.observations})" for lm in diff.added])  # fmt: skip
 
 
+def _range(values: list[float | None], fmt: str = "{:.3f}") -> str:
+    known = sorted(v for v in values if v is not None)
+    if not known:
+        return "-"
+    return fmt.format(known[0]) if known[0] == known[-1] else f"{fmt.format(known[0])}-{fmt.format(known[-1])}"
+
+
+def table(results: list[dict], cpu: str, runs: int) -> str:
+    """The page's table: one row per recording and front end, the range over the real-time runs."""
+    lines = [f"{cpu}; {runs} real-time runs each (their range), lockstep once for the landmark count.", "",
+             "| recording | odometry | wall / video | front end posed | SLAM alone | final | detections per 0.1 s | "
+             "landmarks (lockstep) | person landmarks |", "|---|---|---|---|---|---|---|---|---|"]
+    keys = sorted({(r["data"], r["odometry"]) for r in results}, key=lambda k: (k[0], k[1] == "gt", k[1]))
+    for data, odometry in keys:
+        rt = [r for r in results if (r["data"], r["odometry"]) == (data, odometry) and r["mode"] == "realtime"]
+        lock = [r for r in results if (r["data"], r["odometry"]) == (data, odometry) and r["mode"] == "lockstep"]
+        if not rt:
+            continue
+        label = f"`{odometry}`" + (" (SIMULATED from ground truth: a reference)" if odometry.startswith("gt") else "")
+        lines.append(
+            f"| {data} | {label} | {_range([r['x_video'] for r in rt], '{:.2f}')} | "
+            f"{_range([r['posed'] for r in rt], '{:.0%}')} | {_range([r['ate_slam'] for r in rt])} m | "
+            f"{_range([r['ate_final'] for r in rt])} m | {_range([r['per_0.1s'] for r in rt], '{:.2f}')} | "
+            f"{' / '.join(str(r['landmarks']) for r in rt)} ({lock[0]['landmarks'] if lock else '-'}) | "
+            f"{max(r['people'] for r in rt)} |")
+    return "\n".join(lines)
+
+
+def cpu_name() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return "unknown CPU"
+    name = next((line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name")), "?")
+    flags = next((line.split(":", 1)[1].split() for line in out.splitlines() if line.startswith("Flags")), [])
+    extras = [f for f in ("avx512f", "avx512_vnni", "amx_int8") if f in flags]
+    return f"{name}, {os.cpu_count()} cores ({', '.join(extras) or 'AVX2, no AVX-512'})"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--choice", action="store_true", help="measure the detector configurations first")
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--odometry", default="gt,rgbd")
+    ap.add_argument("--odometry", default="orbslam3",
+                    help="front ends, comma-separated; `gt` (simulated) only as a reference")
+    ap.add_argument("--data", default="7scenes", help="recordings: " + ", ".join(RECORDINGS))
     ap.add_argument("--no-lockstep", action="store_true", help="skip the lockstep reference runs")
+    ap.add_argument("--write", type=Path, default=None, help="a page with results:realtime markers to rewrite")
     ap.add_argument("--json-out", type=Path, default=None)
     ap.add_argument("--slower-cores", type=float, default=0.0, metavar="SHARE",
                     help="during each real-time run, take SHARE of every core (0.1: cores ~10 %% slower), a stand-in "
@@ -148,48 +205,40 @@ def main() -> int:
                          "(an AVX2-only EPYC's, replayed on a VNNI machine)")  # fmt: skip
     args = ap.parse_args()
     root = find_data_root()
-    data = root / "7scenes-redkitchen" if root is not None else None
-    if data is None or not data.is_dir():
-        print("skipped: 7-Scenes redkitchen not in ../shared/data", file=sys.stderr)
+    if root is None or not (root / "7scenes-redkitchen").is_dir():
+        print("skipped: no ../shared/data", file=sys.stderr)
         return 0
     if args.choice:
-        doc = dc.measure_and_save(data, progress=lambda line: print(line, file=sys.stderr))
+        doc = dc.measure_and_save(root / "7scenes-redkitchen", progress=lambda line: print(line, file=sys.stderr))
     else:
         doc = dc.load_choice()
     if doc is not None:
         print(dc.format_table(doc))
     results = []
     with tempfile.TemporaryDirectory(prefix="semmap-rt-") as tmp:
-        for odometry in args.odometry.split(","):
-            lock, lock_map = (None, []) if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}", odometry,
-                                                                     False)
-            if lock:
-                results.append(lock)
-                print(json.dumps(lock), flush=True)
-            for i in range(args.runs):
-                with SlowerCores(args.slower_cores):
-                    r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True,
-                                    shlex.split(args.realtime_args))  # fmt: skip
-                if args.slower_cores:
-                    r["slower_cores"] = args.slower_cores
+        for name in args.data.split(","):
+            data = root / RECORDINGS[name]
+            for odometry in args.odometry.split(","):
+                lock, lock_map = (None, []) if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}",
+                                                                         odometry, False)
                 if lock:
-                    r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
-                    r["missed"], r["gained"] = missed_and_gained(lock_map, mapped)
-                results.append(r)
-                print(json.dumps(r), flush=True)
-    print(f"\n{'odometry':<8} {'mode':<9} {'wall s':>7} {'x video':>8} {'det/0.1s':>9} {'dropped':>8} "
-          f"{'poses':>6} {'landmarks':>10} {'load':>6} {'CPU s: detectors':>17} {'others':>7} {'run':>5}")  # fmt: skip
-    for r in results:
-        print(f"{r['odometry']:<8} {r['mode']:<9} {r['wall_s']:7.1f} {r['x_video']:8.2f} {r['per_0.1s']:9.2f} "
-              f"{r['dropped']:8d} {r['poses']:6d} {r['landmarks']:10d} {r['load_before']:6.2f} "
-              f"{r['detector_cpu_s']:17.1f} {r['others_cpu_s']:7.1f} {r['run_cpu_s']:5.1f}"
-              + (f"  missed: {', '.join(r['missed']) or 'none'}" if "missed" in r else "")
-              + (f"  gained: {', '.join(r['gained']) or 'none'}" if "gained" in r else ""))  # fmt: skip
-    for odometry in args.odometry.split(","):
-        rt = [r for r in results if r["odometry"] == odometry and r["mode"] == "realtime"]
-        if rt:
-            med = {k: statistics.median(r[k] for r in rt) for k in ("wall_s", "per_0.1s", "landmarks")}
-            print(f"median real time, {odometry}: {med}")
+                    results.append(lock)
+                    print(json.dumps(lock), flush=True)
+                for i in range(args.runs):
+                    with SlowerCores(args.slower_cores):
+                        r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True,
+                                        shlex.split(args.realtime_args))  # fmt: skip
+                    if args.slower_cores:
+                        r["slower_cores"] = args.slower_cores
+                    if lock:
+                        r["landmarks_vs_lockstep"] = round(r["landmarks"] / max(1, lock["landmarks"]), 2)
+                        r["missed"], r["gained"] = missed_and_gained(lock_map, mapped)
+                    results.append(r)
+                    print(json.dumps(r), flush=True)
+    text = table(results, cpu_name(), args.runs)
+    print(text)
+    if args.write is not None:
+        write_between_markers(args.write, "realtime", text)
     if args.json_out:
         args.json_out.write_text(json.dumps(results, indent=1))
     return 0

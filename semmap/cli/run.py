@@ -195,6 +195,8 @@ def _run(args: argparse.Namespace) -> int:
     from semmap.runtime.orchestrator import RunPlan
 
     realtime = (args.mode or config.run.mode) == "realtime"
+    if config.odometry.registration_resolution == "auto":  # (decided once, for every process of the run)
+        overrides.append(f"odometry.registration_resolution={'half' if realtime else 'full'}")
     with_detector = "detector" in (only or PIPELINE)
     budget = (detector_budget(config, dataset, args.data, overrides, args.detectors)
               if realtime and with_detector else None)  # fmt: skip

@@ -275,6 +275,7 @@ class LoopResult:
     optimized: list[tuple[float, np.ndarray]] = field(default_factory=list)
     odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
     frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
+    slam_trajectory: list = field(default_factory=list)  # a checked SLAM's own poses, (stamp, 4x4)
     ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
     associator: AssociatorStage | None = None  # the map with its prior landmarks' statuses, its saved state
 
@@ -335,6 +336,16 @@ def prior_stages(config: Config, prior_map: Path | None) -> tuple[AssociatorStag
     return associator, backend
 
 
+def odometry_message(front, frame_id: int, stamp: float, pose: np.ndarray, keyframe: bool, odometry: str,  # noqa: ANN001
+                     estimated: bool) -> OdometryPose:
+    """A frame's pose as the odometry service publishes it (`estimated`: by the front end now, not cached)."""
+    return OdometryPose(ROBOT, frame_id, stamp, pose, keyframe=keyframe,
+                        sigma_translation=front.sigmas[0],  # (read per frame: a vehicle's drift declares per step)
+                        sigma_rotation=front.sigmas[1], source=odometry,
+                        bridged=estimated and bool(getattr(front, "bridged", False)),
+                        step=str(getattr(front, "step_source", "")) if estimated else "")
+
+
 def run_loop(
     rec: Recording,
     config: Config,
@@ -379,18 +390,7 @@ def run_loop(
             pose = front.estimate(data)
         if to_session is not None:
             pose = to_session @ pose
-        odo = OdometryPose(
-            ROBOT,
-            i,
-            stamp,
-            pose,
-            keyframe=i % keyframe_every == 0,
-            sigma_translation=front.sigmas[0],  # (read per frame: a vehicle's drift declares per step)
-            sigma_rotation=front.sigmas[1],
-            source=odometry,
-            bridged=odometry_poses is None and bool(getattr(front, "bridged", False)),
-            step="" if odometry_poses is not None else str(getattr(front, "step_source", "")),
-        )
+        odo = odometry_message(front, i, stamp, pose, i % keyframe_every == 0, odometry, odometry_poses is None)
         odo_traj.append((stamp, pose.copy()))
         associator.odometry(i, odo.pose)
         # associator (with the prior map's relocalisation and statuses, when there is one)
@@ -450,6 +450,7 @@ def run_loop(
         odometry=odo_traj,
         frontend_counters=dict(getattr(front, "counters", {})),
         ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None,
+        slam_trajectory=list(slam or []),
         mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
         loop_closures=dict(backend.closer.counters),
         graph_counters={**graph.counters, **associator.revisits.counters()},

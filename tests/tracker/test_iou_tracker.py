@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
@@ -251,13 +252,13 @@ def test_a_held_dynamic_box_still_covers_a_walker_the_detector_missed() -> None:
     last = DynamicBox(33, "person", (418.0, 0.0, 593.0, 474.0), 1.09, 1.28, "class")
     walked_px = 120.0  # where he was when detected again, 7 frames later: (301, 0, 508, 479)
     as_was = held_dynamic_box(last, 7 / 30, 0.0, K)
-    assert as_was == last  # speed 0: the box as it was (the old behaviour)
+    assert as_was == msgspec.structs.replace(last, held=True)  # speed 0: the box as it was, marked held
     grown = held_dynamic_box(last, 7 / 30, 1.5, K)
     assert grown.box[0] <= last.box[0] - walked_px and grown.box[2] == K.width and grown.box[1] == 0.0
     assert grown.box[0] == pytest.approx(418.0 - 525.0 * 1.5 * (7 / 30) / 1.09)
     assert (grown.depth_min_m, grown.depth_max_m) == pytest.approx((1.09 - 0.35, 1.28 + 0.35))
-    assert held_dynamic_box(last, 0.0, 1.5, K) == last  # the frame that detected it
-    assert held_dynamic_box(last, float("nan"), 1.5, K) == last  # a stamp that says nothing grows nothing
+    assert held_dynamic_box(last, 0.0, 1.5, K).box == last.box  # the frame that detected it
+    assert held_dynamic_box(last, float("nan"), 1.5, K).box == last.box  # a stamp that says nothing grows nothing
     no_depth = DynamicBox(7, "person", (300.0, 200.0, 340.0, 280.0), 0.0, 0.0, "class")
     wide = held_dynamic_box(no_depth, 1 / 30, 1.5, K)
     assert wide.box[0] == pytest.approx(300.0 - 525.0 * 0.05 / 0.5)  # as if 0.5 m away

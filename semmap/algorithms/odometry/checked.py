@@ -32,7 +32,7 @@ class CheckedSlam:
                  motion: MotionParams | None = None, measured_sigmas_after: int = 0) -> None:
         self.params = params or RepairParams()
         self.repair = SlamRepair(self.params, measured_sigmas_after=measured_sigmas_after if check else 0)
-        self.registration = PairRegistration(dynamic_mask) if check else None
+        self.registration = PairRegistration(dynamic_mask, self.params.registration_scale) if check else None
         self.arbiter = StepArbiter(self.params.arbiter) if check else None
         self.moving = MovingObjects(motion)
         self.registrations = 0  # pairs registered (the rest were only remembered)

@@ -55,6 +55,7 @@ class RepairParams:
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)  # who is right where the two disagree
     # outside the scope a frame is registered only to measure the SLAM's precision (StepAgreement), every n-th
     witness_every: int = 5
+    registration_scale: int = 1  # semmap's registration on images downscaled by this (real time: 2)
     # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
     # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)
     gate_rate_hz: float = 30.0

@@ -150,6 +150,11 @@ class DetectorConfig(Section):
         description="real time: frames waiting per replica before the oldest is dropped (1: a free detector "
         "takes the newest frame; the older ones are answered as dropped)",
     )
+    realtime_niceness: Count = Field(
+        10,
+        description="real time: the detector lowers its CPU priority by this much (nice), so the front end and "
+        "the other services get a core first and the detector takes what they leave (0: equal shares)",
+    )
     oracle_seed: int = 0
     oracle_miss_rate: Fraction = 0.05
     oracle_false_positive_rate: NonNegative = Field(0.02, description="expected spurious boxes per frame (Poisson)")
@@ -247,6 +252,17 @@ class OdometryConfig(Section):
     )
     dynamic_wait_s: NonNegative = Field(
         10.0, description="lockstep: longest wait for a frame's dynamic objects, then without them"
+    )
+    realtime_queue_s: Positive = Field(
+        1.0,
+        description="real time: how much video (at 30 fps) the front end queues through a stall before it drops "
+        "the oldest frames (a SLAM fed every 4th frame of a hand-held camera loses track)",
+    )
+    registration_resolution: Literal["auto", "full", "half"] = Field(
+        "auto",
+        description="semmap's own frame-to-frame registration on the full images or on half their size (a quarter "
+        "of the pixels, ~4x cheaper) | auto: half in real time (the front end must keep up with the video), full "
+        "in lockstep",
     )
     file_sigma_translation_m: Positive = Field(
         0.01, description="what `file:PATH` (and `external`) declares for a trajectory of unknown quality"

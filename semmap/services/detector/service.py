@@ -12,6 +12,7 @@ drop duplicates.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -39,6 +40,16 @@ class DetectorService(Service):
     def setup(self) -> None:
         cfg = self.config.detector
         self.cfg = cfg
+        if not self.lockstep and cfg.realtime_niceness > 0:
+            # real time: the front end must pose every frame (a SLAM fed every 4th frame of a hand-held camera
+            # loses track), so the detector takes the CPU the other services leave, not a share of theirs: the
+            # kernel gives a core to them first whenever both want one
+            try:
+                os.nice(int(cfg.realtime_niceness))
+                self.log.info("real time: detector at niceness %d (the front end and the other services first)",
+                              os.getpriority(os.PRIO_PROCESS, 0))
+            except OSError as exc:  # (a container may refuse it: then the shares stay as they are)
+                self.log.warning("real time: could not lower the detector's priority: %s", exc)
         # (`semmap run` resolves `auto` for its dataset; a detector started by hand sees a camera)
         self.kind = resolve_kind(cfg.kind, synthetic=False)
         self.every_n = cfg.every_n_frames or 1

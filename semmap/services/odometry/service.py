@@ -58,8 +58,10 @@ class OdometryService(StageService):
             self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
         if self.frontend.needs_slam:
             self.listen(self.bus.keys.slam, OdometryPose, self.on_slam)
-        # real time: a slow front end (rgbd) skips to newer frames rather than queueing without bound
-        self.listen(self.bus.keys.frames, Frame, self.receive, realtime_capacity=4)
+        # real time: every frame, a second of them queued through a stall (a SLAM that misses frames of a hand-held
+        # camera loses track); a front end slower than the video for longer skips to newer frames (counted)
+        self.listen(self.bus.keys.frames, Frame, self.receive,
+                    realtime_capacity=max(1, round(self.config.odometry.realtime_queue_s * 30)))
 
     def on_dynamic(self, message: DynamicObjects) -> None:
         if message.frame_id <= self.last_frame_id:
