@@ -195,8 +195,7 @@ def _run(args: argparse.Namespace) -> int:
     from semmap.runtime.orchestrator import RunPlan
 
     realtime = (args.mode or config.run.mode) == "realtime"
-    if config.odometry.registration_resolution == "auto":  # (decided once, for every process of the run)
-        overrides.append(f"odometry.registration_resolution={'half' if realtime else 'full'}")
+    overrides += realtime_front_end(config, realtime)
     with_detector = "detector" in (only or PIPELINE)
     budget = (detector_budget(config, dataset, args.data, overrides, args.detectors)
               if realtime and with_detector else None)  # fmt: skip
@@ -281,6 +280,20 @@ def _start(plan: RunPlan, args: argparse.Namespace, config: Config, dataset: Dat
         return Orchestrator(plan).run()
     finally:
         lock.release()
+
+
+def realtime_front_end(config: Config, realtime: bool) -> list[str]:
+    """The front end's settings for the run's mode, decided once for every process: in real time it must pose every
+    frame on its share of two cores, so semmap's registration works on half-size images and ORB-SLAM3 extracts
+    `orbslam3_realtime_features` (where the user left `orbslam3_features` at its default)."""
+    section = config.odometry
+    out = []
+    if section.registration_resolution == "auto":
+        out.append(f"odometry.registration_resolution={'half' if realtime else 'full'}")
+    default_features = type(section).model_fields["orbslam3_features"].default
+    if realtime and section.orbslam3_features == default_features:
+        out.append(f"odometry.orbslam3_features={section.orbslam3_realtime_features}")
+    return out
 
 
 def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[list[str], str]:

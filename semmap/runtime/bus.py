@@ -311,6 +311,11 @@ class Inbox:
             self._count[name] += 1
             self._cv.notify()
 
+    def waiting(self, name: str) -> int:
+        """How many items of stream `name` wait to be handled (a service that falls behind sees it grow)."""
+        with self._cv:
+            return self._count.get(name, 0)
+
     def get(self, timeout: float) -> tuple[str, Any] | None:
         with self._cv:
             if not self._items and not self._cv.wait_for(lambda: bool(self._items), timeout):

@@ -246,10 +246,13 @@ class Service:
 
     # -- helpers for subclasses -------------------------------------------------------------------------------
     def listen(self, key: str, kind: type[M], handler: Callable[[M], None],
-               realtime_capacity: int | None = None, wanted: Callable[[int], bool] | None = None) -> None:
+               realtime_capacity: int | None = None, wanted: Callable[[int], bool] | None = None,
+               prepare: Callable[[M], object] | None = None) -> None:
         """Handle `kind` messages from `key`. Lockstep queues everything (the player paces the run); in real time
         a stream with `realtime_capacity` keeps only that many waiting, dropping the oldest (frames: stay live).
-        `wanted`: the frame ids the handler takes; the rest are passed over as they arrive (`Bus.subscribe`)."""
+        `wanted`: the frame ids the handler takes; the rest are passed over as they arrive (`Bus.subscribe`).
+        `prepare`: work on a message in the bus's thread as it arrives, before it queues (decoding a frame's
+        images while the handler is still busy with the previous one: on a second core, not on its path)."""
         stream = f"{key}#{kind.SCHEMA}"
         capacity = realtime_capacity if realtime_capacity is not None and not self.lockstep else QUEUE_CAPACITY
 
@@ -268,6 +271,9 @@ class Service:
 
         def arrived(message: M) -> None:  # (a Zenoh thread) checked on arrival, before it takes queue space
             if self._frame_id_plausible(stream, topic, message):
+                if prepare is not None:
+                    with contextlib.suppress(Exception):  # (the handler meets the same error and says so, counted)
+                        prepare(message)
                 self.inbox.put(stream, message)
 
         self._handlers[stream] = checked

@@ -25,6 +25,9 @@ class OdometryInput:
     intrinsics: np.ndarray | None = None  # 3x3
     dynamic: list[DynamicBox] | None = None  # the frame's dynamic objects, for front ends that leave them out
     slam_pose: np.ndarray | None = None  # an external SLAM's own pose of this frame (the `external` front end)
+    # real time: the front end is behind the video (frames queue up); a check of the SLAM's step waits for a frame
+    # with time for it, the SLAM's own tracking does not (a SLAM that misses frames loses track)
+    behind: bool = False
 
 
 class FrontEnd(ABC):

@@ -14,6 +14,8 @@ The `file:`, `external` and `orbslam3` front ends each hand it their SLAM's pose
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -22,6 +24,10 @@ from .base import OdometryInput
 from .motion import MotionParams, MovingObjects
 from .registration import PairRegistration
 from .repair import RepairParams, SlamRepair
+
+# what a SLAM says of a frame: its camera-to-world pose (None: none), whether it calls that pose weak, and whether a
+# pose after a gap is in the map it left (None: it does not say)
+SlamReading = tuple[np.ndarray | None, bool, bool | None]
 
 
 class CheckedSlam:
@@ -36,28 +42,46 @@ class CheckedSlam:
         self.arbiter = StepArbiter(self.params.arbiter) if check else None
         self.moving = MovingObjects(motion)
         self.registrations = 0  # pairs registered (the rest were only remembered)
+        self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
         self._frames = 0
+        self._tracker: ThreadPoolExecutor | None = None  # the SLAM's tracking beside semmap's registration
 
     @property
     def checks(self) -> bool:
         return self.registration is not None
 
-    def pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False,
-             same_map: bool | None = None) -> np.ndarray:
+    def pose(self, frame: OdometryInput, slam_pose: np.ndarray | None = None, slam_weak: bool = False,
+             same_map: bool | None = None, track: Callable[[], SlamReading] | None = None) -> np.ndarray:
+        """The repaired pose of `frame` given the SLAM's (`slam_pose`, `slam_weak`: its own word that the pose is
+        weak, `same_map`: whether a pose after a gap is in the map it left). Or `track`: the SLAM's tracking of
+        the frame, called in a second thread while semmap registers the frame pair, so a frame costs the longer
+        of the two, not their sum (ORB-SLAM3 and a registration take about as long)."""
         if self.registration is None or self.arbiter is None:
+            if track is not None:
+                slam_pose, slam_weak, same_map = track()
             return self.repair.copy(frame.frame_id, slam_pose)
         boxes = list(frame.dynamic or [])
         moving = self.moving.moving(boxes)
         undecided = self.moving.undecided(boxes)
         self._frames += 1
-        wanted = (self.repair.in_scope(moving, frame.stamp, undecided) or slam_pose is None
+        wanted = (self.repair.in_scope(moving, frame.stamp, undecided)
                   or (self.repair.measured_sigmas and self._frames % max(1, self.params.witness_every) == 0))
-        step, fitness = None, 0.0
-        if wanted:
-            step, fitness = self.registration.register(frame)
-            self.registrations += 1
-        else:
-            self.registration.remember(frame)
+        if wanted and frame.behind:  # (real time, frames queued up: the SLAM's step, unchecked, and counted)
+            wanted = False
+            self.skipped_behind += 1
+        tracking = None
+        if track is not None:
+            if self._tracker is None:
+                self._tracker = ThreadPoolExecutor(1, thread_name_prefix="slam-track")
+            tracking = self._tracker.submit(track)
+        step, fitness = self._measure(frame) if wanted else (None, 0.0)
+        if tracking is not None:
+            slam_pose, slam_weak, same_map = tracking.result()
+        if not wanted:
+            if slam_pose is None:  # (the SLAM has no pose: semmap's registration carries the frame if it can)
+                step, fitness = self._measure(frame)
+            else:
+                self.registration.remember(frame)
         self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
                                   judge=self._judge, slam_weak=slam_weak, undecided=undecided, same_map=same_map)
@@ -65,6 +89,16 @@ class CheckedSlam:
         self.moving.observe(float(frame.stamp), boxes, pose, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
                             frame.depth.shape[1], frame.depth.shape[0])
         return pose
+
+    def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
+        assert self.registration is not None
+        self.registrations += 1
+        return self.registration.register(frame)
+
+    def close(self) -> None:
+        if self._tracker is not None:
+            self._tracker.shutdown(wait=True)
+            self._tracker = None
 
     def _judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
         assert self.arbiter is not None
@@ -74,6 +108,7 @@ class CheckedSlam:
 
     def counters(self) -> dict[str, int]:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,
+                "repair_skipped_behind": self.skipped_behind,
                 "repair_judged": 0 if self.arbiter is None else self.arbiter.judged,
                 "moving_objects": len(self.moving.seen_moving)}
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from semmap.datasets.trajectory_io import KITTI_RATE_HZ, read_trajectory
 from .base import FrontEnd, OdometryError, OdometryInput
 from .base import flat as _flat
 from .base import unflat as _unflat
-from .checked import CheckedSlam
+from .checked import CheckedSlam, SlamReading
 from .motion import MotionParams
 from .registration import PairRegistration
 from .repair import RepairParams
@@ -220,11 +221,20 @@ class CheckedSlamFrontEnd(FrontEnd):
         self.counters: dict[str, int] = {}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the SLAM's own poses, before the repair
 
-    def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None, slam_weak: bool = False,
-                     same_map: bool | None = None) -> np.ndarray:
-        if slam_pose is not None:
+    def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None = None, slam_weak: bool = False,
+                     same_map: bool | None = None, track: Callable[[], SlamReading] | None = None) -> np.ndarray:
+        """The frame's pose from the SLAM's (or from `track`, its tracking run beside semmap's measurement)."""
+        if track is not None:
+            inner = track
+
+            def track() -> SlamReading:  # (and keep what it said, in the SLAM's own trajectory)
+                reading = inner()
+                if reading[0] is not None:
+                    self.slam_trajectory.append((float(frame.stamp), reading[0].copy()))
+                return reading
+        elif slam_pose is not None:
             self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
-        pose = self.check.pose(frame, slam_pose, slam_weak, same_map)
+        pose = self.check.pose(frame, slam_pose, slam_weak, same_map, track)
         self.sigmas = self.check.repair.declared_sigmas(self.fixed_sigmas)
         self.counters.update({**self.check.counters(), **_declared_counters(self.sigmas)})
         return pose

@@ -145,6 +145,13 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
             raise OdometryError("odometry orbslam3 needs RGB, depth and intrinsics")
         if self._slam is None:
             self._start(frame)
+        pose = self.checked_pose(frame, track=lambda: self._track(frame))
+        self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
+        return pose
+
+    def _track(self, frame: OdometryInput) -> tuple[np.ndarray | None, bool, bool]:
+        """ORB-SLAM3's reading of one frame, its dynamic objects blanked first (in a thread of the check's: beside
+        semmap's registration of the frame)."""
         boxes = list(frame.dynamic or [])
         rgb, depth, blanked = blank_dynamic(frame.rgb, frame.depth, boxes, frame.depth_scale, self.mask)
         self._blanked_sum += blanked
@@ -168,10 +175,8 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
             self.counters["orb_recently_lost"] += 1
         else:  # LOST: its next map starts anew, in a frame of its own
             self.counters["orb_lost"] += 1
-            self.check.break_chain()
-        pose = self.checked_pose(frame, slam_pose, weak, same_map=True)  # (LOST broke the chain above)
-        self.counters["orb_blanked_permille"] = int(1000 * self._blanked_sum / self._frames)
-        return pose
+            self.check.repair.break_chain()
+        return slam_pose, weak, True
 
     def state(self) -> dict:
         return {**self.check.state(), "anchor": flat(self._anchor)}
@@ -182,6 +187,7 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
         self._restored = True
 
     def close(self) -> None:
+        self.check.close()
         if self._slam is not None:
             try:
                 self._slam.shutdown()

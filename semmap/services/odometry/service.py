@@ -25,6 +25,8 @@ from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.service import service_main
 from semmap.runtime.stage_service import StageService
 
+# real time: more frames than this waiting means the front end is behind the video (its checks wait, its SLAM not)
+BEHIND_FRAMES = 2
 DYNAMIC_KEPT = 64  # frames of dynamic objects kept (real time: boxes may run ahead of or behind the frames)
 
 
@@ -60,8 +62,10 @@ class OdometryService(StageService):
             self.listen(self.bus.keys.slam, OdometryPose, self.on_slam)
         # real time: every frame, a second of them queued through a stall (a SLAM that misses frames of a hand-held
         # camera loses track); a front end slower than the video for longer skips to newer frames (counted)
+        self.frames_stream = f"{self.bus.keys.frames}#{Frame.SCHEMA}"  # (the inbox's name for it: Service.listen)
         self.listen(self.bus.keys.frames, Frame, self.receive,
-                    realtime_capacity=max(1, round(self.config.odometry.realtime_queue_s * 30)))
+                    realtime_capacity=max(1, round(self.config.odometry.realtime_queue_s * 30)),
+                    prepare=_decode if self.frontend.needs_images else None)
 
     def on_dynamic(self, message: DynamicObjects) -> None:
         if message.frame_id <= self.last_frame_id:
@@ -118,6 +122,7 @@ class OdometryService(StageService):
                                  intrinsics=frame.intrinsics.matrix)
             if self.frontend.needs_images:
                 data.rgb, data.depth = frame.rgb(), frame.depth()
+            data.behind = not self.lockstep and self.inbox.waiting(self.frames_stream) > BEHIND_FRAMES
             if self.frontend.uses_dynamic:
                 dynamic = self._boxes(frame.frame_id)
                 data.dynamic = dynamic.boxes if dynamic is not None else []
@@ -177,6 +182,12 @@ class OdometryService(StageService):
             write_json_atomic(self.out_dir / REPAIR_REPORT, {
                 "schema": "semmap.repair/2", "mode": self.mode, "counters": counters,
                 "overruled_spans": [list(span) for span in spans()], "judged": judged()})
+
+
+def _decode(frame: Frame) -> None:
+    """A frame's images decoded as it arrives (Frame caches them): the front end's thread only tracks."""
+    frame.rgb()
+    frame.depth()
 
 
 def _arguments(parser: argparse.ArgumentParser) -> None:
