@@ -48,6 +48,19 @@ class WiringFlag:
 
 
 @dataclass(frozen=True)
+class Port:
+    """How a service takes one of its inputs: each message of `topic` goes to its method `handler`. `when` names a
+    boolean attribute of the service that must be true for it to subscribe at all (an input only some
+    configurations need: a front end that leaves people out reads `dynamic`); `feedback`: the topic comes back
+    from a later stage of the same frame (lockstep delivers it after the stages ran, not before)."""
+
+    topic: str
+    handler: str
+    when: str = ""
+    feedback: bool = False
+
+
+@dataclass(frozen=True)
 class Node:
     """One process of the dataflow. `service`: `python -m semmap.services.<name>`, started by `semmap run` or a
     container; `client`: a process outside the pipeline with an identity of its own (the run itself, an external
@@ -56,6 +69,7 @@ class Node:
     name: str
     kind: Literal["service", "client"]
     summary: str
+    ports: tuple[Port, ...] = ()  # a service's inputs and the handlers they go to (Service.subscribe runs them)
     inputs: tuple[str, ...] = ()  # topics it subscribes to (may be wildcards: `status/**`, `progress/*`)
     outputs: tuple[str, ...] = ()  # topics it publishes on
     asks: tuple[str, ...] = ()  # topics it queries (Zenoh get)
@@ -69,6 +83,10 @@ class Node:
     algorithm: str = ""
     stage: str = ""  # its per-frame policy as a plain stage object (semmap.runtime.pipeline), if it has one
     config: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.ports and not self.inputs:  # (a service's inputs are its ports' topics)
+            object.__setattr__(self, "inputs", tuple(p.topic for p in self.ports))
 
     @property
     def role(self) -> str:
@@ -104,34 +122,44 @@ TOPICS: tuple[Topic, ...] = (
 
 NODES: tuple[Node, ...] = (
     Node("player", "service", "plays a dataset; lockstep: the next frame once every lockstep node is done",
-         inputs=("progress/*", "status/**"), outputs=("frames", "control"),
+         ports=(Port("progress/*", "_on_progress", when="lockstep"), Port("status/**", "_on_status")),
+         outputs=("frames", "control"),
          algorithm="semmap.datasets", stage="frame_message", config=("run", "rosbag")),
     Node("odometry", "service", "a camera pose per frame (or an external SLAM's, checked)",
-         inputs=("frames", "dynamic", "slam"), outputs=("odometry",), lockstep=True,
+         ports=(Port("frames", "receive"), Port("dynamic", "on_dynamic", when="uses_dynamic"),
+                Port("slam", "on_slam", when="needs_slam")),
+         outputs=("odometry",), lockstep=True,
          flags=(WiringFlag("--await-dynamic", ("detector", "tracker"),
                            "lockstep: a front end that leaves out dynamic objects waits for each frame's boxes"),),
          algorithm="semmap.algorithms.odometry", config=("odometry",)),
     Node("detector", "service", "boxes with depth per frame; replicas share the frames",
-         inputs=("frames",), outputs=("detections",), liveliness=("detector/replicas/**",), replicas="--detectors",
+         ports=(Port("frames", "on_frame"),), outputs=("detections",), liveliness=("detector/replicas/**",),
+         replicas="--detectors",
          lockstep=True, algorithm="semmap.algorithms.detector", stage="depth_detections", config=("detector",)),
     Node("tracker", "service", "IOU tracklets, and the frame's dynamic objects",
-         inputs=("detections", "map/updates"), outputs=("tracks", "dynamic"), lockstep=True,
+         ports=(Port("detections", "receive"), Port("map/updates", "on_map_update", feedback=True)),
+         outputs=("tracks", "dynamic"), lockstep=True,
          algorithm="semmap.algorithms.tracker", stage="TrackerStage", config=("tracker",)),
     Node("associator", "service", "landmarks from tracklets against the best known poses; answers map queries",
-         inputs=("tracks", "odometry", "poses/corrected"), outputs=("observations", "observations/tags",
-                                                                    "map/updates"),
+         ports=(Port("tracks", "on_tracks"), Port("odometry", "on_odometry"),
+                Port("poses/corrected", "on_corrected", feedback=True)),
+         outputs=("observations", "observations/tags", "map/updates"),
          answers=("map/query",), lockstep=True,
          flags=(WiringFlag("--await-backend", ("backend",),
                            "lockstep: hold each frame until the backend's corrected poses for it come"),),
          algorithm="semmap.algorithms.associator", stage="AssociatorStage", config=("associator",)),
     Node("backend", "service", "pose graph of odometry and landmark observations; loop closures",
-         inputs=("frames", "odometry", "observations", "dynamic"), outputs=("poses/corrected",), lockstep=True,
+         ports=(Port("odometry", "receive"), Port("observations", "on_observations"),
+                Port("frames", "on_frame", when="takes_keyframes"),
+                Port("dynamic", "on_dynamic", when="masks_keyframes")),
+         outputs=("poses/corrected",), lockstep=True,
          flags=(WiringFlag("--await-keyframe-dynamic", ("detector", "tracker"),
                            "lockstep: a keyframe's cloud waits for its dynamic objects, left out of it"),),
          algorithm="semmap.algorithms.backend", stage="BackendStage",
          config=("backend", "loop_closure", "corrections")),
     Node("viz", "service", "the Rerun recording (run.rrd) and live viewer",
-         inputs=("frames", "odometry", "detections", "tracks", "map/updates", "poses/corrected"),
+         ports=(Port("frames", "on_frame"), Port("odometry", "on_odometry"), Port("detections", "on_detections"),
+                Port("tracks", "on_tracks"), Port("map/updates", "on_map"), Port("poses/corrected", "on_corrected")),
          asks=("map/query",),
          flags=(WiringFlag("--wait-for-map", ("associator",),
                            "finish only after the map update of the last frame"),),
@@ -178,6 +206,40 @@ def publishers() -> dict[str, tuple[str, ...]]:
         for topic in n.outputs:
             owners.setdefault(topic, []).append(n.role)
     return {topic: tuple(roles) for topic, roles in owners.items()}
+
+
+def message_class(topic: str) -> type:
+    """The message class a topic carries (semmap.core.messages), as TOPICS declares it."""
+    from semmap.core import messages
+
+    name = next(t.message for t in TOPICS if t.name == topic)
+    return getattr(messages, name)
+
+
+def lockstep_order() -> tuple[str, ...]:
+    """The lockstep stages in the order one frame passes them: each after every stage whose output it reads (a
+    feedback port excepted), derived from the ports, never restated. The in-process driver runs them so."""
+    stages = [n for n in NODES if n.kind == "service" and n.lockstep]
+    writers = {topic: n.name for n in stages for topic in n.outputs}
+    after = {n.name: {writers[p.topic] for p in n.ports if p.topic in writers and not p.feedback
+                      and writers[p.topic] != n.name} for n in stages}
+    order: list[str] = []
+    while len(order) < len(stages):
+        ready = [n.name for n in stages if n.name not in order and after[n.name] <= set(order)]
+        if not ready:
+            raise ValueError(f"the lockstep stages' ports form a cycle without a feedback port: {after}")
+        order.append(ready[0])
+    return tuple(order)
+
+
+def feedback_ports() -> tuple[tuple[str, Port], ...]:
+    """(stage, port) of the lockstep stages' feedback inputs, in the order they come back once a frame passed every
+    stage: from the last writer up (the backend's corrected poses reach the associator, whose map update, made
+    then, reaches the tracker)."""
+    order = lockstep_order()
+    writers = {topic: n.name for n in NODES if n.kind == "service" and n.lockstep for topic in n.outputs}
+    found = [(n.name, p) for n in NODES if n.name in order for p in n.ports if p.feedback]
+    return tuple(sorted(found, key=lambda item: -order.index(writers[item[1].topic])))
 
 
 def check_input(name: str, topic: str) -> None:
