@@ -36,8 +36,7 @@ sys.path.insert(0, str(ROOT))
 from results_page import write_between_markers  # noqa: E402
 
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.datasets.trajectory_io import write_tum  # noqa: E402
-from semmap.runtime.inprocess import closed_loop  # noqa: E402
+from semmap.datasets.trajectory_io import read_tum, write_tum  # noqa: E402
 from semmap.runtime.model_store import default_vocabulary  # noqa: E402
 
 RECORDINGS = {
@@ -66,11 +65,23 @@ def cpu_name() -> str:
 
 
 def one_run(data: Path, odometry: str, sets: list[str]) -> dict:
-    res, _ = closed_loop(str(data), odometry, overrides=sets)
-    c = res.frontend_counters
-    return {"alone": res.ate_slam if res.ate_slam is not None else res.ate_odometry, "final": res.ate_optimized,
+    """One in-process run in a process of its own (ORB-SLAM3 keeps state between instances in one process)."""
+    with tempfile.TemporaryDirectory(prefix="semmap-noharm-") as tmp:
+        out, summary = Path(tmp) / "run", Path(tmp) / "summary.json"
+        cmd = [sys.executable, "-m", "semmap.runtime.inprocess", str(data), "--odometry", odometry, "--out", str(out),
+               "--json-out", str(summary), *[a for s in sets for a in ("--set", s)]]
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
+        result = json.loads(summary.read_text())
+        result = result[0] if isinstance(result, list) else result
+        slam_file = out / "trajectory_slam.tum"
+        slam = read_tum(slam_file) if slam_file.is_file() else []
+    c = result.get("frontend", {})
+    alone = result.get("ate_slam_m")
+    return {"alone": alone if alone is not None else result["ate_odometry_m"], "final": result["ate_optimized_m"],
             "overruled": c.get("repair_overruled", 0) + c.get("repair_implausible", 0),
-            "steps": c.get("repair_steps", 0), "landmarks": res.landmarks, "slam": res.slam_trajectory}
+            "steps": c.get("repair_steps", 0), "landmarks": result.get("landmarks", 0), "slam": slam}
 
 
 def command(data: str, odometry: str, sets: list[str]) -> str:

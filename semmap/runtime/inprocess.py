@@ -321,6 +321,8 @@ class LoopResult:
                 (out / "relocalization.json").write_text(json.dumps(record, indent=1))
         write_tum(out / "trajectory_optimized.tum", self.optimized)
         write_tum(out / "trajectory_odometry.tum", self.odometry)
+        if self.slam_trajectory:  # (a checked SLAM's own poses, as the odometry service writes them)
+            write_tum(out / "trajectory_slam.tum", self.slam_trajectory)
 
 
 def prior_stages(config: Config, prior_map: Path | None) -> tuple[AssociatorStage, BackendStage]:
