@@ -30,8 +30,8 @@ from semmap.algorithms.backend.loop_closure import decode_keyframe  # noqa: E402
 from semmap.core.config import load_config  # noqa: E402
 from semmap.core.journal import FrameJournal  # noqa: E402
 from semmap.core.messages import Observations, OdometryPose  # noqa: E402
-from semmap.runtime.pipeline import BackendStage  # noqa: E402
-from semmap.runtime.service import rss_mb  # noqa: E402
+from semmap.runtime.pipeline.stages import BackendStage  # noqa: E402
+from semmap.runtime.transport.service import rss_mb  # noqa: E402
 
 STEPS = ("update", "loop_closure", "publish")
 
@@ -55,7 +55,7 @@ def print_row(r: dict) -> None:
 
 def replay(out_dir: Path, overrides: list[str], block: int) -> list[dict]:
     config = load_config(None, overrides)
-    # the backend service's stage (semmap/runtime/pipeline.py), built as the service builds it
+    # the backend service's stage (semmap/runtime/pipeline/stages.py), built as the service builds it
     stage = BackendStage(config.backend, config.loop_closure, config.corrections)
     journal = FrameJournal(out_dir / "backend.sqlite")
     rows: list[dict] = []

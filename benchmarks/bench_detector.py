@@ -31,7 +31,7 @@ from semmap.algorithms.detector.onnx_detector import OnnxDetector  # noqa: E402
 from semmap.algorithms.detector.oracle import OracleDetector  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.datasets.base import InstanceBox  # noqa: E402
-from semmap.runtime.model_store import ModelMissingError, quantize_int8, require_model  # noqa: E402
+from semmap.runtime.models.model_store import ModelMissingError, quantize_int8, require_model  # noqa: E402
 
 
 def ort_version() -> str:
@@ -88,7 +88,7 @@ def bench_network_runtimes(model: Path, frames: list[np.ndarray], hw: tuple[int,
     import openvino as ov
 
     from semmap.algorithms.detector.onnx_detector import letterbox
-    from semmap.algorithms.detector.yolov5_convert import resize_input
+    from semmap.runtime.models.yolov5_convert import resize_input
 
     data = resize_input(onnx.load(str(model)), hw).SerializeToString()
     blobs = [cv2.dnn.blobFromImage(letterbox(rgb, hw)[0], scalefactor=1.0 / 255.0) for rgb in frames]

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from semmap.algorithms.detector.onnx_detector import DetectedBox, OnnxDetector  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.runtime.model_store import (  # noqa: E402
+from semmap.runtime.models.model_store import (  # noqa: E402
     default_model_path,
     quantize_int8,
     require_model,

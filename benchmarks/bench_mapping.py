@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from semmap.runtime.inprocess import OfflineRun, run_offline, score_map  # noqa: E402
+from semmap.runtime.pipeline.inprocess import OfflineRun, run_offline, score_map  # noqa: E402
 
 PAPER_MS = {"tracker": 0.069, "association": 7.8, "pointcloud": 150.0, "update_merge": 23.16}
 TARGET_P50_MS = {"tracker": 0.1, "association": 2.0, "pointcloud": 20.0, "update_merge": 5.0}
@@ -60,7 +60,7 @@ def tracker_alone_ms(frames: list, detect) -> list[float]:  # noqa: ANN001
     """The tracker by itself (as in its own service process): interleaved with the mapper in one process,
     its small arrays come back from a cold cache and it runs ~2x slower."""
     from semmap.algorithms.tracker.iou_tracker import IouTracker
-    from semmap.runtime.inprocess import make_detections
+    from semmap.runtime.pipeline.inprocess import make_detections
 
     dets = [(f, make_detections(f, detect(f))) for f in frames]
     tracker = IouTracker()
@@ -139,7 +139,7 @@ def bench_sevenscenes(frames: int, every: int, model: Path | None) -> dict | Non
     from semmap.algorithms.detector.onnx_detector import OnnxDetector
     from semmap.datasets import find_data_root
     from semmap.datasets.sevenscenes import SevenScenesDataset
-    from semmap.runtime.model_store import default_model_path
+    from semmap.runtime.models.model_store import default_model_path
 
     root = find_data_root()
     model = model or default_model_path()

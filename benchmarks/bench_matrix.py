@@ -17,7 +17,8 @@ closures off: the "centroid floor"), ATE of the whole system (landmarks + depth 
 improvement, landmarks, observations sent to the backend, loop closures (and, on synthetic data, landmarks on
 a person). `--ablation` adds the loop closures without landmark constraints (`backend.landmark_constraints:
 false`), which shows what the landmarks do for the closures. `--quick` plays
-300 frames of each (synthetic: 300 frames); `--offline` runs the in-process driver (semmap/runtime/inprocess.py)
+300 frames of each (synthetic: 300 frames); `--offline` runs the in-process driver
+(semmap/runtime/pipeline/inprocess.py)
 instead of the pipeline (same stages, same numbers, seconds instead of minutes, cached detections). 7-Scenes cases
 are skipped with a note when ../shared/data (or $SEMMAP_DATA) has no redkitchen.
 """
@@ -77,7 +78,7 @@ def seven_scenes() -> Path | None:
 
 def person_landmarks(landmarks: list, objects: list) -> tuple[int, int]:
     """(landmarks of a moving class, static objects mapped) on synthetic data (`objects`: its ground truth)."""
-    from semmap.runtime.inprocess import score_map
+    from semmap.runtime.pipeline.inprocess import score_map
 
     moving = {o.class_name for o in objects if o.moving}
     score = score_map(landmarks, objects)
@@ -118,7 +119,7 @@ def run_pipeline(case: Case, out_dir: Path, max_frames: int | None, extra: list[
 
 
 def run_offline(case: Case, max_frames: int | None, extra: list[str]) -> dict:
-    from semmap.runtime.inprocess import closed_loop
+    from semmap.runtime.pipeline.inprocess import closed_loop
 
     t0 = time.monotonic()
     res, rec = closed_loop(case.data, case.odometry, case.seed, max_frames or 0, [*case.overrides, *extra])
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="300 frames per case")
     ap.add_argument("--offline", action="store_true",
-                    help="the in-process driver (semmap/runtime/inprocess.py) instead of the pipeline")
+                    help="the in-process driver (semmap/runtime/pipeline/inprocess.py) instead of the pipeline")
     ap.add_argument("--only", default=None, help="comma-separated case names (or prefixes)")
     ap.add_argument("--out-root", type=Path, default=Path("/tmp/semmap-bench-matrix"),
                     help="run folders (one per case)")
@@ -210,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{'' if imp is None else f' ({imp:+.1f} %)'}, {sum(r['wall_s'] for r in results.values()):.0f} s",
               file=sys.stderr, flush=True)
     print()
-    print(f"engine: {'in-process driver (semmap/runtime/inprocess.py)' if args.offline else 'pipeline (semmap run)'}"
+    engine = "in-process driver (semmap/runtime/pipeline/inprocess.py)" if args.offline else "pipeline (semmap run)"
+    print(f"engine: {engine}"
           f", {'300 frames' if args.quick else 'all frames'}")
     print_table(rows)
     if args.json_out is not None:

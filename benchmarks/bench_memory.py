@@ -29,9 +29,9 @@ PROJECT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(PROJECT))
 
 from semmap.core.messages import Frame  # noqa: E402
-from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, Bus, BusConfig, Inbox, RunTrust  # noqa: E402
 from semmap.runtime.orchestrator import free_loopback_port  # noqa: E402
-from semmap.runtime.service import rss_mb  # noqa: E402
+from semmap.runtime.transport.bus import ENV_RUN_ID, ENV_RUN_KEY, Bus, BusConfig, Inbox, RunTrust  # noqa: E402
+from semmap.runtime.transport.service import rss_mb  # noqa: E402
 
 ROBOT = "robot1"
 WARMUP_S = 10.0

@@ -9,7 +9,7 @@ Per recording (7-Scenes redkitchen, Bonn crowd, the TUM fr1_rpy window) and fron
   else the trajectory the live run's ORB-SLAM3 wrote itself, unmasked by nothing semmap did to it after);
 - `rgbd`: the built-in front end (there is no SLAM to harm: its own chain against the final trajectory).
 Each row is the median of `--runs` runs (ORB-SLAM3 is not deterministic) of the in-process driver
-(`python -m semmap.runtime.inprocess`, the services' stages in lockstep order). *SLAM alone* is the ATE of the
+(`python -m semmap.runtime.pipeline.inprocess`, the services' stages in lockstep order). *SLAM alone* is the ATE of the
 SLAM's own poses (`trajectory_slam.tum` in a `semmap run`), *semmap* that of the final, optimised trajectory;
 *no harm* holds where semmap's is at most max(1.1 x, SLAM alone + 3 mm). Figures are ATE RMSE against the
 recording's ground truth (evo association, SE(3) alignment). `--write` puts the table between the
@@ -37,7 +37,7 @@ from results_page import write_between_markers  # noqa: E402
 
 from semmap.datasets import find_data_root  # noqa: E402
 from semmap.datasets.trajectory_io import read_tum, write_tum  # noqa: E402
-from semmap.runtime.model_store import default_vocabulary  # noqa: E402
+from semmap.runtime.models.model_store import default_vocabulary  # noqa: E402
 
 RECORDINGS = {
     "7scenes": ("7scenes-redkitchen", "7-Scenes redkitchen (static, 1000 frames)", None),
@@ -68,7 +68,8 @@ def one_run(data: Path, odometry: str, sets: list[str]) -> dict:
     """One in-process run in a process of its own (ORB-SLAM3 keeps state between instances in one process)."""
     with tempfile.TemporaryDirectory(prefix="semmap-noharm-") as tmp:
         out, summary = Path(tmp) / "run", Path(tmp) / "summary.json"
-        cmd = [sys.executable, "-m", "semmap.runtime.inprocess", str(data), "--odometry", odometry, "--out", str(out),
+        cmd = [sys.executable, "-m", "semmap.runtime.pipeline.inprocess", str(data), "--odometry", odometry,
+               "--out", str(out),
                "--json-out", str(summary), *[a for s in sets for a in ("--set", s)]]
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if proc.returncode != 0:
@@ -86,7 +87,7 @@ def one_run(data: Path, odometry: str, sets: list[str]) -> dict:
 
 def command(data: str, odometry: str, sets: list[str]) -> str:
     extra = "".join(f" --set {s}" for s in sets)
-    return f"python -m semmap.runtime.inprocess ../shared/data/{data} --odometry {odometry}{extra}"
+    return f"python -m semmap.runtime.pipeline.inprocess ../shared/data/{data} --odometry {odometry}{extra}"
 
 
 def rows(root: Path, runs: int, only: list[str], fronts: list[str]) -> list[dict]:

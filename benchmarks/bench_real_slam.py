@@ -2,7 +2,7 @@
 
     python benchmarks/bench_real_slam.py [--runs 3] [--only bonn-orbslam3,...] [--json-out FILE]
 
-Each row runs the in-process driver (semmap/runtime/inprocess.py: the services' stages in one process, lockstep
+Each row runs the in-process driver (semmap/runtime/pipeline/inprocess.py: the services' stages in one process, lockstep
 order) twice: `backend.landmark_constraints` false (the repaired odometry + depth loop closures) and true (the
 whole system). ORB-SLAM3 is not deterministic: its rows run `--runs` times and print the median. Columns:
 - SLAM alone: the SLAM's own poses (ORB-SLAM3's as tracked, or the file's), before semmap touched them;
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.runtime.inprocess import closed_loop  # noqa: E402
+from semmap.runtime.pipeline.inprocess import closed_loop  # noqa: E402
 
 
 def rows(data: Path) -> list[dict]:
@@ -53,7 +53,7 @@ def rows(data: Path) -> list[dict]:
 def command(row: dict, landmarks: bool) -> str:
     sets = " ".join(f"--set {s}" for s in [*row["set"], f"backend.landmark_constraints={str(landmarks).lower()}"])
     frames = f" --frames {row['frames']}" if row.get("frames") else ""
-    return f"python -m semmap.runtime.inprocess {row['data']}{frames} --odometry {row['odometry']} {sets}"
+    return f"python -m semmap.runtime.pipeline.inprocess {row['data']}{frames} --odometry {row['odometry']} {sets}"
 
 
 def run_row(row: dict, runs: int, frames: int) -> dict:

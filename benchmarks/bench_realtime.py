@@ -53,8 +53,8 @@ from semmap.algorithms.evaluation import evaluate_run  # noqa: E402
 from semmap.algorithms.map_merge import MatchParams, diff_maps  # noqa: E402
 from semmap.core.messages import Landmark  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.runtime import detector_choice as dc  # noqa: E402
-from semmap.runtime.map_store import read_map_json  # noqa: E402
+from semmap.runtime.maps.map_store import read_map_json  # noqa: E402
+from semmap.runtime.models import detector_choice as dc  # noqa: E402
 
 RECORDINGS = {"7scenes": "7scenes-redkitchen", "bonn": "bonn_crowd", "rpy": "tum_freiburg1_rpy"}
 

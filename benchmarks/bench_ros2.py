@@ -37,8 +37,8 @@ NODES = PROJECT / "tests" / "ros2" / "ros_nodes.py"
 def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, work: Path) -> dict:
     import zenoh
 
-    from semmap.runtime.bus import BusConfig
     from semmap.runtime.orchestrator import free_loopback_port
+    from semmap.runtime.transport.bus import BusConfig
 
     work.mkdir(parents=True)
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"

@@ -72,9 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     from sensor_msgs.msg import Image
 
     from semmap.core.messages import CorrectedPoses, DynamicBox, DynamicObjects, Frame, Landmark, MapUpdate
-    from semmap.runtime.bus import Bus, BusConfig
     from semmap.runtime.client import SemmapClient
     from semmap.runtime.orchestrator import free_loopback_port
+    from semmap.runtime.transport.bus import Bus, BusConfig
     from semmap.services.ros2.bridge import SentFrame, _make_node_class
     from tests.ros2.ros_nodes import _image, _odometry
 

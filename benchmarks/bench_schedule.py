@@ -9,7 +9,8 @@ the run` of a real-time run's summary on that machine, or its doctor's time besi
 model's precision (fp32 by default, int8 or int8w7; int8's detections differ by CPU: they are computed on this
 one). For each seed the replicas' turns are played against a clock (`semmap.algorithms.detector.turns.simulate`:
 the detector service's own turn logic; detection times drawn log-normally around DETECT_MS with sigma `--spread`,
-frames arriving every `--frame-ms`), and the frames it detects are mapped in process (`semmap.runtime.inprocess`,
+frames arriving every `--frame-ms`), and the frames it detects are mapped in process
+(`semmap.runtime.pipeline.inprocess`,
 `--odometry gt`, the detections of every frame at that letterbox computed once and cached). Each map is compared
 with the lockstep map at `--reference` (every frame detected, as `semmap run --lockstep` maps), as `semmap diff`
 pairs landmarks.
@@ -45,8 +46,8 @@ from semmap.algorithms.detector.turns import simulate  # noqa: E402
 from semmap.core.config import load_config  # noqa: E402
 from semmap.core.messages import Detections, Landmark  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.runtime import inprocess  # noqa: E402
-from semmap.runtime.model_store import QUANTIZED_FILES  # noqa: E402
+from semmap.runtime.models.model_store import QUANTIZED_FILES  # noqa: E402
+from semmap.runtime.pipeline import inprocess  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)

@@ -55,7 +55,7 @@ from semmap.algorithms.odometry.frontends import frame_offset  # noqa: E402
 from semmap.algorithms.relocalize import rotation_angle_deg  # noqa: E402
 from semmap.core.messages import Landmark  # noqa: E402
 from semmap.datasets.trajectory_io import read_tum  # noqa: E402
-from semmap.runtime.map_store import read_map_json  # noqa: E402
+from semmap.runtime.maps.map_store import read_map_json  # noqa: E402
 
 
 def run(args: list[str]) -> None:

@@ -37,7 +37,7 @@ sys.path.insert(0, str(PROJECT))
 
 from semmap.core.messages import CorrectedPoses, MapUpdate, MessageError  # noqa: E402
 from semmap.datasets import find_data_root  # noqa: E402
-from semmap.runtime.bus import BusConfig, open_session  # noqa: E402
+from semmap.runtime.transport.bus import BusConfig, open_session  # noqa: E402
 
 SETTINGS = ["detector.precision=int8", "detector.every_n_frames=3"]
 STAGES = (

@@ -18,7 +18,7 @@ import numpy as np
 import rerun as rr
 
 from semmap.core.messages import OdometryPose
-from semmap.runtime.service import common_arguments
+from semmap.runtime.transport.service import common_arguments
 from semmap.services.viz import service as viz_service
 
 

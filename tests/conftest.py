@@ -12,8 +12,8 @@ import pytest
 import zenoh
 
 from semmap.datasets import find_data_root
-from semmap.runtime.bus import BusConfig
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import BusConfig
 
 PROJECT = Path(__file__).resolve().parents[1]
 
@@ -68,7 +68,7 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     if item.get_closest_marker("needs_data") and find_data_root() is None:
         pytest.skip("shared real data absent: set SEMMAP_DATA or provide <project root>/../shared/data")
     if item.get_closest_marker("needs_model"):
-        from semmap.runtime.model_store import default_model_path
+        from semmap.runtime.models.model_store import default_model_path
 
         if not default_model_path().is_file():
             pytest.skip("detector model absent: run `semmap models fetch` (./dev.sh does)")

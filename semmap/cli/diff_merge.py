@@ -4,7 +4,7 @@ A map argument is a run directory (its map.json, with the landmark clouds of its
 map.json, or a map.sqlite. Unless `--same-frame`, B is registered to A by its objects first; a registration
 that is not certain (too few agreeing objects, an ambiguous layout) is an error (exit 2), not a guess. `merge`
 then re-optimises B's trajectory in A's frame where B is a run directory (its backend journal replayed with A's
-objects and A's run's keyframes: semmap/runtime/map_refit.py), so B's own drift does not go into the merged map;
+objects and A's run's keyframes: semmap/runtime/maps/map_refit.py), so B's own drift does not go into the merged map;
 `--rigid` moves B by the fit alone.
 """
 
@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # (the algorithms import scipy: only when a command runs, not
 def load_map(arg: str | Path) -> tuple[list[Landmark], dict[int, np.ndarray]]:
     """Landmarks (with their status) and, where the map.sqlite is there, each landmark's world cloud."""
     from semmap.core.messages import MessageError
-    from semmap.runtime.map_store import MapStore, read_map_json
+    from semmap.runtime.maps.map_store import MapStore, read_map_json
     path = Path(arg)
     json_path = path / "map.json" if path.is_dir() else (path if path.suffix == ".json" else None)
     db_path = path / "map.sqlite" if path.is_dir() else (path if path.suffix == ".sqlite" else None)
@@ -58,7 +58,7 @@ def prior_map_path(arg: str | Path, out_dir: Path) -> Path:
     """The map.sqlite of `semmap run --map ARG`, checked now (exists, this version, holds a map) rather than in
     the associator; ValueError (MessageError) with the reason otherwise."""
     from semmap.core.messages import MessageError
-    from semmap.runtime.map_store import MapStore
+    from semmap.runtime.maps.map_store import MapStore
     path = Path(arg)
     db = path / "map.sqlite" if path.is_dir() else path
     if db.suffix != ".sqlite":
@@ -83,7 +83,7 @@ def _registered(
     args: argparse.Namespace, refit: bool = False,
 ) -> tuple[list[Landmark], list[Landmark], RelocResult | None, dict[int, np.ndarray], dict[int, np.ndarray]]:
     """A, B in A's frame, the fit, and both maps' clouds (B's in A's frame). `refit`: B's trajectory re-optimised
-    in A's frame where B's run holds its backend journal (semmap/runtime/map_refit.py), else B moved rigidly."""
+    in A's frame where B's run holds its backend journal (semmap/runtime/maps/map_refit.py), else B moved rigidly."""
     from semmap.algorithms.map_merge import register as register_maps
     from semmap.algorithms.map_merge import transform_landmark
     from semmap.algorithms.relocalize import RelocParams, apply
@@ -107,7 +107,7 @@ def _registered(
         return a, rigid, attempt.result, clouds_a, moved
     from msgspec.structs import replace
 
-    from semmap.runtime.map_refit import refit_run
+    from semmap.runtime.maps.map_refit import refit_run
 
     result = refit_run(b_db, _map_db(args.a), attempt.result, a)
     if isinstance(result, str):
@@ -203,7 +203,7 @@ def _merge(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from semmap.algorithms.map_merge import merge_maps
-    from semmap.runtime.map_store import write_map_json
+    from semmap.runtime.maps.map_store import write_map_json
 
     merged = merge_maps(a, b, _params(args), clouds_a, clouds_b)
     out = Path(args.out)
@@ -246,7 +246,7 @@ in A's frame.
 
 {MAP_ARGUMENTS} Unless `--same-frame`, B is registered to A by its objects first; a registration that is not
 certain is an error (exit 2), not a guess. Where B is a run directory, its trajectory is then re-optimised in A's
-frame (its backend journal replayed with A's objects and A's run's keyframes: semmap/runtime/map_refit.py), so B's
+frame (its backend journal replayed with A's objects and A's run's keyframes: semmap/runtime/maps/map_refit.py), so B's
 own drift does not go into the merged map; `--rigid` moves B by the fit alone.
 """
 

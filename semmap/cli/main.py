@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         if argv is None:  # a process of its own: Zenoh's threads must not keep it alive past its end
-            from semmap.runtime.service import exit_backstop
+            from semmap.runtime.transport.service import exit_backstop
 
             exit_backstop()
 

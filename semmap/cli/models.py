@@ -125,7 +125,7 @@ def _err(msg: str) -> None:
 
 
 def _models_fetch(args: argparse.Namespace) -> int:
-    from semmap.runtime.model_store import ModelFetchError, fetch_model, get_model_dir, is_valid_model
+    from semmap.runtime.models.model_store import ModelFetchError, fetch_model, get_model_dir, is_valid_model
 
     directory = args.dir or get_model_dir()
     if not args.force and is_valid_model(directory):
@@ -145,7 +145,7 @@ def _models_fetch(args: argparse.Namespace) -> int:
 
 def _models_vocabulary(args: argparse.Namespace) -> int:
     from semmap.datasets.base import DatasetError
-    from semmap.runtime.orb_vocabulary import VocabularyError, write_vocabulary
+    from semmap.runtime.models.orb_vocabulary import VocabularyError, write_vocabulary
 
     def log(msg: str) -> None:
         print(msg, file=sys.stderr)
@@ -165,8 +165,8 @@ def _models_vocabulary(args: argparse.Namespace) -> int:
 
 
 def _models_doctor(args: argparse.Namespace) -> int:
-    from semmap.runtime.detector_choice import choice_path, format_table, load_choice, measure_and_save
-    from semmap.runtime.model_store import ModelMissingError, default_model_path, require_model
+    from semmap.runtime.models.detector_choice import choice_path, format_table, load_choice, measure_and_save
+    from semmap.runtime.models.model_store import ModelMissingError, default_model_path, require_model
 
     try:
         require_model(default_model_path(args.dir))
@@ -197,7 +197,7 @@ def _image_files(paths: list[Path]) -> list[Path]:
 
 
 def _models_quantize(args: argparse.Namespace) -> int:
-    from semmap.runtime.model_store import (
+    from semmap.runtime.models.model_store import (
         ModelMissingError,
         default_model_path,
         require_model,
@@ -229,7 +229,7 @@ def _calibration_frames(paths: list[Path], count: int) -> list:
     folder's every image file would take a 7-Scenes folder's depth PNGs as colour images too. Otherwise the image
     files given, and the images in the folders given."""
     from semmap.datasets import DatasetError
-    from semmap.runtime.detector_choice import calibration_images
+    from semmap.runtime.models.detector_choice import calibration_images
 
     if len(paths) == 1 and paths[0].is_dir():
         try:
@@ -240,7 +240,7 @@ def _calibration_frames(paths: list[Path], count: int) -> list:
 
 
 def _quantize(model: Path, images: list, args: argparse.Namespace) -> int:
-    from semmap.runtime.model_store import WEIGHT_BITS, quantize_int8
+    from semmap.runtime.models.model_store import WEIGHT_BITS, quantize_int8
 
     if not images:
         _err("no calibration images found")
@@ -275,7 +275,7 @@ def _read_rgb(path: Path):  # -> np.ndarray, kept unannotated so numpy loads laz
 
 def _detect(args: argparse.Namespace) -> int:
     from semmap.algorithms.detector.onnx_detector import OnnxDetector
-    from semmap.runtime.model_store import ModelMissingError, require_model
+    from semmap.runtime.models.model_store import ModelMissingError, require_model
 
     try:
         model = require_model(args.model)

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # (imported when a command runs, not for `semmap --help`)
     from semmap.core.messages import Landmark
-    from semmap.runtime.map_query import MapQuery
+    from semmap.runtime.maps.map_query import MapQuery
 
 from semmap.core import environment
 
@@ -22,9 +22,9 @@ def _map_path(arg: str) -> Path:
 
 
 def _query_live(query: MapQuery, robot: str, connect: str | None, timeout: float) -> list[Landmark]:
-    from semmap.runtime.bus import Bus, BusConfig
-    from semmap.runtime.map_query import QueryError, ask_live_map
+    from semmap.runtime.maps.map_query import QueryError, ask_live_map
     from semmap.runtime.orchestrator import DEFAULT_PORT
+    from semmap.runtime.transport.bus import Bus, BusConfig
 
     connect = connect or environment.read(environment.ZENOH_CONNECT) or f"tcp/127.0.0.1:{DEFAULT_PORT}"
     bus = Bus(BusConfig.from_env(connect), robot)
@@ -40,8 +40,8 @@ def _query_live(query: MapQuery, robot: str, connect: str | None, timeout: float
 
 def _query(args: argparse.Namespace) -> int:
     from semmap.core.messages import MessageError
-    from semmap.runtime.map_query import MapQuery, QueryError, class_counts, run_query
-    from semmap.runtime.map_store import MAP_SCHEMA, landmark_json, read_map_json
+    from semmap.runtime.maps.map_query import MapQuery, QueryError, class_counts, run_query
+    from semmap.runtime.maps.map_store import MAP_SCHEMA, landmark_json, read_map_json
 
     try:
         query = MapQuery.from_parameters({k: v for k, v in {
@@ -138,7 +138,7 @@ def read_ply_classes(path: Path) -> list[tuple[int, str]]:
 
 def _export(args: argparse.Namespace) -> int:
     from semmap.core.messages import MessageError
-    from semmap.runtime.map_store import read_map_json
+    from semmap.runtime.maps.map_store import read_map_json
 
     try:
         landmarks = read_map_json(_map_path(args.map))

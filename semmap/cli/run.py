@@ -303,7 +303,7 @@ def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[li
     Returns the overrides that pin it for every service, and the line that says it."""
     from semmap.algorithms.odometry import AUTO, check_mode, resolve_mode
     from semmap.algorithms.odometry.orbslam3 import installed
-    from semmap.runtime.model_store import default_vocabulary
+    from semmap.runtime.models.model_store import default_vocabulary
 
     section = config.odometry
     overrides: list[str] = []
@@ -311,8 +311,8 @@ def choose_odometry(config: Config, synthetic: bool, data: str = "") -> tuple[li
     if not vocabulary and installed() and not synthetic and section.mode in (AUTO, "orbslam3"):
         found = default_vocabulary()
         if found is None and data and Path(data).exists():
-            from semmap.runtime.model_store import VOCABULARY_NAME, get_model_dir
-            from semmap.runtime.orb_vocabulary import vocabulary_for
+            from semmap.runtime.models.model_store import VOCABULARY_NAME, get_model_dir
+            from semmap.runtime.models.orb_vocabulary import vocabulary_for
 
             print("semmap: no ORB vocabulary here: building one from this recording's frames (once) ...",
                   file=sys.stderr, flush=True)
@@ -388,7 +388,7 @@ def check_detector_classes(config: Config, data: str, mode: str) -> None:
     listing the known ones): 'unicorn' would otherwise give an empty map without a word."""
     from semmap.algorithms.detector import check_classes, needs_model, resolve_kind
     from semmap.core.config import ConfigError
-    from semmap.runtime.model_store import packaged_model
+    from semmap.runtime.models.model_store import packaged_model
 
     cfg = config.detector
     if not cfg.classes and not cfg.exclude:
@@ -413,7 +413,7 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
     `detector.every_n_frames=N` to `overrides` when the cadence is auto (0), and where this machine's measured
     layout is single-thread replicas (`detectors` not set), `detector.threads` and the budget's `replicas`."""
     from semmap.algorithms.detector import AUTO, resolve_kind
-    from semmap.runtime import detector_choice as dc
+    from semmap.runtime.models import detector_choice as dc
 
     det = config.detector
     synthetic = data == "synthetic" or data.startswith("synthetic:")

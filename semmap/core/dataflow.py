@@ -3,11 +3,13 @@ whether lockstep playback waits for it, and the flags that wire it to the nodes 
 
 Like a dora dataflow file, but a typed table: everything that used to restate the wiring reads it from here.
 - `semmap.core.keys.PUBLISHERS` (who may sign a message on a topic) is `publishers()`;
-- the secure profile's access-control list (`semmap.runtime.secure_profile`) grants each identity what its node
+- the secure profile's access-control list (`semmap.runtime.transport.secure_profile`) grants each identity what its
+node
   reads, writes, asks and answers here, and nothing else;
 - `semmap run` (`semmap.cli.run.pipeline_specs`) starts the stages in `PIPELINE` order, passes the `flags` whose
   partners run too, and tells the player to wait for the `lockstep` nodes (`player_wait_for`);
-- `Service.listen()` / `Service.publisher()` (semmap.runtime.service) refuse a key their node does not declare;
+- `Service.listen()` / `Service.publisher()` (semmap.runtime.transport.service) refuse a key their node does not
+declare;
 - tests check that compose.yaml, the service modules and docs/DESIGN.md (`python -m semmap.core.dataflow`
   writes its dataflow section) agree with this table.
 
@@ -81,7 +83,7 @@ class Node:
     sender: str = ""  # the role its messages are signed with (default: its name)
     # where the concept lives (docs/DESIGN.md)
     algorithm: str = ""
-    stage: str = ""  # its per-frame policy as a plain stage object (semmap.runtime.pipeline), if it has one
+    stage: str = ""  # its per-frame policy as a plain stage object (semmap.runtime.pipeline.stages), if it has one
     config: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -325,7 +327,8 @@ def markdown() -> str:
                    f"| {'yes' if n.lockstep else 'no'} | {flags} |")
     out += ["", "Every service also reads `control` and writes `status/<service>/<instance>` and "
             "`progress/<service>`.", "",
-            "| concept | algorithm | stage (semmap.runtime.pipeline) | service | config section | reads | writes |",
+            "| concept | algorithm | stage (semmap.runtime.pipeline.stages) | service | config section | reads "
+            "| writes |",
             "|---|---|---|---|---|---|---|"]
     messages = {t.name: t.message for t in TOPICS}
     for n in NODES:

@@ -47,7 +47,7 @@ VARIABLES: tuple[Variable, ...] = (
     Variable(RUN_OPEN_KEYS, "set by `semmap run` for its children: topics taking unsigned messages (external)"),
     Variable(PARENT_PID, "set by `semmap run` for its children: a child whose parent is gone stops"),
     Variable(ROBOT, "a service started by hand or by compose: the robot name (flag --robot wins; run.robot)"),
-    Variable(HEALTH_FILE, "containers: the heartbeat file a service touches (semmap.runtime.health)",
+    Variable(HEALTH_FILE, "containers: the heartbeat file a service touches (semmap.runtime.transport.health)",
              "/tmp/semmap.health"),
     Variable(MODEL_DIR, "where detector models and the ORB vocabulary live", "~/.cache/semmap/models"),
     Variable(CHOICE_DIR, "where this machine's detector measurement (`semmap models doctor`) is kept, where the "

@@ -15,7 +15,8 @@ from semmap.core.dataflow import publishers
 KEYSPACE = "semmap/v1"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
-# Who may publish on each topic (a run's messages are signed with the sender's role; semmap.runtime.bus checks it, and
+# Who may publish on each topic (a run's messages are signed with the sender's role; semmap.runtime.transport.bus
+# checks it, and
 # the secure profile's access-control list grants the same puts): the outputs the dataflow declares
 # (semmap/core/dataflow.py). `status/<service>/...` and `progress/<service>` belong to `<service>`. A topic not
 # listed here: any member of the run.

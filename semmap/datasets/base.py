@@ -56,7 +56,7 @@ class FrameData:
     gt_pose is the 4x4 camera-to-world ground truth, or None where the dataset has none.
     `rgb` and `depth` may be given as arrays or as `EncodedImage`s (a file's bytes): those are decoded the first
     time `.rgb` / `.depth` is read, and `rgb_file` / `depth_file` keep the bytes for whoever can use them as they
-    are (`semmap.runtime.pipeline.frame_message`).
+    are (`semmap.runtime.pipeline.stages.frame_message`).
     """
 
     __slots__ = ("index", "stamp", "_rgb", "_depth", "rgb_file", "depth_file", "depth_scale", "intrinsics",

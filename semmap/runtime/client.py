@@ -37,8 +37,8 @@ from semmap.core.messages import (
     ServiceStatus,
     TagDetections,
 )
-from semmap.runtime.bus import Bus, BusConfig
-from semmap.runtime.map_query import MapQuery, ask_live_map
+from semmap.runtime.maps.map_query import MapQuery, ask_live_map
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PIPELINE_SERVICES = ("detector", "tracker", "associator", "backend")
 # what semmap's own front ends mark as keyframes: `odometry.keyframe_every`'s default, written out because the
@@ -86,11 +86,12 @@ class SemmapClient:
     @classmethod
     def attach(cls, robot: str | None = None, run_dir: str | None = None, mode: str | None = None,
                keyframe_every: int = DEFAULT_KEYFRAME_EVERY) -> SemmapClient:
-        """A client of the run a `semmap run external` on this host recorded (semmap.runtime.run_registry): the
+        """A client of the run a `semmap run external` on this host recorded (semmap.runtime.transport.run_registry):
+        the
         one whose out dir is `run_dir`, else the only live run of `robot` (of any robot when None). Raises
         RunNotFound when there is none or more than one. A run started with `--check-slam` gets the poses on the
         `slam` key (checked), as its run file says."""
-        from semmap.runtime.run_registry import find_run
+        from semmap.runtime.transport.run_registry import find_run
 
         info = find_run(run_dir, None if run_dir else robot)
         return cls(info.robot, info.endpoint, mode, keyframe_every, check_slam=info.check_slam)

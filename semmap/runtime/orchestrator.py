@@ -29,9 +29,9 @@ from statistics import fmean, median
 
 from semmap.core.messages import Control, Progress, ServiceStatus
 from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
-from semmap.runtime.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
-from semmap.runtime.run_registry import RunInfo, register, unregister
-from semmap.runtime.service import ENV_PARENT_PID, exit_backstop
+from semmap.runtime.transport.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
+from semmap.runtime.transport.run_registry import RunInfo, register, unregister
+from semmap.runtime.transport.service import ENV_PARENT_PID, exit_backstop
 
 log = logging.getLogger("semmap.run")
 
@@ -155,7 +155,8 @@ class Orchestrator:
         self.restarts: dict[str, int] = {}
         self.rss: dict[str, list[float]] = {}  # per instance, one sample a second (status period)
         self.cpu_at_first_frame: dict[str, float] = {}  # per instance: its CPU seconds when frames began
-        # the run's identity and secret: every message of the run is signed with it (semmap.runtime.bus.RunTrust);
+        # the run's identity and secret: every message of the run is signed with it
+        # (semmap.runtime.transport.bus.RunTrust);
         # children get it through their environment only (not on a command line others can read)
         self.run_id = uuid.uuid4().hex[:16]
         self.open_keys = ("frames", "odometry", "slam", "control") if plan.data == EXTERNAL else ()
@@ -507,7 +508,7 @@ class Orchestrator:
 
     def _budget_achieved(self, services: dict[str, dict], processed: int, detected: int, wall_s: float) -> dict:
         """The planned cadence next to what the run achieved; keeps the other services' CPU per frame for the
-        next plan on this machine (semmap/runtime/detector_choice.py)."""
+        next plan on this machine (semmap/runtime/models/detector_choice.py)."""
         budget = dict(self.plan.budget or {})
         fps = float(budget.get("planned", {}).get("fps", 30.0))
         video_s = processed / fps if fps > 0 else 0.0
@@ -537,7 +538,7 @@ class Orchestrator:
         per_frame = budget["achieved"]["others_cpu_ms_per_frame"]
         if per_frame and processed >= 300 and self.plan.mode == "realtime":
             try:
-                from semmap.runtime.detector_choice import record_pipeline_cost
+                from semmap.runtime.models.detector_choice import record_pipeline_cost
 
                 record_pipeline_cost(str(budget.get("odometry", "gt")), per_frame,
                                      detector=str(budget.get("detector", "")),

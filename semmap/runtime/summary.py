@@ -8,7 +8,7 @@ import shlex
 from collections import Counter
 from pathlib import Path
 
-from semmap.runtime.detector_choice import describe_fidelity
+from semmap.runtime.models.detector_choice import describe_fidelity
 
 SUMMARY_TITLE = "semmap run summary"
 

@@ -1,4 +1,5 @@
-"""The pipeline's closed loop (the in-process driver, semmap/runtime/inprocess.py: odometry -> tracker -> mapper ->
+"""The pipeline's closed loop (the in-process driver, semmap/runtime/pipeline/inprocess.py: odometry -> tracker ->
+mapper ->
 iSAM2 -> corrected poses -> refine) on the analytic sphere scene: landmarks must cut a drifting odometry's error.
 
 A few seconds: 360 frames at 160x120 (one orbit), five spheres of different classes, perfect boxes.
@@ -11,7 +12,7 @@ import pytest
 
 from semmap.core.config import load_config
 from semmap.core.messages import Detections
-from semmap.runtime.inprocess import ROBOT, Recording, run_loop
+from semmap.runtime.pipeline.inprocess import ROBOT, Recording, run_loop
 from tests.associator.helpers import K_SMALL, TABLE_SPHERES, detections, orbit_pose
 
 RATE = 30.0

@@ -17,7 +17,7 @@ import pytest
 from semmap.algorithms.associator.mapper import MapperParams
 from semmap.algorithms.detector.oracle import OracleDetector
 from semmap.datasets.synthetic import SyntheticConfig, SyntheticDataset
-from semmap.runtime.inprocess import OfflineRun, run_offline, score_map
+from semmap.runtime.pipeline.inprocess import OfflineRun, run_offline, score_map
 
 
 def synthetic_run(width: int, height: int, every: int, seed: int = 0,
@@ -97,7 +97,7 @@ def test_synthetic_scene_other_seeds(seed: int) -> None:
 @pytest.fixture(scope="module")
 def yolo_7scenes(data_root: Path):
     from semmap.algorithms.detector.onnx_detector import OnnxDetector
-    from semmap.runtime.model_store import default_model_path
+    from semmap.runtime.models.model_store import default_model_path
 
     folder = data_root / "7scenes-redkitchen"
     if not folder.is_dir():

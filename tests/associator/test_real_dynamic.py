@@ -10,7 +10,7 @@ import pytest
 
 from semmap.algorithms.associator.mapper import MapperParams
 from semmap.datasets.tum import TumDataset
-from semmap.runtime.inprocess import OfflineRun, run_offline
+from semmap.runtime.pipeline.inprocess import OfflineRun, run_offline
 
 WINDOW = range(285, 400)  # two people near the camera (one 1.7 s, truncated by the image border) and two chairs
 
@@ -21,7 +21,7 @@ def crowd(data_root: Path) -> tuple[TumDataset, dict]:
     if not (path / "rgb.txt").is_file():
         pytest.skip("bonn_crowd absent from the shared data")
     from semmap.algorithms.detector.onnx_detector import OnnxDetector
-    from semmap.runtime.model_store import default_model_path
+    from semmap.runtime.models.model_store import default_model_path
 
     ds = TumDataset(path)
     detector = OnnxDetector(default_model_path(), conf=0.4, iou=0.45, threads=2)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from semmap.datasets import find_data_root
-from semmap.runtime.inprocess import closed_loop
+from semmap.runtime.pipeline.inprocess import closed_loop
 
 DATA = find_data_root()
 KITTI_00 = DATA / "trajectories" / "KITTI_00_gt.txt" if DATA else Path("/nonexistent")

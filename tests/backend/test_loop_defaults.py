@@ -1,6 +1,6 @@
 """The settings that make landmark constraints pull: robust kernel, declared odometry sigmas, rates.
 
-Each one was measured in the closed loop (the in-process driver, semmap/runtime/inprocess.py) on 7-Scenes; the
+Each one was measured in the closed loop (the in-process driver, semmap/runtime/pipeline/inprocess.py) on 7-Scenes; the
 figures are in the comments of semmap/core/config (`semmap config show`), pose_graph.py and frontends.py.
 """
 

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from semmap.core.messages import Frame, OdometryPose
-from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 HEAVY = ("open3d", "gtsam", "onnxruntime", "rerun", "evo", "scipy", "yaml")

@@ -1,4 +1,4 @@
-"""A run records where it can be found (semmap.runtime.run_registry); clients find it by out dir or robot, and
+"""A run records where it can be found (semmap.runtime.transport.run_registry); clients find it by out dir or robot, and
 fail clearly when there is none or more than one."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from semmap.runtime.run_registry import RunInfo, RunNotFound, find_run, live_runs, register, unregister
+from semmap.runtime.transport.run_registry import RunInfo, RunNotFound, find_run, live_runs, register, unregister
 
 PROJECT = Path(__file__).resolve().parents[2]
 

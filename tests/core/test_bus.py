@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from semmap.core.messages import Control, Frame, Intrinsics, OdometryPose, ServiceStatus
-from semmap.runtime.bus import Bus, BusConfig, Inbox
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import Bus, BusConfig, Inbox
 
 K = Intrinsics(500.0, 500.0, 16.0, 12.0, 32, 24)
 

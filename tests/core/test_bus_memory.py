@@ -9,8 +9,8 @@ import time
 import numpy as np
 
 from semmap.core.messages import Frame, Intrinsics
-from semmap.runtime.bus import Bus, BusConfig, LatestSamples, RunTrust
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import Bus, BusConfig, LatestSamples, RunTrust
 
 VGA = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
 

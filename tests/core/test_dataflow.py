@@ -12,7 +12,7 @@ import pytest
 
 from semmap.core import dataflow, messages
 from semmap.core.keys import PUBLISHERS, Keys
-from semmap.runtime import secure_profile
+from semmap.runtime.transport import secure_profile
 
 PROJECT = Path(__file__).resolve().parents[2]
 KEYS = Keys("robot1")
@@ -63,7 +63,7 @@ def test_each_service_uses_exactly_the_keys_its_node_declares(name: str) -> None
 
 
 def test_the_base_class_listens_to_control_only() -> None:
-    used = keys_used((PROJECT / "semmap" / "runtime" / "service.py").read_text())
+    used = keys_used((PROJECT / "semmap" / "runtime" / "transport" / "service.py").read_text())
     assert used["inputs"] == set(dataflow.SERVICE_INPUTS) and not used["outputs"]
 
 

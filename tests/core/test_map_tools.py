@@ -11,8 +11,8 @@ import open3d as o3d
 import pytest
 
 from semmap.core.messages import Landmark, MessageError
-from semmap.runtime.map_query import MapQuery, QueryError, run_query
-from semmap.runtime.map_store import MapStore, read_map_json, write_map_json
+from semmap.runtime.maps.map_query import MapQuery, QueryError, run_query
+from semmap.runtime.maps.map_store import MapStore, read_map_json, write_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 LANDMARKS = [

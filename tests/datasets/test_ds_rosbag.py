@@ -79,7 +79,7 @@ def test_compressed_colour_travels_as_recorded(tmp_path: Path, kitchen_frames: l
     """A CompressedImage JPEG stays encoded: the frame message carries the recorded bytes (no decode and
     re-encode in the player), and decodes to the folder's pixels."""
     from semmap.core.messages import Frame
-    from semmap.runtime.pipeline import frame_message
+    from semmap.runtime.pipeline.stages import frame_message
 
     dataset = open_dataset(_bag(tmp_path, kitchen_frames, "mcap", colour_encoding="jpeg"))
     _same_frames(dataset, kitchen_frames)

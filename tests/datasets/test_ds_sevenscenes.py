@@ -130,7 +130,7 @@ def test_frames_travel_as_their_files(kitchen_dir: Path, tmp_path: Path) -> None
     """The player sends a JPEG colour file and a 16-bit PNG depth file as stored (no decode and re-encode per
     frame); a receiver decodes the same pixels the reader gives, the "no reading" marker as 0."""
     from semmap.core.messages import Frame
-    from semmap.runtime.pipeline import frame_message
+    from semmap.runtime.pipeline.stages import frame_message
 
     root = tmp_path / "seq"
     _copy_frames(kitchen_dir, root, 2)

@@ -66,7 +66,7 @@ def test_every_command_names_a_real_service_with_real_flags(compose: dict, name:
     # the flags parse with the service's own parser (no process started)
     import argparse
 
-    from semmap.runtime.service import common_arguments
+    from semmap.runtime.transport.service import common_arguments
 
     service_module = importlib.import_module(f"{module}.service")
     parser = argparse.ArgumentParser(exit_on_error=False)
@@ -94,7 +94,7 @@ def test_podman_override_only_swaps_router_base_and_scale(compose: dict) -> None
         for key, value in service.items():
             assert not (isinstance(value, list) and key in base), f"{name}.{key} would be appended to"
         assert service["build"]["args"]["BASE"].startswith("${SEMMAP_BASE_IMAGE:-")
-    assert override["services"]["zenoh"]["entrypoint"] == ["python", "-m", "semmap.runtime.router"]
+    assert override["services"]["zenoh"]["entrypoint"] == ["python", "-m", "semmap.runtime.transport.router"]
 
 
 def test_secure_override_adds_tls_to_every_service(compose: dict) -> None:

@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from semmap.core.messages import ServiceStatus
-from semmap.runtime.bus import Bus, BusConfig
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 CONTAINERS_CONF = PROJECT / "tests" / "deploy" / "containers.conf"
@@ -187,7 +187,7 @@ def _secure_profile(tmp_path: Path, port: int) -> tuple[Path, Path]:
         key.chmod(0o644)  # development keys only: the containers' user is not the owner of the bind-mounted files
     host_profile = tmp_path / "host-profile"
     written = subprocess.run(
-        [sys.executable, "-m", "semmap.runtime.secure_profile", str(certs), str(host_profile)]
+        [sys.executable, "-m", "semmap.runtime.transport.secure_profile", str(certs), str(host_profile)]
         + ["--router", f"tls/127.0.0.1:{port}"],
         cwd=PROJECT,
         capture_output=True,

@@ -1,4 +1,5 @@
-"""`python -m semmap.runtime.router`: the router compose runs from semmap's own image (no eclipse/zenoh there)."""
+"""`python -m semmap.runtime.transport.router`: the router compose runs from semmap's own image (no eclipse/zenoh
+there)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import time
 from pathlib import Path
 
 from semmap.core.messages import Control
-from semmap.runtime.bus import Bus, BusConfig
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -36,7 +37,7 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     health = tmp_path / "health"
     router = subprocess.Popen(
-        [sys.executable, "-m", "semmap.runtime.router", "--listen", endpoint, "--health-file", str(health)],
+        [sys.executable, "-m", "semmap.runtime.transport.router", "--listen", endpoint, "--health-file", str(health)],
         cwd=PROJECT,
         stderr=subprocess.PIPE,
         text=True,
@@ -59,7 +60,7 @@ def test_router_routes_between_clients_keeps_a_heartbeat_and_stops_on_sigterm(tm
 
 def test_router_without_an_endpoint_is_a_usage_error() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "semmap.runtime.router", "--listen", " , "],
+        [sys.executable, "-m", "semmap.runtime.transport.router", "--listen", " , "],
         cwd=PROJECT,
         capture_output=True,
         text=True,
@@ -76,7 +77,7 @@ def test_the_router_ignores_the_services_connect_variable_and_the_bus_config_can
     assert BusConfig.from_env(env_connect=False).connect == []
     assert BusConfig.from_env().connect != []
     router = subprocess.Popen(
-        [sys.executable, "-m", "semmap.runtime.router", "--listen", endpoint],
+        [sys.executable, "-m", "semmap.runtime.transport.router", "--listen", endpoint],
         cwd=PROJECT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:

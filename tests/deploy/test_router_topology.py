@@ -30,7 +30,7 @@ def test_router_with_client_services_and_two_detectors_maps_like_the_embedded_ru
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     router = subprocess.Popen(
         [sys.executable, "-c", "import sys, time, zenoh\n"
-         "from semmap.runtime.bus import BusConfig\n"
+         "from semmap.runtime.transport.bus import BusConfig\n"
          f"s = zenoh.open(BusConfig(mode='router', listen=['{endpoint}']).to_zenoh())\n"
          "print('up', flush=True)\n"
          "time.sleep(600)\n"], cwd=PROJECT, stdout=subprocess.PIPE, text=True)

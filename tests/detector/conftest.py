@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from semmap.runtime.model_store import default_model_path
+from semmap.runtime.models.model_store import default_model_path
 
 FETCH_REASON = "detector model absent: run `semmap models fetch`"
 

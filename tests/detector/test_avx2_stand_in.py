@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from semmap.runtime import detector_choice as dc
-from semmap.runtime.model_store import QUANTIZED_FILES, get_model_dir
+from semmap.runtime.models import detector_choice as dc
+from semmap.runtime.models.model_store import QUANTIZED_FILES, get_model_dir
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -31,7 +31,7 @@ MEASURE = """
 import json, sys
 import onnxruntime
 from pathlib import Path
-from semmap.runtime import detector_choice as dc
+from semmap.runtime.models import detector_choice as dc
 assert onnxruntime.__file__.startswith(sys.argv[1]), onnxruntime.__file__  # the stand-in, not the installed one
 images, _ = dc.calibration_images(sys.argv[2], 48)
 configs = [dc.DetectorConfigChoice("fp32", 1, 384, 512), dc.DetectorConfigChoice("int8", 1, 480, 640),
@@ -46,7 +46,7 @@ print(json.dumps(int8w7_boxes(images[::8], Path(sys.argv[3]))))
 def int8w7_boxes(images: list, model_dir: Path) -> list[list[str]]:
     """The int8w7 copy's boxes at 640x480, exactly (run here, and in the stand-in's process from its source)."""
     from semmap.algorithms.detector.onnx_detector import OnnxDetector
-    from semmap.runtime import detector_choice as dc
+    from semmap.runtime.models import detector_choice as dc
 
     det = OnnxDetector(dc.model_bytes("int8w7", (480, 640), model_dir), threads=1)
     return [[repr(b) for b in det.detect(img)] for img in images]

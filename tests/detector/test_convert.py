@@ -13,7 +13,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from semmap.algorithms.detector.yolov5_convert import (
+from semmap.runtime.models.yolov5_convert import (
     DECODE_SCOPE,
     CheckpointFormatError,
     UnsafeCheckpointError,

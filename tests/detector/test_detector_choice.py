@@ -14,9 +14,9 @@ import onnxruntime as ort
 import pytest
 
 from semmap.algorithms.detector.onnx_detector import DetectedBox
-from semmap.algorithms.detector.yolov5_convert import convert_checkpoint, resize_input
-from semmap.runtime import detector_choice as dc
-from semmap.runtime.model_store import MODEL_FILENAME
+from semmap.runtime.models import detector_choice as dc
+from semmap.runtime.models.model_store import MODEL_FILENAME
+from semmap.runtime.models.yolov5_convert import convert_checkpoint, resize_input
 
 from .tiny_yolo import tiny_checkpoint
 
@@ -156,7 +156,7 @@ def test_without_vnni_the_7bit_int8_copy_takes_over_where_it_agrees_and_is_cheap
 
 
 def test_the_doctor_measures_each_copy_the_model_dir_holds(tmp_path: Path) -> None:
-    from semmap.runtime.model_store import QUANTIZED_FILES
+    from semmap.runtime.models.model_store import QUANTIZED_FILES
 
     assert dc.available_precisions(tmp_path) == ["fp32"]
     (tmp_path / QUANTIZED_FILES["int8w7"]).write_bytes(b"")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semmap.runtime import model_store as ms
+from semmap.runtime.models import model_store as ms
 
 from .tiny_yolo import tiny_checkpoint
 

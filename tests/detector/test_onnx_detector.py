@@ -23,7 +23,7 @@ from semmap.algorithms.detector.onnx_detector import (
     xywh_to_xyxy,
 )
 from semmap.datasets.images import read_depth_u16, read_rgb
-from semmap.runtime.detector_choice import detections_down_to
+from semmap.runtime.models.detector_choice import detections_down_to
 
 # --- synthetic models --------------------------------------------------------------------------------------
 
@@ -366,8 +366,9 @@ def test_real_depth_gate_on_cup(yolo, kitchen_dir):
 def _skip_without_vnni() -> None:
     """int8 detections are checked where int8 can be chosen: a CPU with VNNI (or ARM dot products). Without them
     onnxruntime's 8-bit kernels saturate (AVX2-only EPYC: the cup of frame 750 is lost, F1 0.84-0.88 against fp32), and
-    `detector.precision: auto` does not take int8 there (semmap.runtime.detector_choice, `semmap models doctor`)."""
-    from semmap.runtime.detector_choice import hardware_key, has_vnni
+    `detector.precision: auto` does not take int8 there (semmap.runtime.models.detector_choice, `semmap models
+    doctor`)."""
+    from semmap.runtime.models.detector_choice import hardware_key, has_vnni
 
     if not has_vnni(hardware_key()):
         pytest.skip("this CPU has no VNNI: int8 is not chosen here (semmap models doctor), its agreement not required")
@@ -376,7 +377,7 @@ def _skip_without_vnni() -> None:
 @pytest.mark.needs_model
 @pytest.mark.needs_data
 def test_int8_copy_keeps_detections(model_path, kitchen_dir, tmp_path):
-    from semmap.runtime.model_store import quantize_int8
+    from semmap.runtime.models.model_store import quantize_int8
 
     _skip_without_vnni()
     scene = kitchen_dir

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from semmap.core.messages import Detections, Landmark
-from semmap.runtime.inprocess import ROBOT, Recording
+from semmap.runtime.pipeline.inprocess import ROBOT, Recording
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 
 

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from semmap.algorithms.map_merge import diff_maps, merge_maps, register, transform_landmark
 from semmap.core.messages import Landmark
-from semmap.runtime.map_store import read_map_json, write_map_json
+from semmap.runtime.maps.map_store import read_map_json, write_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 CLASSES = ("chair", "cup", "tv", "book", "bottle", "laptop", "clock", "plant", "chair", "cup", "vase", "bowl")
@@ -173,7 +173,7 @@ def test_merge_pairs_two_sides_of_one_object_by_their_clouds() -> None:
 
 
 def test_refit_needs_the_run_beside_the_map(tmp_path: Path) -> None:
-    from semmap.runtime.map_refit import refit_run
+    from semmap.runtime.maps.map_refit import refit_run
 
     a = _room()
     b, _ = _second_session(a)

@@ -10,7 +10,14 @@ import msgpack
 import pytest
 
 from semmap.core.messages import Landmark, MessageError
-from semmap.runtime.map_store import MAP_SCHEMA, STORE_SCHEMA, MapStore, MapVersionError, read_map_json, write_map_json
+from semmap.runtime.maps.map_store import (
+    MAP_SCHEMA,
+    STORE_SCHEMA,
+    MapStore,
+    MapVersionError,
+    read_map_json,
+    write_map_json,
+)
 
 LANDMARKS = [
     Landmark(0, "cup", (1.0, 0.0, 0.8), 0.05, (0.08, 0.08, 0.1), 12, 0.0, 3.0, "present"),

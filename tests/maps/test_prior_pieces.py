@@ -29,7 +29,7 @@ from semmap.core.messages import (
 )
 from semmap.datasets import open_dataset
 from semmap.datasets.base import DatasetError, WindowDataset
-from semmap.runtime.map_store import MapStore
+from semmap.runtime.maps.map_store import MapStore
 
 PROJECT = Path(__file__).resolve().parents[2]
 OFFSET = frame_offset([1.0, -2.0, 0.5, 0.0, 0.0, 30.0])
@@ -290,7 +290,7 @@ def test_a_class_the_detector_often_misses_needs_a_longer_run_to_go_missing() ->
 def test_only_a_backend_started_for_a_prior_map_keeps_its_frames_and_realigns() -> None:
     """Keeping every handled frame (to rebuild in the prior frame) costs ~1 KB a frame for the whole run: a run
     without a prior map keeps none, and ignores an alignment (forged, or sent to the wrong backend)."""
-    from semmap.runtime.pipeline import BackendStage
+    from semmap.runtime.pipeline.stages import BackendStage
 
     landmarks = {i: np.array(p, float) for i, p in enumerate([(0, 3, 1), (2, 3, 0.5), (-2, 3, 1.5)])}
     alignment = MapAlignment(OFFSET, [(i, tuple(p)) for i, p in landmarks.items()], 0.01, 3, 0.03)
@@ -313,7 +313,7 @@ def test_a_prior_runs_keyframes_are_read_with_their_optimised_poses(tmp_path: Pa
     from semmap.algorithms.backend.loop_closure import KeyframeCloud, encode_keyframe
     from semmap.core.journal import FrameJournal
     from semmap.datasets.trajectory_io import write_tum
-    from semmap.runtime.prior_keyframes import load_prior_keyframes
+    from semmap.runtime.maps.prior_keyframes import load_prior_keyframes
 
     run = tmp_path / "run"
     run.mkdir()

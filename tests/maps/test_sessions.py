@@ -35,8 +35,8 @@ from semmap.core.config import load_config
 from semmap.datasets import open_dataset
 from semmap.datasets.synthetic import SyntheticConfig, _build_scene, changed_objects
 from semmap.datasets.trajectory_io import read_tum
-from semmap.runtime.inprocess import LoopResult, run_loop
-from semmap.runtime.map_store import read_map_json
+from semmap.runtime.maps.map_store import read_map_json
+from semmap.runtime.pipeline.inprocess import LoopResult, run_loop
 from tests.associator.helpers import TABLE_SPHERES, Sphere
 from tests.maps.session_checks import draws, lined_up, orbit_recording
 

@@ -28,7 +28,7 @@ from semmap.algorithms.associator.params import MapperParams
 from semmap.algorithms.odometry.frontends import frame_offset
 from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.datasets.trajectory_io import read_tum
-from semmap.runtime.map_store import read_map_json
+from semmap.runtime.maps.map_store import read_map_json
 from tests.maps.session_checks import draws, lined_up
 
 pytestmark = [pytest.mark.slow, pytest.mark.needs_data, pytest.mark.needs_model]
@@ -40,7 +40,7 @@ COMMON = ["--no-viz"]
 
 @pytest.fixture(scope="module")
 def sessions(kitchen_dir: Path, kitchen_gt_run: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    from semmap.runtime.model_store import ModelMissingError, packaged_model
+    from semmap.runtime.models.model_store import ModelMissingError, packaged_model
     from tests.conftest import _semmap_run
 
     try:

@@ -124,7 +124,7 @@ def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root
     their steps checked by semmap's people-masked registration: every one comes out under 15 cm. CI repairs run 1
     (about a minute each, 3.2 min for the three); `pytest -m soak` the other two, and
     `benchmarks/bench_real_slam.py` all three (docs/RESULTS.md)."""
-    from semmap.runtime.inprocess import closed_loop
+    from semmap.runtime.pipeline.inprocess import closed_loop
 
     path = data_root / "orbslam3" / f"bonn_crowd_orbslam3_run{run}.tum"
     res, _ = closed_loop(str(bonn_dir), f"file:{path}")

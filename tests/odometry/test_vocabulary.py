@@ -23,7 +23,7 @@ from semmap.algorithms.odometry.vocabulary import (
     parse_text,
 )
 from semmap.cli.main import main as cli_main
-from semmap.runtime.orb_vocabulary import colour_images, spread
+from semmap.runtime.models.orb_vocabulary import colour_images, spread
 
 
 def _synthetic_images(n_images: int = 12, per_image: int = 150, seed: int = 1) -> list[np.ndarray]:
@@ -217,7 +217,7 @@ Viewer.ViewpointF: 500.0
 @pytest.mark.needs_data
 def test_orbslam3_loads_and_tracks_with_a_vocabulary_built_here(kitchen_dir: Path, tmp_path: Path):
     pyorbslam3 = pytest.importorskip("pyorbslam3", reason="pyorbslam3 (ORB-SLAM3 wheel) not installed")
-    from semmap.runtime.orb_vocabulary import write_vocabulary
+    from semmap.runtime.models.orb_vocabulary import write_vocabulary
 
     frames = sorted(kitchen_dir.glob("frame-*.color.jpg"))
     assert len(frames) >= 600, kitchen_dir

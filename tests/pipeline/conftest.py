@@ -9,7 +9,7 @@ from typing import TypeVar
 import pytest
 
 from semmap.core.messages import Message
-from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 M = TypeVar("M", bound=Message)
 

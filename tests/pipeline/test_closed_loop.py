@@ -1,6 +1,6 @@
 """Landmark constraints must pull the trajectory, in the real pipeline (`semmap run` + `semmap eval`),
-and the two drivers of the pipeline's stages (semmap/runtime/pipeline.py) must agree: the bus pipeline and the
-in-process driver (semmap/runtime/inprocess.py) give the same map.json and optimised trajectory.
+and the two drivers of the pipeline's stages (semmap/runtime/pipeline/stages.py) must agree: the bus pipeline and the
+in-process driver (semmap/runtime/pipeline/inprocess.py) give the same map.json and optimised trajectory.
 
 Targets (lockstep, 1000 7-Scenes frames): `gt+drift` optimised ATE >= 30 % lower than the odometry's on seeds
 0-2 (measured 66-78 % with depth loop closures, 53-65 % with landmark constraints alone), and under the ~4.5 cm
@@ -20,7 +20,7 @@ import pytest
 
 from semmap.algorithms.evaluation import evaluate_run
 from semmap.datasets.trajectory_io import read_tum
-from semmap.runtime.inprocess import closed_loop
+from semmap.runtime.pipeline.inprocess import closed_loop
 
 PERSON = "person"
 

@@ -16,8 +16,8 @@ import pytest
 from semmap.datasets import open_dataset
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.client import SemmapClient
-from semmap.runtime.map_query import MapQuery
-from semmap.runtime.map_store import read_map_json
+from semmap.runtime.maps.map_query import MapQuery
+from semmap.runtime.maps.map_store import read_map_json
 
 PROJECT = Path(__file__).resolve().parents[2]
 SYNTH = "synthetic:frames=40"

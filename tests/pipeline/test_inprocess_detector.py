@@ -11,9 +11,9 @@ import pytest
 from semmap.algorithms.detector import create_detector
 from semmap.core.config import load_config
 from semmap.datasets import open_dataset
-from semmap.runtime.detector_choice import load_detector_model, resolve_setup
-from semmap.runtime.inprocess import detect_recording
-from semmap.runtime.pipeline import frame_message
+from semmap.runtime.models.detector_choice import load_detector_model, resolve_setup
+from semmap.runtime.pipeline.inprocess import detect_recording
+from semmap.runtime.pipeline.stages import frame_message
 
 
 @pytest.mark.needs_data

@@ -3,7 +3,8 @@
 (`odometry.frame_offset`), started from the first session's map, relocalises against it, maps in its frame and
 keeps every prior landmark under its id.
 
-The fast test is the analytic sphere scene (seconds); the slow one is `python -m semmap.runtime.inprocess --map`
+The fast test is the analytic sphere scene (seconds); the slow one is `python -m semmap.runtime.pipeline.inprocess
+--map`
 on the synthetic room, the scene of tests/maps/test_sessions.py (minutes: it renders the frames).
 """
 
@@ -19,9 +20,9 @@ import pytest
 from semmap.algorithms.odometry.frontends import frame_offset
 from semmap.algorithms.relocalize import rotation_angle_deg
 from semmap.core.config import load_config
-from semmap.runtime import inprocess
-from semmap.runtime.inprocess import run_loop
-from semmap.runtime.map_store import read_map_json
+from semmap.runtime.maps.map_store import read_map_json
+from semmap.runtime.pipeline import inprocess
+from semmap.runtime.pipeline.inprocess import run_loop
 from tests.associator.helpers import TABLE_SPHERES, Sphere
 from tests.maps.session_checks import orbit_recording
 
@@ -60,7 +61,7 @@ def test_a_second_session_relocalises_against_the_first_in_process(tmp_path: Pat
 
 @pytest.mark.slow
 def test_the_inprocess_command_runs_a_prior_map(tmp_path: Path) -> None:
-    """`python -m semmap.runtime.inprocess --map DAY1`: the two sessions of tests/maps/test_sessions.py."""
+    """`python -m semmap.runtime.pipeline.inprocess --map DAY1`: the two sessions of tests/maps/test_sessions.py."""
     cache = ["--cache-dir", str(tmp_path / "cache"), "--odometry", "gt"]
     assert inprocess.main(["synthetic:frames=300,seed=0", *cache, "--out", str(tmp_path / "day1")]) == 0
     assert inprocess.main(["synthetic:frames=300,seed=0,moved=2,removed=1", *cache, "--frames", "150",

@@ -9,8 +9,8 @@ import argparse
 import pytest
 
 from semmap.core.messages import Control, Progress
-from semmap.runtime import service as service_module
-from semmap.runtime.service import PROGRESS_PERIOD_S, Service, common_arguments
+from semmap.runtime.transport import service as service_module
+from semmap.runtime.transport.service import PROGRESS_PERIOD_S, Service, common_arguments
 
 
 class Sent:

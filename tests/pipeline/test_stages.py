@@ -1,4 +1,4 @@
-"""The pipeline's stage objects (semmap/runtime/pipeline.py): the per-frame policy both drivers run.
+"""The pipeline's stage objects (semmap/runtime/pipeline/stages.py): the per-frame policy both drivers run.
 
 Whole runs of the stages are tested through the drivers (tests/pipeline/test_closed_loop.py,
 tests/associator/test_closed_loop_analytic.py); these pin the policy each stage holds.
@@ -12,7 +12,7 @@ import pytest
 from semmap.algorithms.associator.mapper import MapperParams, MapperStep
 from semmap.algorithms.tracker.iou_tracker import TrackerParams
 from semmap.core.messages import Detection, Detections, Intrinsics, Observations, OdometryPose
-from semmap.runtime.pipeline import AssociatorStage, BackendStage, TrackerStage, combined
+from semmap.runtime.pipeline.stages import AssociatorStage, BackendStage, TrackerStage, combined
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 ROBOT = "robot1"

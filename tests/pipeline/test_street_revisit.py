@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from semmap.datasets.trajectory_io import write_kitti_poses
-from semmap.runtime.inprocess import closed_loop
+from semmap.runtime.pipeline.inprocess import closed_loop
 
 # measured: odometry 6.34 m -> optimised 0.22 m with the revisit (1 revisit, 6 landmarks fused); 3.69 m without
 SETTINGS = ["associator.revisit_old_s=20", "associator.revisit_recent_s=15", "odometry.drift_vehicle_yaw_bias_deg=0.15"]

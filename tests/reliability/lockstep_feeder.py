@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from semmap.core.messages import Control, Message, Progress
-from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 

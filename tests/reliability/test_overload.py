@@ -47,7 +47,7 @@ def test_overload_drops_and_counts_frames(tmp_path: Path, data_root: Path, semma
     stats = _soak(semmap_run, tmp_path, data_root / "7scenes-redkitchen", 300, 1, "--set", "detector.every_n_frames=1")
     _check(stats, 300)
     # real time with the default `detector.precision: auto` takes this machine's measured choice
-    from semmap.runtime.detector_choice import resolve_setup
+    from semmap.runtime.models.detector_choice import resolve_setup
 
     setup = resolve_setup("auto", 0, "auto", realtime=True)
     assert f"model {setup.label()} ({setup.origin}, auto" in (tmp_path / "logs" / "detector.log").read_text()

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from semmap.core.keys import Keys
 from semmap.core.messages import Frame, Progress, ServiceStatus
-from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.transport.bus import Bus, BusConfig
 from tests.reliability.lockstep_feeder import start_service
 
 ROBOT = "playerdown"

@@ -157,8 +157,8 @@ def test_a_service_that_fell_behind_follows_a_signed_stream_that_moved_on(tmp_pa
     `security.max_frame_gap` (stopped, starved, started late) used to refuse that stream forever: its reference
     stayed where it stood. After REANCHOR_AFTER refusals in a row that agree with each other, it follows (counted);
     an unsigned open stream never re-anchors (tests/security/test_hostile_peers.py: 2^40 stays refused)."""
-    from semmap.runtime.bus import Bus, BusConfig, RunTrust
-    from semmap.runtime.service import REANCHOR_AFTER
+    from semmap.runtime.transport.bus import Bus, BusConfig, RunTrust
+    from semmap.runtime.transport.service import REANCHOR_AFTER
 
     run_id, secret = "reanchor", RunTrust.new_secret()
     monkeypatch.setenv("SEMMAP_RUN_ID", run_id)

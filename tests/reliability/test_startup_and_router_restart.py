@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 
 from semmap.core.messages import Control
-from semmap.runtime.bus import Bus, BusConfig
 from semmap.runtime.orchestrator import free_loopback_port
+from semmap.runtime.transport.bus import Bus, BusConfig
 
 PROJECT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "CI": "true"}
@@ -18,7 +18,7 @@ ENV = {**os.environ, "CI": "true"}
 
 def _router(endpoint: str) -> subprocess.Popen:
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import time, zenoh\nfrom semmap.runtime.bus import BusConfig\n"
+        [sys.executable, "-c", "import time, zenoh\nfrom semmap.runtime.transport.bus import BusConfig\n"
          f"s = zenoh.open(BusConfig(mode='router', listen=['{endpoint}']).to_zenoh())\n"
          "print('up', flush=True)\ntime.sleep(3600)\n"], cwd=PROJECT, stdout=subprocess.PIPE, text=True, env=ENV)
     assert proc.stdout is not None and proc.stdout.readline().strip() == "up"

@@ -20,7 +20,7 @@ import numpy as np
 from semmap.core.keys import Keys
 from semmap.core.messages import Detections, Message, OdometryPose, Tracks
 from semmap.datasets.synthetic import SyntheticDataset
-from semmap.runtime.bus import Bus, BusConfig
+from semmap.runtime.transport.bus import Bus, BusConfig
 from semmap.services.player.service import frame_message
 from tests.associator.helpers import K_SMALL, Sphere, detections, orbit_pose
 from tests.reliability.lockstep_feeder import LockstepFeeder, run_killed_and_resumed, start_service

@@ -43,7 +43,7 @@ from semmap.core.messages import (
     ServiceStatus,
     Tracks,
 )
-from semmap.runtime.bus import BusConfig, RunTrust
+from semmap.runtime.transport.bus import BusConfig, RunTrust
 
 ROBOT = "robot1"
 INTR = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

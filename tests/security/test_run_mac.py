@@ -1,13 +1,13 @@
 """The run's message MAC: either version verifies, the receiver follows the sender's version, and nothing forged,
-replayed on another key or downgraded passes (semmap.runtime.bus.RunTrust)."""
+replayed on another key or downgraded passes (semmap.runtime.transport.bus.RunTrust)."""
 
 from __future__ import annotations
 
 import msgpack
 import pytest
 
-from semmap.runtime import bus
-from semmap.runtime.bus import MAC_BLAKE2B, MAC_HMAC_SHA256, Refused, RunTrust
+from semmap.runtime.transport import bus
+from semmap.runtime.transport.bus import MAC_BLAKE2B, MAC_HMAC_SHA256, Refused, RunTrust
 
 KEY = "semmap/v1/robot1/frames"
 PAYLOAD = bytes(range(256)) * 2000  # ~500 KB, a camera frame's size

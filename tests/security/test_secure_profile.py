@@ -18,9 +18,9 @@ import pytest
 import zenoh
 
 from semmap.core.keys import Keys
-from semmap.runtime.bus import BusConfig
 from semmap.runtime.orchestrator import free_loopback_port
-from semmap.runtime.secure_profile import IDENTITIES, write_profile
+from semmap.runtime.transport.bus import BusConfig
+from semmap.runtime.transport.secure_profile import IDENTITIES, write_profile
 
 PROJECT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed (dev.sh installs it)")
@@ -59,7 +59,7 @@ def secure_router(certs: Path, tmp_path: Path):  # noqa: ANN201
     profile = tmp_path / "profile"
     write_profile(certs, profile, [f"tls/localhost:{port}"], [f"tls/127.0.0.1:{port}"])
     router = subprocess.Popen(
-        [sys.executable, "-m", "semmap.runtime.router", "--zenoh-config", str(profile / "router.json5")],
+        [sys.executable, "-m", "semmap.runtime.transport.router", "--zenoh-config", str(profile / "router.json5")],
         cwd=PROJECT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -16,9 +16,9 @@ import zenoh
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, MessageError, Progress
 from semmap.core.outputs import OutputError, OutputLock, atomic_write_text
-from semmap.runtime.bus import Bus, BusConfig, RateLimit, Refused, RunTrust
 from semmap.runtime.orchestrator import free_loopback_port
-from semmap.runtime.secure_profile import write_profile
+from semmap.runtime.transport.bus import Bus, BusConfig, RateLimit, Refused, RunTrust
+from semmap.runtime.transport.secure_profile import write_profile
 
 PROJECT = Path(__file__).resolve().parents[2]
 KEY = "semmap/v1/robot1/control"
@@ -138,7 +138,8 @@ def test_a_zenoh_config_file_is_merged_with_semmaps_settings(tmp_path: Path) -> 
 
 
 def test_deploy_secure_matches_the_generator(tmp_path: Path) -> None:
-    """deploy/secure/ is `python -m semmap.runtime.secure_profile /certs deploy/secure --router tls/zenoh:7447 --listen
+    """deploy/secure/ is `python -m semmap.runtime.transport.secure_profile /certs deploy/secure --router
+    tls/zenoh:7447 --listen
     tls/0.0.0.0:7447`: regenerate it when the access-control table changes."""
     write_profile(Path("/certs"), tmp_path, ["tls/zenoh:7447"], ["tls/0.0.0.0:7447"])
     shipped = PROJECT / "deploy" / "secure"

@@ -10,7 +10,7 @@ import numpy as np
 import rerun as rr
 
 from semmap.core.messages import Detection, Detections, Intrinsics, OdometryPose, TrackedBox, Tracks
-from semmap.runtime.service import common_arguments
+from semmap.runtime.transport.service import common_arguments
 from semmap.services.viz.service import PathParts, TimingColumns, VizService
 
 K = Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)

@@ -1,6 +1,6 @@
 """The associator's pose book: the best known camera-to-world pose per frame (corrected by the backend where it
 has answered, odometry moved by the newest correction otherwise). Shared by the associator service and the
-in-process driver (semmap/runtime/inprocess.py), and by the prior-map session that re-expresses it."""
+in-process driver (semmap/runtime/pipeline/inprocess.py), and by the prior-map session that re-expresses it."""
 
 from __future__ import annotations
 

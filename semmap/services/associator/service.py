@@ -29,11 +29,11 @@ from semmap.core.messages import (
     TagDetections,
     Tracks,
 )
-from semmap.runtime.map_query import MapQuery, QueryError, reply_document, run_query
-from semmap.runtime.map_store import MapStore, write_map_json
-from semmap.runtime.pipeline import AssociatorStage, PriorFrame
-from semmap.runtime.service import service_main
-from semmap.runtime.stage_service import StageService
+from semmap.runtime.maps.map_query import MapQuery, QueryError, reply_document, run_query
+from semmap.runtime.maps.map_store import MapStore, write_map_json
+from semmap.runtime.pipeline.stages import AssociatorStage, PriorFrame
+from semmap.runtime.transport.service import service_main
+from semmap.runtime.transport.stage_service import StageService
 
 SAVE_PERIOD_S = 1.0  # refinements of existing landmarks are saved at most this often
 # ... and no save comes sooner than its own duration / SAVE_SHARE after the last: a save writes the whole map, so on
@@ -57,7 +57,8 @@ class AssociatorService(StageService):
         self.params = self.config.associator  # the mapper's settings, the service's own and the prior map's
         self.await_backend = bool(self.args.await_backend) and self.lockstep
         # the per-frame policy (pose book, waiting on the backend, refinement, carried-over merges, a prior map) is
-        # the stage's (semmap/runtime/pipeline.py); this service decodes, re-orders, journals, persists, publishes
+        # the stage's (semmap/runtime/pipeline/stages.py); this service decodes, re-orders, journals, persists,
+        # publishes
         self.stage = AssociatorStage(self.params, self.params.refine_every_n_frames, self.await_backend)
         self.snapshot: list[Landmark] = []  # what map queries answer from (swapped whole, read from Zenoh threads)
         self.ready: list[Tracks] = []

@@ -11,7 +11,7 @@ frames key; at a revisit the keyframe is registered to an earlier one by ICP
 In lockstep a keyframe waits for its depth too, so a replay closes the same loops; with
 `--await-keyframe-dynamic` (passed by `semmap run` when a tracker runs) it also waits for the keyframe's dynamic
 objects (`dynamic` key), left out of its cloud. A session started from a prior map (`--prior-map`) also registers
-its keyframes to the prior run's once it has relocalised (semmap/runtime/prior_keyframes.py, docs/MAPS.md).
+its keyframes to the prior run's once it has relocalised (semmap/runtime/maps/prior_keyframes.py, docs/MAPS.md).
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ from semmap.algorithms.backend.prior_alignment import FinalAlignment
 from semmap.core.messages import DynamicObjects, Frame, MessageError, Observations, OdometryPose
 from semmap.core.outputs import atomic_write_text
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.pipeline import BackendStage
-from semmap.runtime.service import service_main
-from semmap.runtime.stage_service import StageService
+from semmap.runtime.pipeline.stages import BackendStage
+from semmap.runtime.transport.service import service_main
+from semmap.runtime.transport.stage_service import StageService
 
 REALTIME_MAX_PENDING = 8
 REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
@@ -55,7 +55,8 @@ class BackendService(StageService):
     gaps_counter = "frames_without_odometry"
 
     def setup_stage(self) -> None:
-        # the per-frame policy (graph update, loop closure, corrections) is the stage's (semmap/runtime/pipeline.py)
+        # the per-frame policy (graph update, loop closure, corrections) is the stage's
+        # (semmap/runtime/pipeline/stages.py)
         prior_map = getattr(self.args, "prior_map", None)
         self.stage = BackendStage(self.config.backend, self.config.loop_closure, self.config.corrections,
                                   expect_alignment=prior_map is not None)

@@ -24,9 +24,9 @@ from semmap.algorithms.detector.onnx_detector import DetectedBox
 from semmap.algorithms.detector.turns import ReplicaTurns, owner
 from semmap.core.keys import Keys
 from semmap.core.messages import Control, Detections, Frame
-from semmap.runtime.detector_choice import describe_plan, load_detector_model, resolve_setup, setup_plan
-from semmap.runtime.pipeline import depth_detections
-from semmap.runtime.service import Service, service_main
+from semmap.runtime.models.detector_choice import describe_plan, load_detector_model, resolve_setup, setup_plan
+from semmap.runtime.pipeline.stages import depth_detections
+from semmap.runtime.transport.service import Service, service_main
 
 MEMBERSHIP_SETTLE_S = 0.5
 EOS_GRACE_S = 2.0  # real time: how long after the end of the stream a late frame may still arrive

@@ -22,8 +22,8 @@ from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_
 from semmap.core.messages import DynamicObjects, Frame, OdometryPose
 from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.service import service_main
-from semmap.runtime.stage_service import StageService
+from semmap.runtime.transport.service import service_main
+from semmap.runtime.transport.stage_service import StageService
 
 # real time: more frames than this waiting means the front end is behind the video (its checks wait, its SLAM not)
 BEHIND_FRAMES = 2

@@ -17,8 +17,8 @@ from semmap.core.outputs import SKIPPED_FILE, atomic_write_text, read_skipped
 from semmap.datasets import DatasetError, open_dataset, reader_options
 from semmap.datasets.base import Dataset, FrameData, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.pipeline import frame_message  # noqa: F401 - the player's message, used here and in tests
-from semmap.runtime.service import Service, service_main
+from semmap.runtime.pipeline.stages import frame_message  # noqa: F401 - the player's message, used here and in tests
+from semmap.runtime.transport.service import Service, service_main
 
 
 def parse_wait_for(spec: str) -> dict[str, int]:

@@ -920,7 +920,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
     if args.write_fastdds_profile:
         print(write_profile(args.write_fastdds_profile))
         return 0
-    from semmap.runtime.run_registry import RunNotFound, find_run
+    from semmap.runtime.transport.run_registry import RunNotFound, find_run
 
     connect = args.connect or environment.read(environment.ZENOH_CONNECT)
     robot = args.robot

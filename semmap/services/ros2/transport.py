@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from semmap.runtime.run_registry import runtime_dir
+from semmap.runtime.transport.run_registry import runtime_dir
 
 PROFILE_ENV = "FASTDDS_DEFAULT_PROFILES_FILE"
 SHM_SEGMENT_BYTES = 64 * 1024 * 1024  # ~45 colour + depth pairs of 640x480 in flight per writer

@@ -23,9 +23,9 @@ import msgpack
 
 from semmap.algorithms.tracker.iou_tracker import IouTracker
 from semmap.core.messages import Detections, DynamicObjects, MapUpdate, Tracks
-from semmap.runtime.pipeline import TrackerStage
-from semmap.runtime.service import REPLAY_FRAMES, service_main
-from semmap.runtime.stage_service import StageService
+from semmap.runtime.pipeline.stages import TrackerStage
+from semmap.runtime.transport.service import REPLAY_FRAMES, service_main
+from semmap.runtime.transport.stage_service import StageService
 
 TRACK_ID_BLOCK = 10_000_000
 

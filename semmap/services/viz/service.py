@@ -46,7 +46,7 @@ from semmap.core.messages import (
     OdometryPose,
     Tracks,
 )
-from semmap.runtime.service import Service, service_main
+from semmap.runtime.transport.service import Service, service_main
 
 OPTIMIZED_DRAW_PERIOD_S = 0.5  # the optimised path is redrawn (the parts that moved) at most this often
 TIMINGS_SEND_PERIOD_S = 1.0  # the latency plot's samples go to Rerun in a batch this often (and at the end)

@@ -1,7 +1,9 @@
 """A Zenoh router in a Python process, for hosts and images without `zenohd` (it is not on PyPI or Debian):
 
-    python -m semmap.runtime.router --listen tcp/127.0.0.1:7447                    # a plain one, this host only
-    python -m semmap.runtime.router --zenoh-config deploy/secure/router.json5  # secure profile's router (TLS + ACL)
+    python -m semmap.runtime.transport.router --listen tcp/127.0.0.1:7447                    # a plain one, this host
+    only
+    python -m semmap.runtime.transport.router --zenoh-config deploy/secure/router.json5  # secure profile's router
+    (TLS + ACL)
 
 Compose deployments use the `eclipse/zenoh` router image; where that image cannot be pulled (an air-gapped site, the
 container test in CI) this routes the same traffic between client services (tests/deploy/compose.podman.yaml selects
@@ -20,8 +22,8 @@ import threading
 import zenoh
 
 from semmap.core import environment
-from semmap.runtime.bus import ENV_LISTEN, BusConfig, BusError, open_session
-from semmap.runtime.service import HEALTH_FILE, configure_logging, touch_health
+from semmap.runtime.transport.bus import ENV_LISTEN, BusConfig, BusError, open_session
+from semmap.runtime.transport.service import HEALTH_FILE, configure_logging, touch_health
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"  # this host only; a container passes tcp/0.0.0.0:7447 explicitly
 HEARTBEAT_S = 1.0
@@ -29,7 +31,7 @@ HEARTBEAT_S = 1.0
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m semmap.runtime.router",
+        prog="python -m semmap.runtime.transport.router",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

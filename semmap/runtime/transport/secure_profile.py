@@ -9,7 +9,8 @@ own `status/<service>/**` and `progress/<service>`) and receive what it listens 
 declares it (semmap/core/dataflow.py), so the list cannot grant a key no node uses nor miss one a node needs. A
 peer without a certificate cannot connect; one with an unknown name can neither read nor put anything.
 
-    python -m semmap.runtime.secure_profile CERT_DIR OUT_DIR [--router tls/HOST:7447] [--listen tls/0.0.0.0:7447]
+    python -m semmap.runtime.transport.secure_profile CERT_DIR OUT_DIR [--router tls/HOST:7447] [--listen
+    tls/0.0.0.0:7447]
 
 writes `router.json5` and one `<identity>.json5` per identity into OUT_DIR; `semmap run --connect
 tls/HOST:7447 --zenoh-mode client --zenoh-config OUT_DIR` gives each child its own file.
@@ -136,7 +137,8 @@ def client_config(cert_dir: Path, identity: str, router: list[str]) -> dict:
 
 
 HEADER = (
-    "// semmap secure profile (docs/SECURITY.md), written by `python -m semmap.runtime.secure_profile`: mutual TLS\n"
+    "// semmap secure profile (docs/SECURITY.md), written by\n"
+    "// `python -m semmap.runtime.transport.secure_profile`: mutual TLS\n"
     "// and the router's access-control list. Regenerate rather than edit.\n"
 )
 
@@ -158,7 +160,7 @@ def write_profile(cert_dir: Path, out_dir: Path, router: list[str], listen: list
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m semmap.runtime.secure_profile",
+        prog="python -m semmap.runtime.transport.secure_profile",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

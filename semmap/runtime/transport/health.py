@@ -1,4 +1,5 @@
-"""Container health check: `python -m semmap.runtime.health [FILE] [--max-age S]` exits 0 while the service is alive.
+"""Container health check: `python -m semmap.runtime.transport.health [FILE] [--max-age S]` exits 0 while the service
+is alive.
 
 A service touches `$SEMMAP_HEALTH_FILE` with every status message (once a second) while it runs; a stale or
 missing file means it hangs or never came up.
@@ -15,7 +16,7 @@ from semmap.core import environment
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="semmap.runtime.health", description=__doc__)
+    parser = argparse.ArgumentParser(prog="semmap.runtime.transport.health", description=__doc__)
     parser.add_argument("file", nargs="?", default=environment.read(environment.HEALTH_FILE) or "/tmp/semmap.health")
     parser.add_argument("--max-age", type=float, default=10.0, help="seconds (default 10)")
     args = parser.parse_args(argv)

@@ -33,7 +33,7 @@ from semmap.core.keys import EXTERNAL_SENDER, InvalidNameError
 from semmap.core.logs import configure_logging
 from semmap.core.messages import Control, Message, MessageError, Progress, ServiceStatus
 from semmap.core.outputs import describe_disk_error, is_disk_error
-from semmap.runtime.bus import Bus, BusConfig, BusError, Inbox, Publisher, RunTrust
+from semmap.runtime.transport.bus import Bus, BusConfig, BusError, Inbox, Publisher, RunTrust
 
 M = TypeVar("M", bound=Message)
 STATUS_PERIOD_S = 1.0

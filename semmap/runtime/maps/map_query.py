@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from semmap.core.messages import Landmark
-from semmap.runtime.map_store import MAP_SCHEMA, landmark_json
+from semmap.runtime.maps.map_store import MAP_SCHEMA, landmark_json
 
 
 class QueryError(ValueError):

@@ -3,8 +3,8 @@
 Each stage holds its algorithm and the per-frame policy around it; two drivers run them:
 - the services (semmap/services/*/service.py): thin bus adapters (decode a message, call the stage, publish what
   it returns), with what only a bus needs (re-ordering, duplicates, journals, restarts: once, in
-  semmap/runtime/stage_service.py; metrics, logs);
-- the in-process driver (semmap/runtime/inprocess.py): the same stages in one process without a bus, in the
+  semmap/runtime/transport/stage_service.py; metrics, logs);
+- the in-process driver (semmap/runtime/pipeline/inprocess.py): the same stages in one process without a bus, in the
   order of a lockstep `semmap run`, so both give the same map and trajectory (tests/pipeline/test_closed_loop.py).
 
 Lockstep order of one frame i: odometry(i) -> `TrackerStage.step` -> `AssociatorStage.process` (against the pose
@@ -57,8 +57,8 @@ from semmap.core.messages import (
     PngImage,
 )
 from semmap.datasets.base import FrameData
-from semmap.runtime.map_store import MapStore
-from semmap.runtime.prior_keyframes import PriorKeyframes, load_prior_keyframes
+from semmap.runtime.maps.map_store import MapStore
+from semmap.runtime.maps.prior_keyframes import PriorKeyframes, load_prior_keyframes
 
 
 def combined(a: MapperStep, b: MapperStep) -> MapperStep:

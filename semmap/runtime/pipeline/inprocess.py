@@ -1,6 +1,7 @@
-"""The in-process driver: the pipeline's stages (semmap/runtime/pipeline.py) in one process, without a bus.
+"""The in-process driver: the pipeline's stages (semmap/runtime/pipeline/stages.py) in one process, without a bus.
 
-    python -m semmap.runtime.inprocess DATA [--odometry gt+drift] [--seed N] [--frames N] [--set sec.key=val]...
+    python -m semmap.runtime.pipeline.inprocess DATA [--odometry gt+drift] [--seed N] [--frames N] [--set
+    sec.key=val]...
         [--map PRIOR] [--refresh-cache] [--cache-dir DIR] [--json-out FILE] [--out DIR] [-v]
 
 DATA is a dataset folder (e.g. ../shared/data/7scenes-redkitchen) or `synthetic[:frames=N,seed=S]`;
@@ -58,8 +59,8 @@ from semmap.core.messages import Detection, Detections, Frame, MessageError, Odo
 from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
-from semmap.runtime.map_store import MapStore, write_map_json
-from semmap.runtime.pipeline import (
+from semmap.runtime.maps.map_store import MapStore, write_map_json
+from semmap.runtime.pipeline.stages import (
     AssociatorStage,
     BackendStage,
     TrackerStage,
@@ -137,14 +138,14 @@ def detect_recording(
     n = _frame_count(ds, frames)
     model = None
     if kind == "onnx":
-        from semmap.runtime.model_store import packaged_model
+        from semmap.runtime.models.model_store import packaged_model
 
         precision = "fp32" if det_cfg["precision"] == "auto" else det_cfg["precision"]  # (lockstep: fp32's figures)
         model = Path(det_cfg["model"] or packaged_model(precision))
     model_id = None if model is None else (str(model), model.stat().st_size, int(model.stat().st_mtime))
     setup = None
     if kind == "onnx" and not det_cfg["model"]:  # the packaged model, resized to `detector.input_size` as the
-        from semmap.runtime.detector_choice import resolve_setup  # detector service resizes it
+        from semmap.runtime.models.detector_choice import resolve_setup  # detector service resizes it
 
         setup = resolve_setup(det_cfg["precision"], int(det_cfg["threads"]), det_cfg["input_size"], realtime=False)
         model_id = (*model_id, "letterbox", setup.hw)  # (before: detections at the model's own size whatever was set)
@@ -169,7 +170,7 @@ def detect_recording(
     # built as the detector service builds it (the oracle with the allow / deny lists; the packaged model resized
     # to `detector.input_size`)
     from semmap.algorithms.detector import create_detector
-    from semmap.runtime.detector_choice import load_detector_model
+    from semmap.runtime.models.detector_choice import load_detector_model
 
     detector = create_detector(kind, config.detector, load_detector_model(setup) if setup is not None else model)
     every = max(1, int(det_cfg["every_n_frames"]))
@@ -578,7 +579,7 @@ def score_map(landmarks: Sequence, objects: Sequence[ObjectTruth], max_dist: flo
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m semmap.runtime.inprocess",
+        prog="python -m semmap.runtime.pipeline.inprocess",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

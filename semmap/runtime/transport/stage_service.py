@@ -1,6 +1,6 @@
 """One base for the services that run a per-frame stage: tracker, odometry, associator and backend.
 
-Each of them gets one input per frame from the bus, runs its stage (semmap/runtime/pipeline.py or a front end)
+Each of them gets one input per frame from the bus, runs its stage (semmap/runtime/pipeline/stages.py or a front end)
 on it, publishes what the stage made and must survive a crash without changing the run's result. What that takes
 is the same for all four and lives here, once:
 
@@ -31,8 +31,8 @@ from typing import Any, ClassVar
 from semmap.core.journal import FrameJournal, MessageJournal
 from semmap.core.messages import Control, Message
 from semmap.core.reorder import FrameReorderBuffer
-from semmap.runtime.bus import Publisher
-from semmap.runtime.service import REPLAY_FRAMES, Service
+from semmap.runtime.transport.bus import Publisher
+from semmap.runtime.transport.service import REPLAY_FRAMES, Service
 
 LOCKSTEP_MAX_PENDING = 100_000  # lockstep: the player paces the run, nothing is ever given up
 JOURNAL_TRIM_EVERY = 10  # frames: a trimmed journal keeps at most this many rows more than a restart reads

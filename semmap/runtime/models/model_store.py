@@ -24,9 +24,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from semmap.algorithms.detector.yolov5_convert import CONVERTER_ID, DECODE_SCOPE, DEFAULT_IMGSZ, convert_checkpoint
 from semmap.core import environment
 from semmap.core.outputs import atomic_write_bytes
+from semmap.runtime.models.yolov5_convert import CONVERTER_ID, DECODE_SCOPE, DEFAULT_IMGSZ, convert_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,7 @@ def require_model(path: Path | str | None = None) -> Path:
 def packaged_model(precision: str) -> Path:
     """The converted YOLOv5s (fp32), or one of its int8 copies (`semmap models quantize`: `int8` with 8-bit
     weights, faster on CPUs with VNNI; `int8w7` with 7-bit weights, which CPUs without VNNI compute without
-    saturating). Which one a real-time run takes is measured per machine: semmap/runtime/detector_choice.py."""
+    saturating). Which one a real-time run takes is measured per machine: semmap/runtime/models/detector_choice.py."""
     if precision == "fp32":
         return require_model(default_model_path())
     if precision in QUANTIZED_FILES:

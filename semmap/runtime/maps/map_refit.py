@@ -26,9 +26,9 @@ from semmap.algorithms.relocalize import RelocResult
 from semmap.core.config import Config
 from semmap.core.journal import read_frames
 from semmap.core.messages import Landmark, MapAlignment, MessageError, Observations, OdometryPose
-from semmap.runtime.map_store import MapStore
-from semmap.runtime.pipeline import BackendStage
-from semmap.runtime.prior_keyframes import load_prior_keyframes
+from semmap.runtime.maps.map_store import MapStore
+from semmap.runtime.maps.prior_keyframes import load_prior_keyframes
+from semmap.runtime.pipeline.stages import BackendStage
 
 
 @dataclass

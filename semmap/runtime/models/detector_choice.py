@@ -28,7 +28,7 @@ from typing import Any
 
 from semmap.core import environment
 from semmap.core.outputs import atomic_write_bytes
-from semmap.runtime.model_store import QUANTIZED_FILES, default_model_path, get_model_dir
+from semmap.runtime.models.model_store import QUANTIZED_FILES, default_model_path, get_model_dir
 
 log = logging.getLogger(__name__)
 
@@ -248,8 +248,8 @@ def model_bytes(precision: str, hw: tuple[int, int], model_dir: Path | None = No
     """The packaged model of `precision` with its input resized to `hw` (serialized ONNX, built in memory)."""
     import onnx
 
-    from semmap.algorithms.detector.yolov5_convert import resize_input
-    from semmap.runtime.model_store import packaged_model
+    from semmap.runtime.models.model_store import packaged_model
+    from semmap.runtime.models.yolov5_convert import resize_input
 
     directory = Path(model_dir) if model_dir is not None else get_model_dir()
     path = default_model_path(directory) if precision == "fp32" else directory / QUANTIZED_FILES[precision]
@@ -845,7 +845,7 @@ def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | 
 
 def load_detector_model(setup: DetectorSetup, model_dir: Path | None = None) -> Path | bytes:
     """The packaged model file of the setup's precision, or a copy resized in memory to its letterbox."""
-    from semmap.runtime.model_store import packaged_model
+    from semmap.runtime.models.model_store import packaged_model
 
     path = packaged_model(setup.precision)
     if setup.hw is None or setup.hw == FULL_HW:
