@@ -110,19 +110,33 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from semmap.core.config import ConfigError, load_config
+    found = preflight(args)
+    if isinstance(found, int):
+        return found
+    return _start(found.plan, args, found.config, found.dataset, found.dataset_camera, found.odometry_line)
 
+
+@dataclasses.dataclass
+class Preflight:
+    """What `semmap run` decided before any process starts: the run plan, the effective configuration (the user's
+    settings with every decision made for this run: front end, detector, real time), the dataset opened for the
+    checks and the banner's lines."""
+
+    plan: RunPlan
+    config: Config
+    dataset: Dataset | None
+    dataset_camera: str
+    odometry_line: str
+
+
+def _user_overrides(args: argparse.Namespace) -> tuple[list[str], Path | None] | int:
+    """The `section.key=value` overrides the command line says, and the prior map (or an exit status)."""
     overrides = list(args.overrides)
-    if args.odometry:
-        overrides.append(f"odometry.mode={args.odometry}")
-    if args.seed is not None:
-        overrides.append(f"odometry.seed={args.seed}")
-    if args.max_frames is not None:
-        overrides.append(f"run.max_frames={args.max_frames}")
-    if args.topics is not None:
-        overrides.append(f"rosbag.topics={args.topics}")
-    if args.start_frame is not None:
-        overrides.append(f"run.start_frame={args.start_frame}")
+    for flag, key in ((args.odometry, "odometry.mode"), (args.seed, "odometry.seed"),
+                      (args.max_frames, "run.max_frames"), (args.topics, "rosbag.topics"),
+                      (args.start_frame, "run.start_frame"), (args.time_offset, "odometry.file_time_offset_s")):
+        if flag is not None and flag != "":
+            overrides.append(f"{key}={flag}")
     prior_map = None
     if args.map is not None:
         from semmap.cli.diff_merge import prior_map_path
@@ -132,16 +146,28 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    if args.time_offset is not None:
-        overrides.append(f"odometry.file_time_offset_s={args.time_offset}")
     if args.check_slam:
         if args.data != "external":
             print("error: --check-slam is for `semmap run external` (a dataset's SLAM: --odometry file:TRAJ.tum, "
                   "checked by default)", file=sys.stderr)
             return 2
         overrides.append("odometry.mode=external")
+    return overrides, prior_map
+
+
+def preflight(args: argparse.Namespace) -> Preflight | int:
+    """Every check and decision before a process starts, each once: the configuration validated as the user gave
+    it, the decisions for this run appended as overrides (the front end, real time's settings, the detector), the
+    effective configuration validated once more with them. An exit status (2) where something is wrong, said."""
+    from semmap.core.config import ConfigError, load_config
+    from semmap.runtime.orchestrator import RunPlan
+
+    found = _user_overrides(args)
+    if isinstance(found, int):
+        return found
+    overrides, prior_map = found
     try:
-        config = load_config(args.config, overrides)  # the whole tree, before anything starts
+        config = load_config(args.config, overrides)  # the user's settings, before anything starts
         check_plugins(config)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -157,13 +183,51 @@ def _run(args: argparse.Namespace) -> int:
     if args.data != "external":
         chosen, odometry_line = choose_odometry(config, synthetic=special, data=args.data)
         overrides += chosen
-        if chosen:
-            config = load_config(args.config, overrides)
+    realtime = (args.mode or config.run.mode) == "realtime"
+    overrides += realtime_front_end(config, realtime)
+    if config.detector.kind == "auto":  # decided here, for this dataset, once for every process of the run
+        from semmap.algorithms.detector import AUTO, resolve_kind
+
+        synthetic = args.data == "synthetic" or args.data.startswith("synthetic:")
+        overrides.append(f"detector.kind={resolve_kind(AUTO, synthetic)}")
+    config = load_config(args.config, overrides)  # the effective configuration, with this run's decisions
     try:  # (after `special`: the detector `auto` picks depends on the data)
         check_detector_classes(config, args.data, args.mode or config.run.mode)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    checked = _check_inputs(args, config, special)
+    if isinstance(checked, int):
+        return checked
+    dataset, dataset_camera, only = checked
+    with_detector = "detector" in (only or PIPELINE)
+    budget = (detector_budget(config, dataset, args.data, overrides, args.detectors)
+              if realtime and with_detector else None)  # fmt: skip
+    detectors = args.detectors or int((budget or {}).get("replicas", 1))
+    specs = pipeline_specs(args.data, config, detectors, not args.no_viz, only, args.serve, prior_map,
+                           args.check_slam)
+    run = config.run
+    deadline = args.deadline if args.deadline is not None else run.deadline_s
+    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run.robot,
+                   mode=args.mode or run.mode, services=specs, config_path=args.config,
+                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode,
+                   zenoh_config=args.zenoh_config, verbose=args.verbose, quiet=args.quiet, deadline_s=deadline,
+                   # (an external SLAM may connect whenever it likes: no stall limit without a player)
+                   stall_s=0.0 if args.data == "external" else
+                   run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
+                   resume=args.resume, budget=budget)
+    mode = config.odometry.mode
+    plan.odometry = mode if args.data != "external" or args.check_slam else "unchecked"
+    if args.data != "external":
+        plan.simulated_odometry = simulated_odometry(mode)
+        plan.camera = dataset_camera
+    return Preflight(plan, config, dataset, dataset_camera, odometry_line)
+
+
+def _check_inputs(args: argparse.Namespace, config: Config,
+                  special: bool) -> tuple[Dataset | None, str, list[str] | None] | int:
+    """The dataset (opened once for every check), a trajectory file's clock, the services asked for and the
+    Zenoh config file: (dataset, its camera line, the services to start) or an exit status."""
     if not special and not Path(args.data).exists():
         print(f"error: dataset path {args.data} does not exist", file=sys.stderr)
         return 2
@@ -192,36 +256,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.zenoh_config and not Path(args.zenoh_config).exists():
         print(f"error: --zenoh-config {args.zenoh_config} does not exist", file=sys.stderr)
         return 2
-    from semmap.runtime.orchestrator import RunPlan
-
-    realtime = (args.mode or config.run.mode) == "realtime"
-    overrides += realtime_front_end(config, realtime)
-    with_detector = "detector" in (only or PIPELINE)
-    budget = (detector_budget(config, dataset, args.data, overrides, args.detectors)
-              if realtime and with_detector else None)  # fmt: skip
-    if config.detector.kind == "auto":  # decided here, for this dataset, once for every process of the run
-        from semmap.algorithms.detector import AUTO, resolve_kind
-
-        synthetic = args.data == "synthetic" or args.data.startswith("synthetic:")
-        overrides.append(f"detector.kind={resolve_kind(AUTO, synthetic)}")
-    detectors = args.detectors or int((budget or {}).get("replicas", 1))
-    specs = pipeline_specs(args.data, config, detectors, not args.no_viz, only, args.serve, prior_map,
-                           args.check_slam)
-    run = config.run
-    deadline = args.deadline if args.deadline is not None else run.deadline_s
-    plan = RunPlan(data=args.data, out_dir=Path(args.out), robot=args.robot or run.robot,
-                   mode=args.mode or run.mode, services=specs, config_path=args.config,
-                   overrides=overrides, connect=args.connect, zenoh_mode=args.zenoh_mode,
-                   zenoh_config=args.zenoh_config, verbose=args.verbose, quiet=args.quiet, deadline_s=deadline,
-                   # (an external SLAM may connect whenever it likes: no stall limit without a player)
-                   stall_s=0.0 if args.data == "external" else
-                   run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
-                   resume=args.resume, budget=budget)
-    plan.odometry = mode if args.data != "external" or args.check_slam else "unchecked"
-    if args.data != "external":
-        plan.simulated_odometry = simulated_odometry(mode)
-        plan.camera = dataset_camera
-    return _start(plan, args, config, dataset, dataset_camera, odometry_line)
+    return dataset, dataset_camera, only
 
 
 def _open_dataset(data: str, config: Config) -> tuple[Dataset, str] | None:

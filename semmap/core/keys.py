@@ -123,6 +123,10 @@ class Keys:
     def detector_replicas_all(self) -> str:
         return f"{self.root}/detector/replicas/**"
 
+    def key(self, topic: str) -> str:
+        """`poses/corrected` -> `semmap/v1/robot1/poses/corrected` (a topic of semmap/core/dataflow.py's table)."""
+        return f"{self.root}/{topic}"
+
     def topic(self, key: str) -> str:
         """`semmap/v1/robot1/poses/corrected` -> `poses/corrected` (the name counters use)."""
         key = str(key)

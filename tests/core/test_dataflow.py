@@ -50,21 +50,28 @@ def keys_used(source: str) -> dict[str, set[str]]:
 
 
 @pytest.mark.parametrize("name", dataflow.SERVICES)
-def test_each_service_uses_exactly_the_keys_its_node_declares(name: str) -> None:
-    """Read from the source, so a key used only on some path (a front end that uses dynamic objects, a backend
-    with loop closure) counts too; nothing declared goes unused (the access-control list would grant it)."""
+def test_the_table_is_what_a_service_runs(name: str) -> None:
+    """A service subscribes and publishes through the table (`Service.subscribe`, `open_outputs`), never by hand:
+    its module calls neither `listen` nor `publisher`, each port names a handler the service has, and each `when` an
+    attribute it has. What stays hand-written (a query, a queryable, liveliness tokens) is what the table declares."""
     node = dataflow.node(name)
     path = PROJECT / "semmap" / "services" / name / "service.py"
-    used = keys_used(path.read_text())
-    assert used["inputs"] == set(node.inputs), f"{name} listens to {sorted(used['inputs'])}"
-    assert used["outputs"] == set(node.outputs), f"{name} publishes on {sorted(used['outputs'])}"
+    source = path.read_text()
+    used = keys_used(source)
+    assert not used["inputs"] and not used["outputs"], f"{name} subscribes or publishes by hand"
     assert used["asks"] == set(node.asks) and used["answers"] == set(node.answers), name
     assert used["liveliness"] == set(node.liveliness), name
+    cls = next(v for v in vars(importlib.import_module(node.module + ".service")).values()
+               if isinstance(v, type) and getattr(v, "name", None) == name)
+    for port in node.ports:
+        assert callable(getattr(cls, port.handler, None)), f"{name}: no handler {port.handler} for {port.topic}"
+        assert not port.when or hasattr(cls, port.when), f"{name}: no attribute {port.when}"
 
 
-def test_the_base_class_listens_to_control_only() -> None:
-    used = keys_used((PROJECT / "semmap" / "runtime" / "transport" / "service.py").read_text())
-    assert used["inputs"] == set(dataflow.SERVICE_INPUTS) and not used["outputs"]
+def test_the_lockstep_order_and_its_feedback_come_from_the_ports() -> None:
+    assert dataflow.lockstep_order() == ("detector", "tracker", "odometry", "associator", "backend")
+    assert [(stage, port.topic) for stage, port in dataflow.feedback_ports()] == [
+        ("associator", "poses/corrected"), ("tracker", "map/updates")]
 
 
 def test_every_topic_is_declared_once_with_a_message_class() -> None:

@@ -11,13 +11,10 @@ relocalises against it and then maps in its frame (docs/MAPS.md). `--out` writes
 driver can be the prior map of the next.
 (`benchmarks/closed_loop.py` is the same command.)
 
-It runs, frame by frame, the same stage objects as the services, in the order of a lockstep `semmap run`:
-  odometry(i) (the real front end from semmap/algorithms/odometry/frontends.py)
-  -> `TrackerStage.step` (skipped frames only age tracklets)
-  -> `AssociatorStage.process` against the pose book, `take_merges` (with those carried over from a refine)
-  -> `BackendStage.step`: odometry and observations into the graph, one iSAM2 update, a loop closure from a
-     keyframe's depth, the corrections delta
-  -> `AssociatorStage.corrected`, then `complete` (a refine every `refine_every_n_frames` frames).
+It runs, frame by frame, the same stage objects as the services, in the order the dataflow table gives
+(semmap.core.dataflow.lockstep_order, derived from the services' ports: detector, tracker, odometry, associator,
+backend), then the feedback ports from the last writer up (the backend's corrected poses to the associator, which
+completes the frame; its map update to the tracker): `LockstepDriver`.
 Configuration comes from semmap.core.config (`semmap config show`) with the same `--set` overrides as `semmap run`, so
 both drivers give the same map.json and optimised trajectory (tests/pipeline/test_closed_loop.py).
 
@@ -54,6 +51,7 @@ from semmap.algorithms.detector.onnx_detector import DetectedBox
 from semmap.algorithms.evaluation import ate_rmse
 from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, make_frontend
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
+from semmap.core import dataflow
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
 from semmap.datasets import open_dataset, platform_of
@@ -349,6 +347,138 @@ def odometry_message(front, frame_id: int, stamp: float, pose: np.ndarray, keyfr
                         step=str(getattr(front, "step_source", "")) if estimated else "")
 
 
+class LockstepDriver:
+    """One frame at a time through the stages, in the order the dataflow table gives (semmap.core.dataflow:
+    `lockstep_order`, derived from the services' ports), then its feedback ports from the last writer up
+    (`feedback_ports`): the backend's corrected poses reach the associator, whose map update reaches the tracker.
+    Each stage and each feedback port is one method here, found by the node's name; a node the table adds without
+    a method here is refused at once (ValueError), never skipped."""
+
+    STAGES = {"detector": "detector", "tracker": "tracker", "odometry": "odometry", "associator": "associator",
+              "backend": "backend"}
+    FEEDBACK = {("associator", "poses/corrected"): "associator_corrected", ("tracker", "map/updates"): "tracker_moving"}
+
+    def __init__(self, rec: Recording, config: Config, odometry: str, odometry_poses: list[np.ndarray] | None,
+                 depth_frames, prior_map: Path | None) -> None:  # noqa: ANN001 - a semmap Dataset
+        self.order = dataflow.lockstep_order()
+        self.feedback = dataflow.feedback_ports()
+        missing = [n for n in self.order if n not in self.STAGES] + [
+            f"{n} <- {p.topic}" for n, p in self.feedback if (n, p.topic) not in self.FEEDBACK]
+        if missing:
+            raise ValueError(f"the in-process driver has no step for {missing} (semmap/core/dataflow.py)")
+        self.rec, self.odometry_mode = rec, odometry
+        self.odometry_poses, self.depth_frames = odometry_poses, depth_frames
+        self.front = make_frontend(odometry, config.odometry)  # with cached poses only for what it declares
+        self.keyframe_every = config.odometry.keyframe_every
+        # a session in a frame of its own (`odometry.frame_offset`), as the odometry service expresses its poses
+        offset = frame_offset(config.odometry.frame_offset)
+        self.to_session = None if np.array_equal(offset, np.eye(4)) else np.linalg.inv(offset)
+        # the sections each service reads (semmap/services/*/service.py)
+        self.tracker_stage = TrackerStage(config.tracker, dynamic_classes=config.associator.dynamic_classes)
+        self.associator_stage, self.backend_stage = prior_stages(config, prior_map)
+        self.n_obs = self.n_merges = 0
+        self.odo_traj: list[tuple[float, np.ndarray]] = []
+        self.mapper_ms: list[float] = []
+        self.backend_ms: list[float] = []
+
+    def run_frame(self, seq: int, det: Detections) -> None:
+        self.seq, self.det = seq, det
+        for name in self.order:
+            getattr(self, self.STAGES[name])()
+        for name, port in self.feedback:
+            getattr(self, self.FEEDBACK[(name, port.topic)])()
+
+    def detector(self) -> None:
+        """(the detections come from the recording's cache: what the detector service would have sent)"""
+
+    def tracker(self) -> None:
+        self.out = self.tracker_stage.step(self.det)
+        self.dynamic = self.tracker_stage.dynamic_objects(self.det, self.out)
+
+    def odometry(self) -> None:
+        det, front = self.det, self.front
+        i, stamp = det.frame_id, det.stamp
+        if self.odometry_poses is not None:
+            pose = np.asarray(self.odometry_poses[i], dtype=np.float64)
+        else:
+            data = OdometryInput(i, stamp, self.rec.gt[i], depth_scale=det.depth_scale,
+                                 intrinsics=det.intrinsics.matrix)
+            if front.needs_images:
+                if self.depth_frames is None:
+                    raise ValueError(f"odometry {self.odometry_mode} needs the recording's images (depth_frames)")
+                frame = on_the_wire(frame_message(ROBOT, self.depth_frames[i]))
+                data.rgb, data.depth = frame.rgb(), frame.depth()
+            if front.uses_dynamic:
+                data.dynamic = self.dynamic
+            pose = front.estimate(data)
+        if self.to_session is not None:
+            pose = self.to_session @ pose
+        self.odo = odometry_message(front, i, stamp, pose, i % self.keyframe_every == 0, self.odometry_mode,
+                                    self.odometry_poses is None)
+        self.odo_traj.append((stamp, pose.copy()))
+
+    def associator(self) -> None:
+        """With the prior map's relocalisation and statuses, when there is one; held for the backend's answer."""
+        det, stage = self.det, self.associator_stage
+        i, stamp = det.frame_id, det.stamp
+        stage.odometry(i, self.odo.pose)
+        stage.saw_stamp(stamp)
+        t0 = time.perf_counter()
+        boxes = None if det.skipped else self.out.boxes
+        step = stage.process(i, stamp, self.out.candidates, self.out.ended, boxes)
+        self.mapper_ms.append((time.perf_counter() - t0) * 1e3)
+        step = stage.prior_step(i, stamp, boxes, step).step
+        self.obs_msg = stage.observations(ROBOT, i, stamp, step)
+        self.n_obs += len(step.observations)
+        self.n_merges += len(self.obs_msg.merges)
+        stage.hold(det, step)
+
+    def backend(self) -> None:
+        i, stamp = self.det.frame_id, self.det.stamp
+        cloud = None
+        if self.depth_frames is not None and self.backend_stage.wants_cloud(i):
+            frame = self.depth_frames[i]
+            k = frame.intrinsics
+            cloud = self.backend_stage.closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy,
+                                                               k.cx, k.cy, self.dynamic)
+        self.done = self.backend_stage.step(self.odo, self.obs_msg, cloud)
+        self.backend_ms.append(self.done.update_ms + (self.done.loop_closure_ms or 0.0))
+
+    def associator_corrected(self) -> None:
+        """The backend's answer for the frame: the associator applies it and completes the held frame."""
+        held = self.associator_stage.corrected(self.done.message(ROBOT, self.seq, self.det.frame_id))
+        assert held is not None and held[0] is self.det
+        t0 = time.perf_counter()
+        self.completed, _ = self.associator_stage.complete(self.det.frame_id, self.det.stamp, held[1])
+        self.mapper_ms[-1] += (time.perf_counter() - t0) * 1e3
+
+    def tracker_moving(self) -> None:
+        """The frame's map update: the tracklets the associator saw moving."""
+        self.tracker_stage.saw_moving(self.completed.moving_tracks)
+
+    def result(self, t_start: float) -> LoopResult:
+        graph, associator, front = self.backend_stage.graph, self.associator_stage, self.front
+        _, stamps, corrected = graph.corrected_poses()
+        optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
+        gt = [(s, g) for s, g in zip(self.rec.stamps, self.rec.gt, strict=True) if g is not None]
+        landmarks = associator.mapper.landmarks()
+        slam = getattr(front, "slam_trajectory", None)
+        if (close := getattr(front, "close", None)) is not None:
+            close()
+        return LoopResult(
+            ate_odometry=ate_rmse(gt, self.odo_traj), ate_optimized=ate_rmse(gt, optimized), landmarks=len(landmarks),
+            observations=self.n_obs, observation_factors=graph.counters["observation_factors"],
+            graph_landmarks=graph.num_landmarks, merges=self.n_merges, frames=len(self.rec.detections),
+            wall_s=time.perf_counter() - t_start, classes=dict(Counter(lm.class_name for lm in landmarks)),
+            mapper=associator.mapper, optimized=optimized, odometry=self.odo_traj,
+            frontend_counters=dict(getattr(front, "counters", {})),
+            ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None, slam_trajectory=list(slam or []),
+            mapper_ms_p50=float(np.median(self.mapper_ms)) if self.mapper_ms else 0.0,
+            loop_closures=dict(self.backend_stage.closer.counters),
+            graph_counters={**graph.counters, **associator.revisits.counters()},
+            backend_ms_p50=float(np.median(self.backend_ms)) if self.backend_ms else 0.0, associator=associator)
+
+
 def run_loop(
     rec: Recording,
     config: Config,
@@ -358,108 +488,17 @@ def run_loop(
     depth_frames=None,
     prior_map: Path | None = None,
 ) -> LoopResult:  # noqa: ANN001 - a semmap Dataset
-    """The pipeline's stages in lockstep order (see module docstring) over a recording. `depth_frames` (the
-    dataset) feeds the backend's loop closer with keyframe depth, as the frames key does in the services;
-    `prior_map` (a map.sqlite) is the map the session starts from."""
+    """The pipeline's stages in lockstep order (`LockstepDriver`) over a recording. `depth_frames` (the dataset)
+    feeds the backend's loop closer with keyframe depth, as the frames key does in the services; `prior_map` (a
+    map.sqlite) is the map the session starts from."""
     t_start = time.perf_counter()
-    front = make_frontend(odometry, config.odometry)  # with cached poses only for what it declares
-    keyframe_every = config.odometry.keyframe_every
-    # a session in a frame of its own (`odometry.frame_offset`), as the odometry service expresses its poses
-    offset = frame_offset(config.odometry.frame_offset)
-    to_session = None if np.array_equal(offset, np.eye(4)) else np.linalg.inv(offset)
-    # the sections each service reads (semmap/services/*/service.py)
-    tracker = TrackerStage(config.tracker, dynamic_classes=config.associator.dynamic_classes)
-    associator, backend = prior_stages(config, prior_map)
-    n_obs = n_merges = 0
-    odo_traj = []
-    mapper_ms, backend_ms = [], []
+    driver = LockstepDriver(rec, config, odometry, odometry_poses, depth_frames, prior_map)
     for seq, det in enumerate(rec.detections, start=1):
-        i, stamp = det.frame_id, det.stamp
-        # tracker (it needs only detections; the `rgbd` odometry waits for its dynamic objects, as in lockstep)
-        out = tracker.step(det)
-        dynamic = tracker.dynamic_objects(det, out)
-        # odometry
-        if odometry_poses is not None:
-            pose = np.asarray(odometry_poses[i], dtype=np.float64)
-        else:
-            data = OdometryInput(i, stamp, rec.gt[i], depth_scale=det.depth_scale, intrinsics=det.intrinsics.matrix)
-            if front.needs_images:
-                if depth_frames is None:
-                    raise ValueError(f"odometry {odometry} needs the recording's images (depth_frames)")
-                frame = on_the_wire(frame_message(ROBOT, depth_frames[i]))
-                data.rgb, data.depth = frame.rgb(), frame.depth()
-            if front.uses_dynamic:
-                data.dynamic = dynamic
-            pose = front.estimate(data)
-        if to_session is not None:
-            pose = to_session @ pose
-        odo = odometry_message(front, i, stamp, pose, i % keyframe_every == 0, odometry, odometry_poses is None)
-        odo_traj.append((stamp, pose.copy()))
-        associator.odometry(i, odo.pose)
-        # associator (with the prior map's relocalisation and statuses, when there is one)
-        associator.saw_stamp(stamp)
-        t0 = time.perf_counter()
-        boxes = None if det.skipped else out.boxes
-        step = associator.process(i, stamp, out.candidates, out.ended, boxes)
-        mapper_ms.append((time.perf_counter() - t0) * 1e3)
-        step = associator.prior_step(i, stamp, boxes, step).step
-        obs_msg = associator.observations(ROBOT, i, stamp, step)
-        n_obs += len(step.observations)
-        n_merges += len(obs_msg.merges)
-        associator.hold(det, step)
-        # backend
-        cloud = None
-        if depth_frames is not None and backend.wants_cloud(i):
-            frame = depth_frames[i]
-            k = frame.intrinsics
-            cloud = backend.closer.cloud_from_depth(i, stamp, frame.depth, frame.depth_scale, k.fx, k.fy, k.cx, k.cy,
-                                                    dynamic)
-        done = backend.step(odo, obs_msg, cloud)
-        backend_ms.append(done.update_ms + (done.loop_closure_ms or 0.0))
-        # associator, after the backend's answer
-        held = associator.corrected(done.message(ROBOT, seq, i))
-        assert held is not None and held[0] is det
-        t0 = time.perf_counter()
-        completed, _ = associator.complete(i, stamp, held[1])
-        tracker.saw_moving(completed.moving_tracks)  # (the map update the tracker service listens to)
-        mapper_ms[-1] += (time.perf_counter() - t0) * 1e3
-        if verbose and (i + 1) % 100 == 0:
-            print(
-                f"  frame {i + 1}: {len(associator.mapper.landmarks())} landmarks, {n_obs} observations "
-                f"({time.perf_counter() - t_start:.0f} s)",
-                file=sys.stderr,
-            )
-    graph = backend.graph
-    ids, stamps, corrected = graph.corrected_poses()
-    optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
-    gt = [(s, g) for s, g in zip(rec.stamps, rec.gt, strict=True) if g is not None]
-    landmarks = associator.mapper.landmarks()
-    slam = getattr(front, "slam_trajectory", None)
-    if (close := getattr(front, "close", None)) is not None:
-        close()
-    return LoopResult(
-        ate_odometry=ate_rmse(gt, odo_traj),
-        ate_optimized=ate_rmse(gt, optimized),
-        landmarks=len(landmarks),
-        observations=n_obs,
-        observation_factors=graph.counters["observation_factors"],
-        graph_landmarks=graph.num_landmarks,
-        merges=n_merges,
-        frames=len(rec.detections),
-        wall_s=time.perf_counter() - t_start,
-        classes=dict(Counter(lm.class_name for lm in landmarks)),
-        mapper=associator.mapper,
-        optimized=optimized,
-        odometry=odo_traj,
-        frontend_counters=dict(getattr(front, "counters", {})),
-        ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None,
-        slam_trajectory=list(slam or []),
-        mapper_ms_p50=float(np.median(mapper_ms)) if mapper_ms else 0.0,
-        loop_closures=dict(backend.closer.counters),
-        graph_counters={**graph.counters, **associator.revisits.counters()},
-        backend_ms_p50=float(np.median(backend_ms)) if backend_ms else 0.0,
-        associator=associator,
-    )
+        driver.run_frame(seq, det)
+        if verbose and (det.frame_id + 1) % 100 == 0:
+            print(f"  frame {det.frame_id + 1}: {len(driver.associator_stage.mapper.landmarks())} landmarks, "
+                  f"{driver.n_obs} observations ({time.perf_counter() - t_start:.0f} s)", file=sys.stderr)
+    return driver.result(t_start)
 
 
 def closed_loop(

@@ -183,6 +183,7 @@ class Service:
     """Base class of a service process. Subclasses set `name`, implement `setup()` and message handlers."""
 
     name = "service"
+    lockstep = True  # (the run's mode, set per instance: lockstep, or real time)
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
@@ -245,6 +246,26 @@ class Service:
         """Called on every loop turn (at least every `idle_timeout_s`): for services that produce on a clock."""
 
     # -- helpers for subclasses -------------------------------------------------------------------------------
+    def subscribe(self) -> None:
+        """Listen to what semmap/core/dataflow.py declares for this node: each port's topic, with the message class
+        the table gives the topic, to the handler the port names (the table is what runs: a subscription no table
+        declares cannot exist). A port whose `when` names an attribute that is false here is left out (an input
+        only some configurations need); `listen_options` adds what a port needs beyond that (real-time queues)."""
+        for port in dataflow.node(self.name).ports:
+            if port.when and not getattr(self, port.when):
+                continue
+            self.listen(self.bus.keys.key(port.topic), dataflow.message_class(port.topic),
+                        getattr(self, port.handler), **self.listen_options(port.topic))
+
+    def listen_options(self, topic: str) -> dict[str, Any]:
+        """More for one port's `listen` (`realtime_capacity`, `wanted`, `prepare`); none by default."""
+        return {}
+
+    def open_outputs(self) -> dict[str, Publisher]:
+        """A publisher for every topic the dataflow table lets this node write, by topic (`self.out`)."""
+        self.out = {topic: self.publisher(self.bus.keys.key(topic)) for topic in dataflow.node(self.name).outputs}
+        return self.out
+
     def listen(self, key: str, kind: type[M], handler: Callable[[M], None],
                realtime_capacity: int | None = None, wanted: Callable[[int], bool] | None = None,
                prepare: Callable[[M], object] | None = None) -> None:

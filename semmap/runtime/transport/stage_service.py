@@ -93,9 +93,6 @@ class StageService(Service):
         if self.journal is not None:
             self.journal.clear()
 
-    def subscribe(self) -> None:
-        """Declare the inputs (`self.listen`); the per-frame one hands its messages to `receive`."""
-
     def restored(self) -> None:
         """Once subscribed: what a restarted service still has to do (e.g. handle journalled inputs again)."""
 

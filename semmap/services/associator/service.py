@@ -73,9 +73,7 @@ class AssociatorService(StageService):
         self.journal_seq = 0  # the last journalled input the saved map includes
         if self.args.prior_map is not None:
             self._load_prior(self.args.prior_map)
-        self.obs_pub = self.publisher(self.bus.keys.observations)
-        self.tags_pub = self.publisher(self.bus.keys.landmark_tags)
-        self.map_pub = self.publisher(self.bus.keys.map_updates)
+        self.open_outputs()
 
     def resuming(self) -> bool:
         return self.store is not None and bool(self.resume or self.args.map_db)
@@ -88,14 +86,12 @@ class AssociatorService(StageService):
     def subscribe(self) -> None:
         self.snapshot = self.stage.landmarks()
         self._queryable = self.bus.session.declare_queryable(self.bus.keys.map_query, self._on_query)
-        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
-        self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
-        self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
+        super().subscribe()
 
     def restored(self) -> None:
         self._replay_journal()
         if self.stage.awaiting is not None:  # the replay ended on a frame held for the backend, which may never
-            self.obs_pub.put(self._awaited_observations)  # have got its observations: they go (again) now
+            self.out["observations"].put(self._awaited_observations)  # have got its observations: they go (again) now
         if self.snapshot:
             self._publish_map(MapperStep(), self.last_frame_id, 0.0, full=True)
 
@@ -176,7 +172,7 @@ class AssociatorService(StageService):
         if self.muted:  # (a resent frame, journalled: it changed nothing then either)
             return
         if self.stage.awaiting is not None and self.stage.awaiting[0].frame_id == tracks.frame_id:
-            self.obs_pub.put(self._awaited_observations)  # the backend may have lost them
+            self.out["observations"].put(self._awaited_observations)  # the backend may have lost them
         elif (not any(t.frame_id == tracks.frame_id for t in self.ready) and not self.replay(tracks.frame_id)
               and tracks.frame_id <= self.completed_frame):
             # completed before a crash (it is in the saved map) but its progress may have died with the
@@ -234,9 +230,9 @@ class AssociatorService(StageService):
         self.metrics.count("observations", len(step.observations))
         observations = self.stage.observations(self.robot, tracks.frame_id, tracks.stamp, step)
         self._awaited_observations = observations
-        self.emit(self.obs_pub, observations, tracks.frame_id)
+        self.emit(self.out["observations"], observations, tracks.frame_id)
         if step.observations:
-            self.emit(self.tags_pub, TagDetections(self.robot, tracks.frame_id, tracks.stamp,
+            self.emit(self.out["observations/tags"], TagDetections(self.robot, tracks.frame_id, tracks.stamp,
                                                    [TagDetection.from_observation(o) for o in step.observations]),
                       tracks.frame_id)
         # (replaying the journal too: the backend's answer comes from the journal, where it came before)
@@ -267,10 +263,10 @@ class AssociatorService(StageService):
         timing = dict(step.timing_ms)
         if refine_ms:
             timing["refine"] = refine_ms
-        self.emit(self.map_pub, MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed,
-                                          step.merges, full, step.rejected, timing, frame_sent_at,
-                                          moved=list(step.moved), moving_tracks=list(step.moving_tracks)),
-                  max(frame_id, 0))
+        update = MapUpdate(self.robot, self.map_seq, max(frame_id, 0), stamp, landmarks, step.removed, step.merges,
+                           full, step.rejected, timing, frame_sent_at, moved=list(step.moved),
+                           moving_tracks=list(step.moving_tracks))
+        self.emit(self.out["map/updates"], update, max(frame_id, 0))
         for lid in step.moved:
             self.log.info("retired landmark %d: its object moved: %s", lid, step.moved_why.get(lid, "(no evidence)"))
         self.metrics.count("landmarks_retired_moving", len(step.moved))

@@ -71,7 +71,7 @@ class BackendService(StageService):
         # lockstep, a tracker running: a keyframe's cloud waits for its boxes (real time: what is here by then)
         self.await_dynamic = (self.mask_dynamic and self.lockstep
                               and bool(getattr(self.args, "await_keyframe_dynamic", False)))
-        self.pub = self.publisher(self.bus.keys.corrected_poses)
+        self.open_outputs()
         self.observations: dict[int, Observations] = {}
         self.ready_odometry: list[OdometryPose] = []
         self.seq = 0
@@ -79,14 +79,20 @@ class BackendService(StageService):
         self.write_odometry = bool(getattr(self.args, "write_odometry", False))
         self.input_trajectory: list[tuple[float, object]] = []  # only then: it grows with every frame
 
-    def subscribe(self) -> None:
-        self.listen(self.bus.keys.odometry, OdometryPose, self.receive)
-        self.listen(self.bus.keys.observations, Observations, self.on_observations)
-        if self.closer.params.enabled:
-            self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=REALTIME_FRAME_QUEUE,
-                        wanted=lambda fid: self.closer.wants(fid))  # keyframes only: the rest pass unread
-            if self.mask_dynamic:
-                self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
+    @property
+    def takes_keyframes(self) -> bool:
+        """Loop closures register keyframes' depth: the frames port (semmap/core/dataflow.py) is wired."""
+        return bool(self.closer.params.enabled)
+
+    @property
+    def masks_keyframes(self) -> bool:
+        """... and leave their dynamic objects out: the dynamic port too."""
+        return self.takes_keyframes and bool(self.mask_dynamic)
+
+    def listen_options(self, topic: str) -> dict:
+        if topic == "frames":  # keyframes only: the rest pass unread
+            return {"realtime_capacity": REALTIME_FRAME_QUEUE, "wanted": lambda fid: self.closer.wants(fid)}
+        return {}
 
     def _load_prior_keyframes(self, map_db: Path) -> None:
         """The prior run's keyframes, to register this session's to once it has relocalised."""
@@ -227,7 +233,7 @@ class BackendService(StageService):
             self.metrics.count("observations", len(obs.observations))
             # journalled after the frame's closure (its extra): a frame journalled is a frame complete, so a crash
             # in between loses no closure; one before it means the frame is handled again
-            self.complete_frame(pose.frame_id, [(self.pub, message)], (pose.encode(), obs.encode()))
+            self.complete_frame(pose.frame_id, [(self.out["poses/corrected"], message)], (pose.encode(), obs.encode()))
         # observations for frames before the oldest pose still waiting (or, none waiting, before the last pose
         # handled) can never be joined: their pose never came or was given up. (Not before the next pose expected:
         # poses run ahead of observations, and the observations of poses already queued must stay.)
@@ -316,7 +322,8 @@ class BackendService(StageService):
             # the old process may have journalled its last frame and died before that frame's correction left:
             # the associator sends the frame's observations again and must get it (the same message: the same
             # delta, not the whole trajectory, which would hand it poses the clean run never sent)
-            self.remember(self.pub, step.message(self.robot, self.seq, self.last_frame_id, {}), self.last_frame_id)
+            message = step.message(self.robot, self.seq, self.last_frame_id, {})
+            self.remember(self.out["poses/corrected"], message, self.last_frame_id)
             self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
 
     def tick(self) -> None:

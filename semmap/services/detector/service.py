@@ -80,7 +80,7 @@ class DetectorService(Service):
         if model is not None:
             self.log.info("%s detector on %s, every %d frame(s)", self.kind,
                           ", ".join(getattr(self.detector, "providers", [])), self.every_n)
-        self.pub = self.publisher(self.bus.keys.detections)
+        self.open_outputs()
         # replica membership from liveliness tokens
         self._members: set[str] = {self.instance}
         self._members_lock = threading.Lock()
@@ -103,12 +103,14 @@ class DetectorService(Service):
         self._last_frame: Frame | None = None
         self._eos_since: float | None = None
         # only our share reaches the queue: another replica's frame would take the place of the newest of ours
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=max(1, int(cfg.queue)),
-                    wanted=self._ours)
+        self.subscribe()
         deadline = time.monotonic() + 5.0
         while time.monotonic() - self._members_changed < MEMBERSHIP_SETTLE_S and time.monotonic() < deadline:
             time.sleep(0.05)
         self.log.info("replica %d of %d", *self._rank())
+
+    def listen_options(self, topic: str) -> dict:
+        return {"realtime_capacity": max(1, int(self.cfg.queue)), "wanted": self._ours} if topic == "frames" else {}
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -173,7 +175,7 @@ class DetectorService(Service):
         self.metrics.count("depth_gated", len(boxes) - len(detections))
         queue_ms = max(0.0, (started - frame.sent_at) * 1e3) if frame.sent_at else 0.0
         self.metrics.time_ms("queue_ms", queue_ms)
-        self.pub.put(
+        self.out["detections"].put(
             Detections(
                 self.robot,
                 frame.frame_id,
@@ -208,7 +210,7 @@ class DetectorService(Service):
     def _publish_skip(self, frame: Frame, frame_id: int, reason: str) -> None:
         self.metrics.count(f"frames_{reason}")
         stamp = frame.stamp if frame_id == frame.frame_id else -1.0
-        self.pub.put(
+        self.out["detections"].put(
             Detections(
                 self.robot,
                 frame_id,

@@ -46,7 +46,7 @@ class OdometryService(StageService):
         self.to_session = np.linalg.inv(frame_offset(cfg.frame_offset))
         self.keyframe_every = cfg.keyframe_every
         self.trajectory: list[tuple[float, object]] = []
-        self.pose_pub = self.publisher(self.bus.keys.odometry)
+        self.open_outputs()
         self.dynamic: dict[int, DynamicObjects] = {}  # recent frames' dynamic objects by frame id
         self.await_dynamic = self.frontend.uses_dynamic and self.lockstep and bool(self.args.await_dynamic)
         self.dynamic_wait_s = cfg.dynamic_wait_s
@@ -55,17 +55,24 @@ class OdometryService(StageService):
         self.slam: dict[int, OdometryPose] = {}
         self.await_slam = self.frontend.needs_slam and self.lockstep
 
-    def subscribe(self) -> None:
-        if self.frontend.uses_dynamic:
-            self.listen(self.bus.keys.dynamic, DynamicObjects, self.on_dynamic)
-        if self.frontend.needs_slam:
-            self.listen(self.bus.keys.slam, OdometryPose, self.on_slam)
+    @property
+    def uses_dynamic(self) -> bool:
+        """The front end leaves dynamic objects out: the dynamic port (semmap/core/dataflow.py) is wired."""
+        return self.frontend.uses_dynamic
+
+    @property
+    def needs_slam(self) -> bool:
+        """The front end checks an external SLAM's poses: the slam port is wired."""
+        return self.frontend.needs_slam
+
+    def listen_options(self, topic: str) -> dict:
+        if topic != "frames":
+            return {}
         # real time: every frame, a second of them queued through a stall (a SLAM that misses frames of a hand-held
         # camera loses track); a front end slower than the video for longer skips to newer frames (counted)
         self.frames_stream = f"{self.bus.keys.frames}#{Frame.SCHEMA}"  # (the inbox's name for it: Service.listen)
-        self.listen(self.bus.keys.frames, Frame, self.receive,
-                    realtime_capacity=max(1, round(self.config.odometry.realtime_queue_s * 30)),
-                    prepare=_decode if self.frontend.needs_images else None)
+        return {"realtime_capacity": max(1, round(self.config.odometry.realtime_queue_s * 30)),
+                "prepare": _decode if self.frontend.needs_images else None}
 
     def on_dynamic(self, message: DynamicObjects) -> None:
         if message.frame_id <= self.last_frame_id:
@@ -145,7 +152,7 @@ class OdometryService(StageService):
                                step=str(getattr(self.frontend, "step_source", "")))
         self.trajectory.append((frame.stamp, pose))
         self.metrics.count("poses_published")
-        self.complete_frame(frame.frame_id, [(self.pose_pub, message)],
+        self.complete_frame(frame.frame_id, [(self.out["odometry"], message)],
                             (message.encode(), msgpack.packb(self.frontend.state())))
 
     def restore(self) -> None:
@@ -159,7 +166,7 @@ class OdometryService(StageService):
             self.trajectory.append((pose.stamp, pose.pose))
             self.resume_after(frame_id)
             state = state_bytes
-        self.remember_newest(self.pose_pub, OdometryPose.decode)
+        self.remember_newest(self.out["odometry"], OdometryPose.decode)
         if state is not None:
             self.frontend.restore(msgpack.unpackb(state))
             self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))

@@ -77,11 +77,9 @@ class PlayerService(Service):
             self.log.info("resuming at frame %d", self.next_index)
         self.started_at: float | None = None
         self.waiting_since = time.monotonic()
-        self.frames_pub = self.publisher(self.bus.keys.frames)
-        self.control_pub = self.publisher(self.bus.keys.control)
-        if self.lockstep:  # only lockstep paces the frames by the services' progress (real time: the clock)
-            self.listen(self.bus.keys.progress_all, Progress, self._on_progress)
-        self.listen(self.bus.keys.status_all, ServiceStatus, self._on_status)
+        self.open_outputs()
+        # (progress only in lockstep, which paces the frames by the services' progress; real time: the clock)
+        self.subscribe()
         self.idle_timeout_s = 0.002
         self.log.info("playing %s: %d frames at %.1f Hz, %s", self.dataset.name, self.total, self.dataset.rate_hz,
                       "lockstep" if self.lockstep else f"real time x{self.speed:g}")
@@ -126,7 +124,7 @@ class PlayerService(Service):
             missing = [n for n, c in self.start_after.items() if len(self.running[n]) < c]
             self.fail(f"services not up after {self.start_timeout_s:.0f} s: {', '.join(missing)}")
             return False
-        return ready and (not self.start_after or self.frames_pub.matching())
+        return ready and (not self.start_after or self.out["frames"].matching())
 
     def _lockstep_done(self) -> int:
         """The newest frame every waited-for service has finished."""
@@ -140,7 +138,7 @@ class PlayerService(Service):
             # the big last frame otherwise); real time: right away, services give late frames a grace period
             if not self.lockstep or self._lockstep_done() >= self.last_frame_id:
                 # (the last frame sent: an unreadable last frame never comes)
-                self.control_pub.put(Control(self.robot, "end_of_stream", self.last_frame_id, self.total))
+                self.out["control"].put(Control(self.robot, "end_of_stream", self.last_frame_id, self.total))
                 self.log.info("end of stream after %d frames", self.total)
                 self.finish()
             elif self._frame_clock() > self.frame_timeout_s:
@@ -191,11 +189,11 @@ class PlayerService(Service):
             self.metrics.count("frames_unreadable")
             self.skipped[index] = str(exc)
             self.log.warning("frame %d skipped: %s", index, exc)
-            self.control_pub.put(Control(self.robot, "frame_unreadable", index, self.total))
+            self.out["control"].put(Control(self.robot, "frame_unreadable", index, self.total))
             return
         self.last_sent = time.monotonic()
         with self.metrics.timer("publish_ms"):
-            self.frames_pub.put(message)
+            self.out["frames"].put(message)
         self.last_message = message
         self.metrics.count("frames_published")
         self.last_frame_id = index
@@ -204,7 +202,7 @@ class PlayerService(Service):
         """Publish the newest frame again, as it was (no counters moved but the republish count)."""
         self.last_sent = time.monotonic()
         if self.last_message is not None:
-            self.frames_pub.put(self.last_message)
+            self.out["frames"].put(self.last_message)
 
     def _frame(self, index: int) -> FrameData:
         """Frame `index` of the (possibly looped) stream: later loops continue the ids and the clock."""

@@ -461,9 +461,9 @@ def ros_pose(matrix: np.ndarray) -> Any:
 
 
 class _BridgeNodeMethods:
-    """The bridge node's methods: subscriptions, matching, the Zenoh link and the outputs (see the module
-    docstring). A plain class, so that rclpy is imported only when the node class is made (`_make_node_class`
-    joins it with rclpy's Node)."""
+    """The bridge node's input side: its parameters, subscriptions, matching, the Zenoh link to semmap and its
+    status (see the module docstring). A plain class, so that rclpy is imported only when the node class is made
+    (`_make_node_class` joins it with `_BridgeOutputs` and rclpy's Node)."""
 
     def __init__(self, client: Any) -> None:
         super().__init__("semmap_bridge")  # (rclpy's Node, after this class in the node class's bases)
@@ -651,7 +651,12 @@ class _BridgeNodeMethods:
         lost.pop("total", None)
         return {**lost, "total": sum(lost.values())}
 
-    # -- outputs -----------------------------------------------------------------------------------------
+
+
+class _BridgeOutputs:
+    """The bridge node's output side: what semmap sends back (map updates, corrected poses, dynamic objects,
+    landmark observations) as ROS 2 messages, published from the node's timer and Zenoh threads under its lock."""
+
     def _frame_id(self) -> str:
         return str(self.params["map_frame"]) or self.sync.world_frame or "map"
 
@@ -854,7 +859,7 @@ class _BridgeNodeMethods:
 def _make_node_class() -> type:
     """The node class (rclpy's Node with the bridge's methods), made here so that rclpy and the message packages
     are imported only by the bridge."""
-    return type("_BridgeNode", (_BridgeNodeMethods, _ros().Node), {})
+    return type("_BridgeNode", (_BridgeNodeMethods, _BridgeOutputs, _ros().Node), {})
 
 
 def main(argv: list[str] | None = None) -> int:

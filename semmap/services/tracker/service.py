@@ -46,12 +46,7 @@ class TrackerService(StageService):
         self.stage = TrackerStage(self.params, first_track_id=first_id,
                                   dynamic_classes=self.config.associator.dynamic_classes)
         self._last_detected_stamp: float | None = None  # for the run's detection cadence (`detect_interval_ms`)
-        self.pub = self.publisher(self.bus.keys.tracks)
-        self.dynamic_pub = self.publisher(self.bus.keys.dynamic)
-
-    def subscribe(self) -> None:
-        self.listen(self.bus.keys.detections, Detections, self.receive)
-        self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map_update)
+        self.open_outputs()
 
     @property
     def tracker(self) -> IouTracker:
@@ -68,7 +63,7 @@ class TrackerService(StageService):
         rows = self.journal.last(1)
         if not rows:
             return
-        self.remember_newest(self.pub, Tracks.decode)
+        self.remember_newest(self.out["tracks"], Tracks.decode)
         frame_id, _, state, _ = rows[-1]
         self.stage.restore(msgpack.unpackb(state))
         self.resume_after(frame_id)
@@ -89,7 +84,7 @@ class TrackerService(StageService):
         tracks = Tracks(self.robot, det.frame_id, det.stamp, out.candidates, out.ended, out.boxes, det.skipped,
                         {"proposal": timer.ms, **det.timing_ms}, det.frame_sent_at)
         dynamic = DynamicObjects(self.robot, det.frame_id, det.stamp, boxes, det.skipped)
-        self.complete_frame(det.frame_id, [(self.dynamic_pub, dynamic), (self.pub, tracks)],
+        self.complete_frame(det.frame_id, [(self.out["dynamic"], dynamic), (self.out["tracks"], tracks)],
                             (tracks.encode(), msgpack.packb(self.stage.state())))
 
 

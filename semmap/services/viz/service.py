@@ -274,13 +274,11 @@ class VizService(Service):
         self.rejected: set[int] = set()  # track ids of rejected candidates
         self.timings = TimingColumns()
         self.timings_sent_at = time.monotonic()
-        self.listen(self.bus.keys.frames, Frame, self.on_frame, realtime_capacity=8)
-        self.listen(self.bus.keys.odometry, OdometryPose, self.on_odometry)
-        self.listen(self.bus.keys.detections, Detections, self.on_detections)
-        self.listen(self.bus.keys.tracks, Tracks, self.on_tracks)
-        self.listen(self.bus.keys.map_updates, MapUpdate, self.on_map)
-        self.listen(self.bus.keys.corrected_poses, CorrectedPoses, self.on_corrected)
+        self.subscribe()
         self._load_current_map()
+
+    def listen_options(self, topic: str) -> dict:
+        return {"realtime_capacity": 8} if topic == "frames" else {}
 
     def _load_current_map(self) -> None:
         """Start from the map as it is (a sink started late or restarted would see only later changes)."""
