@@ -63,6 +63,28 @@ def router():
     r.close()
 
 
+# What makes a test an integration test: it starts processes or opens a bus, a DDS participant or a container
+# (a fixture of those, or a module that reaches for them). The rest are unit tests: `pytest -m unit`, in minutes.
+INTEGRATION_FIXTURES = {"router", "semmap_run", "kitchen_gt_run", "kitchen_drift_run", "read_stats"}
+INTEGRATION_SOURCE = ("subprocess", "zenoh.open", "Bus(", "rclpy", "podman", "multiprocessing", "semmap_run",
+                      "service_main", "Router(", "ros_nodes")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark every test `unit` or `integration`, from what it uses: decided here, from the test's fixtures and its
+    module's source, so that no test can be left out of both or put in the wrong one by hand."""
+    sources: dict[Path, str] = {}
+    for item in items:
+        path = Path(str(item.fspath))
+        if path not in sources:
+            sources[path] = path.read_text() if path.is_file() else ""
+        fixtures = set(getattr(item, "fixturenames", ()))
+        if fixtures & INTEGRATION_FIXTURES or any(word in sources[path] for word in INTEGRATION_SOURCE):
+            item.add_marker(pytest.mark.integration)
+        else:
+            item.add_marker(pytest.mark.unit)
+
+
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """`needs_data` / `needs_model` tests skip, with the reason, where the data or the model is absent."""
     if item.get_closest_marker("needs_data") and find_data_root() is None:
