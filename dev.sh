@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # semmap developer entry point. On a fresh Debian 12 machine with Python 3.11:
 #   ./dev.sh demo   set everything up, then run the pipeline on the built-in synthetic scene (out/demo)
+#   ./dev.sh unit   set everything up, then run the unit tests only (one process each; minutes)
 #   ./dev.sh test   set everything up, then run the test suite, slow tests included (what CI runs);
 #                   extra arguments go to pytest (docs/TESTING.md: which command runs what, and how long)
 #   ./dev.sh repeat N [pytest args]   run the tests N times in a row, stop at the first failure (flake catcher;
@@ -195,9 +196,10 @@ case "$cmd" in
   setup) setup ;;
   demo) setup; exec .venv/bin/semmap run synthetic --out out/demo "$@" ;;
   test) setup; pytest_run -m "$TEST_MARKERS" "$@" ;;
+  unit) setup; pytest_run -m unit "$@" ;;
   repeat)
     case "${1:-}" in ''|*[!0-9]*|0) echo "usage: ./dev.sh repeat N [pytest args]" >&2; exit 2 ;; esac
     setup; repeat "$@" ;;
   container-base) container_base ;;
-  *) sed -n '2,10p' "$0"; exit 2 ;;
+  *) sed -n '2,11p' "$0"; exit 2 ;;
 esac
