@@ -34,7 +34,8 @@ sys.path.insert(0, str(PROJECT))
 NODES = PROJECT / "tests" / "ros2" / "ros_nodes.py"
 
 
-def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, work: Path) -> dict:
+def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, work: Path,
+             odometry: list[str]) -> dict:
     import zenoh
 
     from semmap.runtime.orchestrator import free_loopback_port
@@ -73,7 +74,7 @@ def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, 
     started = time.monotonic()
     try:
         zenoh_args = ["--connect", endpoint, "--zenoh-mode", "client"]
-        start("run", [*cli, "run", "external", "--out", str(out), "--no-viz", "--quiet", *zenoh_args])
+        start("run", [*cli, "run", "external", "--out", str(out), "--no-viz", "--quiet", *odometry, *zenoh_args])
         bridge = [*cli, "ros2", *zenoh_args] + (["--no-fastdds-profile"] if config == "default" else [])
         params = ["end_after_idle_s:=3.0"] + (["lockstep:=true", "reliable_input:=true"] if lockstep else [])
         bridge += ["--ros-args", "-r", "/odom:=/slam/odom", *[x for p in params for x in ("-p", p)]]
@@ -103,7 +104,10 @@ def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, 
     status = json.loads(listened.read_text())["status"] or {}
     stats = json.loads((out / "stats.json").read_text())
     landmarks = json.loads((out / "map.json").read_text())["landmarks"] if (out / "map.json").exists() else []
+    front = [s.get("counters", {}) for s in stats.get("services", {}).values() if s.get("service") == "odometry"]
+    posed = sum(int(c.get("poses_published", 0)) - int(c.get("poses_bridged", 0)) for c in front) if front else None
     return {
+        "front_end_posed": posed,
         "config": config,
         "camera": json.loads(sent.read_text()),
         "received": status.get("received", {}),
@@ -125,6 +129,12 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=PROJECT.parent / "shared" / "data" / "7scenes-redkitchen")
     parser.add_argument("--configs", default="profile,default")
     parser.add_argument("--lockstep", action="store_true")
+    parser.add_argument("--odometry", default="", help="orbslam3 or rgbd: semmap poses the camera's frames itself "
+                        "(`semmap run external --odometry orbslam3`); default: the camera's own odometry")
+    parser.add_argument("--realtime", action="store_true", help="`semmap run external --realtime`: keep up with the "
+                        "camera, dropping what it cannot (counted), instead of queueing every frame")
+    parser.add_argument("--vocabulary", default="", help="with --odometry orbslam3: the ORB vocabulary (default: "
+                        "the model directory's orbvoc.txt)")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     parser.add_argument("--keep", type=Path, default=None, help="keep each configuration's run and logs here")
     args = parser.parse_args()
@@ -133,7 +143,11 @@ def main() -> int:
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_ros2_") as tmp:
         for config in args.configs.split(","):
-            r = _session(args.data, args.frames, args.rate, config, args.lockstep, (args.keep or Path(tmp)) / config)
+            odometry = (["--odometry", args.odometry] if args.odometry else []) + (
+                ["--realtime"] if args.realtime else []) + (
+                ["--set", f"odometry.orbslam3_vocabulary={args.vocabulary}"] if args.vocabulary else [])
+            r = _session(args.data, args.frames, args.rate, config, args.lockstep, (args.keep or Path(tmp)) / config,
+                         odometry)
             results.append(r)
             rec = r["received"]
             print(
@@ -141,7 +155,9 @@ def main() -> int:
                 f"colour {rec.get('colour', 0)}, depth {rec.get('depth', 0)}, pose {rec.get('pose', 0)}; "
                 f"sent to semmap {r['frames_sent_to_semmap']}; processed {r['processed']}; "
                 f"landmarks {r['landmarks']} ({', '.join(r['classes'])}); lost {json.dumps(r['lost'])}; "
-                f"{r['wall_s']} s",
+                + (f"front end posed {r['front_end_posed']} ({r['front_end_posed'] / max(1, r['processed']):.0%} of "
+                   "the frames that arrived); " if r["front_end_posed"] is not None else "")
+                + f"{r['wall_s']} s",
                 flush=True,
             )
     if args.json:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from semmap.core import dataflow, environment
+from semmap.core.dataflow import OWN_FRONT_ENDS
 
 if TYPE_CHECKING:
     from semmap.core.config import Config
@@ -25,12 +26,14 @@ def pipeline_specs(data: str, config: Config, detectors: int, viz: bool, only: l
                    serve: bool = False, prior_map: Path | None = None, check_slam: bool = False) -> list:
     """What `semmap run` starts: every stage (or `only` these), the detector `detectors` times, the Rerun sink
     unless disabled. An external run has no odometry service, unless it checks the SLAM's poses (`check_slam`:
-    the odometry service repairs what the SLAM publishes on the `slam` key). The wiring (which stage waits for
+    the odometry service repairs what the SLAM publishes on the `slam` key) or poses the frames itself
+    (`--odometry orbslam3` or `rgbd`: the robot's own poses are then not sent). The wiring (which stage waits for
     which, who lockstep playback waits for) is the dataflow's; the flags added here are this run's options."""
     from semmap.runtime.orchestrator import ServiceSpec
 
+    own_front_end = data == "external" and config.odometry.mode in OWN_FRONT_ENDS  # (it poses the frames itself)
     chosen = [n for n in PIPELINE if (only is None or n in only)
-              and not (data == "external" and n == "odometry" and not check_slam)]
+              and not (data == "external" and n == "odometry" and not (check_slam or own_front_end))]
     if not (viz and config.viz.enabled):
         chosen = [n for n in chosen if n != "viz"]
     specs = []
@@ -183,6 +186,21 @@ def preflight(args: argparse.Namespace) -> Preflight | int:
     if args.data != "external":
         chosen, odometry_line = choose_odometry(config, synthetic=special, data=args.data)
         overrides += chosen
+    elif config.odometry.mode in OWN_FRONT_ENDS:  # (a camera's frames posed by semmap's own front end)
+        if args.check_slam:
+            print("error: --check-slam checks the SLAM's own poses; --odometry "
+                  f"{config.odometry.mode} poses the frames with semmap's front end instead: choose one",
+                  file=sys.stderr)
+            return 2
+        chosen, odometry_line = choose_odometry(config, synthetic=False)
+        if config.odometry.mode == "orbslam3" and not any(o.startswith("odometry.orbslam3_vocabulary") for o in chosen)\
+                and not config.odometry.orbslam3_vocabulary:
+            print("error: --odometry orbslam3 on an external run needs an ORB vocabulary (there are no frames to "
+                  "build one from before the run): build one from your camera's images with `semmap models "
+                  "vocabulary IMAGES --out FILE`, then --set odometry.orbslam3_vocabulary=FILE (or keep it as "
+                  "orbvoc.txt in the model directory)", file=sys.stderr)
+            return 2
+        overrides += chosen
     realtime = (args.mode or config.run.mode) == "realtime"
     overrides += realtime_front_end(config, realtime)
     if config.detector.kind == "auto":  # decided here, for this dataset, once for every process of the run
@@ -217,7 +235,7 @@ def preflight(args: argparse.Namespace) -> Preflight | int:
                    run.start_timeout_s + 2 * run.frame_timeout_s + 30.0,
                    resume=args.resume, budget=budget)
     mode = config.odometry.mode
-    plan.odometry = mode if args.data != "external" or args.check_slam else "unchecked"
+    plan.odometry = mode if args.data != "external" or args.check_slam or mode in OWN_FRONT_ENDS else "unchecked"
     if args.data != "external":
         plan.simulated_odometry = simulated_odometry(mode)
         plan.camera = dataset_camera
@@ -403,7 +421,10 @@ def simulated_odometry(mode: str) -> bool:
 def start_banner(plan: RunPlan, camera: str, odometry_line: str = "", drift_profile: str = "handheld") -> list[str]:
     """What the run says before its first frame: the odometry (simulated said out loud; a real front end named
     with why it was chosen: `choose_odometry`) and the camera."""
-    if plan.data == "external":
+    if plan.data == "external" and plan.odometry in OWN_FRONT_ENDS:
+        lines = [f"{odometry_line or f'odometry: {plan.odometry}'} (posing the external camera's frames; the "
+                 "robot's own poses are not used)"]
+    elif plan.data == "external":
         checked = "checked step by step (--check-slam)" if plan.odometry == "external" else "as they are"
         lines = [f"odometry: the external SLAM's poses, {checked}"]
     elif plan.simulated_odometry:
@@ -461,6 +482,11 @@ def detector_budget(config: Config, dataset: Dataset | None, data: str, override
                   "(about a minute, once; `semmap models doctor` shows the table)", file=sys.stderr)
             dc.measure_and_save()
         setup = dc.resolve_setup(det.precision, det.threads, det.input_size, realtime=True)
+        chosen = dc.for_front_end(setup, config.odometry.mode)
+        if chosen is not setup:  # (pinned, so that every detector process builds this one)
+            setup = chosen
+            overrides += [f"detector.precision={setup.precision}", f"detector.threads={setup.threads}",
+                          f"detector.input_size={setup.hw[1]}x{setup.hw[0]}"]
     except (OSError, ValueError) as exc:  # no model yet: the detector itself reports that when it starts
         print(f"semmap: no frame budget: {exc}", file=sys.stderr)
         return None

@@ -25,6 +25,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 EXTERNAL_SENDER = "external"  # the role an external SLAM's messages carry (an unsigned publisher on an open key)
+# front ends an external run may pose its frames with (`semmap run external --odometry orbslam3`: a robot's camera
+# through `semmap ros2`, posed by semmap's ORB-SLAM3 instead of the robot's own odometry)
+OWN_FRONT_ENDS = ("orbslam3", "rgbd")
 
 # every service reads the run's control key (stop, end of stream, unreadable frames) through the base class
 SERVICE_INPUTS: tuple[str, ...] = ("control",)

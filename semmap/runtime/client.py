@@ -54,10 +54,12 @@ class SemmapClient:
     """One robot's connection to a running semmap (see module docstring)."""
 
     def __init__(self, robot: str = "robot1", connect: str | None = None, mode: str | None = None,
-                 keyframe_every: int = DEFAULT_KEYFRAME_EVERY, check_slam: bool = False) -> None:
+                 keyframe_every: int = DEFAULT_KEYFRAME_EVERY, check_slam: bool = False,
+                 front_end: str = "") -> None:
         """`check_slam`: publish the SLAM's poses on the `slam` key for semmap to check against its own
         registration before they become odometry (the run started with `semmap run external --check-slam`);
-        otherwise they are the odometry as they are."""
+        otherwise they are the odometry as they are. `front_end`: the run poses the frames itself (`semmap run
+        external --odometry orbslam3`): poses given to `publish_pose` are not sent (counted in `poses_not_sent`)."""
         if keyframe_every < 1:  # refused before a session opens, so nothing is left behind
             raise ValueError(f"keyframe_every must be at least 1, got {keyframe_every}")
         self.keyframe_every = int(keyframe_every)
@@ -65,6 +67,8 @@ class SemmapClient:
         self.robot = robot
         self._frames = self.bus.publisher(self.bus.keys.frames)
         self.check_slam = bool(check_slam)
+        self.front_end = str(front_end)
+        self.poses_not_sent = 0
         self._poses = self.bus.publisher(self.bus.keys.slam if check_slam else self.bus.keys.odometry)
         self._control = self.bus.publisher(self.bus.keys.control)
         self._cv = threading.Condition()
@@ -94,7 +98,8 @@ class SemmapClient:
         from semmap.runtime.transport.run_registry import find_run
 
         info = find_run(run_dir, None if run_dir else robot)
-        return cls(info.robot, info.endpoint, mode, keyframe_every, check_slam=info.check_slam)
+        return cls(info.robot, info.endpoint, mode, keyframe_every, check_slam=info.check_slam,
+                   front_end=info.front_end)
 
     # -- inbound ----------------------------------------------------------------------------------------------
     def _emit(self, kind: str, message: object) -> None:
@@ -153,9 +158,15 @@ class SemmapClient:
             return dict(self._landmarks)
 
     # -- outbound ---------------------------------------------------------------------------------------------
+    def _wanted(self, services: Iterable[str]) -> list[str]:
+        """The services to wait for: these, and the odometry service where the run has one (checking the SLAM's
+        poses, or posing the frames itself)."""
+        own = self.check_slam or bool(self.front_end)
+        return list(services) + (["odometry"] if own and "odometry" not in services else [])
+
     def wait_ready(self, services: Iterable[str] = PIPELINE_SERVICES, timeout: float = 60.0) -> None:
         """Block until each service reports running and our frames have a subscriber."""
-        wanted = list(services) + (["odometry"] if self.check_slam and "odometry" not in services else [])
+        wanted = self._wanted(services)
         deadline = time.monotonic() + timeout
         with self._cv:
             while not all(self._running.get(s) for s in wanted):
@@ -185,6 +196,9 @@ class SemmapClient:
 
         `keyframe`: whether the frame becomes a pose-graph node (your SLAM's keyframes); None marks every
         `keyframe_every`-th frame, as semmap's own front ends do (`odometry.keyframe_every`)."""
+        if self.front_end:  # (the run's own front end poses the frames)
+            self.poses_not_sent += 1
+            return
         if keyframe is None:
             keyframe = frame_id % self.keyframe_every == 0
         self._poses.put(OdometryPose(self.robot, frame_id, stamp, np.asarray(pose, float), bool(keyframe),
@@ -193,7 +207,7 @@ class SemmapClient:
     def wait_frame_done(self, frame_id: int, services: Iterable[str] = PIPELINE_SERVICES,
                         timeout: float = 60.0) -> None:
         """Lockstep: block until every service has finished frame `frame_id`."""
-        wanted = list(services) + (["odometry"] if self.check_slam and "odometry" not in services else [])
+        wanted = self._wanted(services)
         deadline = time.monotonic() + timeout
         with self._cv:
             while min((self._progress.get(s, -1) for s in wanted), default=frame_id) < frame_id:

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import fmean, median
 
+from semmap.core.dataflow import OWN_FRONT_ENDS
 from semmap.core.messages import Control, Progress, ServiceStatus
 from semmap.core.outputs import atomic_write_text, describe_disk_error, read_skipped
 from semmap.runtime.transport.bus import ENV_RUN_ID, ENV_RUN_KEY, ENV_RUN_OPEN_KEYS, Bus, BusConfig, BusError, RunTrust
@@ -519,7 +520,9 @@ class Orchestrator:
                              if s.get("service") not in ("detector", None)}
         others_cpu = sum(others_by_service.values())
         odometry = [s for s in services.values() if s.get("service") == "odometry"]
-        posed = sum(int(s.get("counters", {}).get("poses_published", 0)) for s in odometry) if odometry else None
+        # (a frame the front end lost is published with a stand-in pose, marked bridged: not posed)
+        posed = sum(int(s.get("counters", {}).get("poses_published", 0)) - int(s.get("counters", {}).get(
+            "poses_bridged", 0)) for s in odometry) if odometry else None
         per_replica = [s.get("timings_ms", {}).get("detect_ms", {}) for s in det]
         detect = {k: round(median(t[k] for t in per_replica if k in t), 1)  # (replicas: their median)
                   for k in ("p50", "p95") if any(k in t for t in per_replica)}
@@ -572,7 +575,9 @@ class Orchestrator:
             endpoint = self.endpoint or plan.connect
             if endpoint:  # clients (the ROS 2 bridge) find this run here instead of guessing a port
                 run_info = RunInfo(plan.robot, self.run_id, endpoint, str(plan.out_dir.resolve()), os.getpid(),
-                                   check_slam=plan.data == EXTERNAL and plan.odometry == "external")
+                                   check_slam=plan.data == EXTERNAL and plan.odometry == "external",
+                                   front_end=plan.odometry if plan.data == EXTERNAL and plan.odometry in
+                                   OWN_FRONT_ENDS else "")
                 register(run_info)
             if self.endpoint:
                 log.info("bus: %s (robot %s, run %s); e.g. semmap query --connect %s", self.endpoint, plan.robot,

@@ -146,7 +146,8 @@ def repair_line(out_dir: Path) -> str | None:
     lines = [f"  repair      {report.get('mode', '?')}: semmap overruled {replaced} of {steps} SLAM steps "
              f"({100 * replaced / steps:.0f} %) where the static scene favoured its own measurement, kept the SLAM's "
              f"step in {kept} other disagreements (weak or contrary evidence), the SLAM had no pose for "
-             f"{int(c.get('repair_slam_missing', 0))}" + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})"]
+             f"{int(c.get('repair_slam_missing', 0))} (frames it lost are left out of the trajectories, as from its "
+             "own)" + (f"; frames {where}" if where else "") + f" ({REPAIR_REPORT})"]
     changed = trajectory_change(Path(out_dir))
     if changed is not None:
         lines.append(f"  changed     semmap moved the SLAM's trajectory by {changed:.3f} m RMS (trajectory_slam.tum -> "

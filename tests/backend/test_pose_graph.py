@@ -25,6 +25,7 @@ from gtsam.symbol_shorthand import X
 
 from semmap.algorithms.backend.pose_graph import BackendParams, PoseGraph, PoseGraphError
 from semmap.algorithms.evaluation import ate_rmse
+from semmap.core.geometry import interpolate_pose
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -355,3 +356,25 @@ def test_a_retired_landmark_stops_pulling_the_trajectory() -> None:
     # later observations of a retired landmark (sent before the retirement reached the backend) are ignored
     retired.add_observations(59, [Observation(7, "chair", (0.5, 2.0, 0.0), 0.02, 0.5)])
     assert retired.counters["observations_retired"] == 1
+
+
+def test_bridged_frames_are_placed_between_measured_ones_and_left_out_of_the_measured_trajectory() -> None:
+    """Frames the front end did not measure (the SLAM had lost track) get stand-in poses between their measured
+    neighbours, which the map may use, but the trajectory lists only what was measured, as the SLAM's own does."""
+    scene = square_scene(0, n=20)
+    graph = PoseGraph()
+    for i, pose in enumerate(scene.odometry):
+        guess = pose.copy()
+        if 8 <= i <= 10:
+            guess[:3, 3] += [0.3, 0.0, 0.0]  # the motion model's guess, far off
+        graph.add_odometry(i, i / FPS, guess, *scene.sigmas, bridged=8 <= i <= 10)
+    graph.update()
+    ids, _, poses = graph.corrected_poses()
+    assert ids.tolist() == list(range(20))
+    between = interpolate_pose(scene.odometry[7], scene.odometry[11], 0.5)  # placed by time, not the guess
+    assert np.linalg.norm(poses[9][:3, 3] - between[:3, 3]) < 0.01
+    ids, stamps, poses = graph.measured_poses()
+    assert ids.tolist() == [i for i in range(20) if not 8 <= i <= 10] and len(stamps) == len(poses) == 17
+    assert graph.num_unmeasured == 3
+    graph.add_odometry(9, 9 / FPS, scene.odometry[9], *scene.sigmas)  # measured after all
+    assert graph.num_unmeasured == 2 and 9 in graph.measured_poses()[0].tolist()

@@ -79,3 +79,14 @@ def test_a_run_that_checks_the_slam_says_so(tmp_path: Path) -> None:
     register(a)
     assert find_run(robot="robot1").check_slam is False
     unregister(a)
+
+
+def test_a_run_that_poses_the_frames_itself_says_so(tmp_path: Path) -> None:
+    """`semmap run external --odometry orbslam3` records its front end, so a client or bridge that finds the run
+    sends no poses of its own (they would be a second odometry)."""
+    a = _info(tmp_path, "robot1", "dddd", 7450)
+    own = RunInfo(a.robot, a.run_id, a.endpoint, a.out_dir, a.pid, front_end="orbslam3")
+    register(own)
+    found = find_run(run_dir=a.out_dir)
+    assert found.front_end == "orbslam3" and found.check_slam is False
+    unregister(own)

@@ -442,3 +442,25 @@ def test_replicas_set_by_hand_are_planned_together_taking_turns(tmp_path: Path, 
     plan = dc.replicas_by_hand(dc.plan_cadence(rows[1], cores=2, fps=30.0, others_cpu_ms=0.0), 93.0, 2)
     assert plan.interval_ms == pytest.approx(46.5) and plan.every_n == 1  # two idle cores: twice one alone
     assert plan.detections_per_s == pytest.approx(1e3 / 46.5)
+
+
+def test_a_run_rechooses_for_its_front_ends_measured_cost(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """The doctor plans for `gt`'s 30 ms of the other services a frame: full-size fp32 then detects every 2nd
+    frame. A front end measured at 45 ms leaves 0.6 cores: fp32 would be held to every 4th frame, and the as
+    faithful int8 at the same size detects twice as often for the same CPU, so the run takes it. Where its cost
+    was never measured, or the setup was given, nothing changes."""
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
+    rows = [_row("fp32", 2, (480, 640), 35, 64, 1.0), _row("int8", 1, (480, 640), 31, 31, 0.98),
+            _row("int8", 2, (384, 512), 12, 22, 0.85)]  # (the last disagrees: F1 under 0.9)
+    dc.save_choice(rows, dc.hardware_key(), "test", tmp_path)
+    setup = dc.resolve_setup("auto", 0, "auto", realtime=True)
+    assert (setup.precision, setup.hw) == ("fp32", (480, 640))  # the doctor's choice
+    assert dc.for_front_end(setup, "orbslam3", tmp_path) is setup  # its cost not measured here yet
+    assert dc.record_pipeline_cost("orbslam3", 45.0, tmp_path)
+    chosen = dc.for_front_end(setup, "orbslam3", tmp_path)
+    assert (chosen.precision, chosen.threads, chosen.hw) == ("int8", 1, (480, 640))
+    assert chosen.origin.startswith(dc.MEASURED_FOR_FRONT_END) and chosen.measured is not None
+    plan, _ = dc.setup_plan(chosen, 30.0, "orbslam3", tmp_path, cores=2)
+    assert plan is not None and plan.every_n == 2
+    given = dc.resolve_setup("fp32", 2, "640x480", realtime=True)
+    assert dc.for_front_end(given, "orbslam3", tmp_path) is given  # settings given are kept

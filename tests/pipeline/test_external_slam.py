@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -150,3 +151,56 @@ def test_a_live_slam_is_checked_and_repaired(tmp_path: Path, router, semmap_run,
     assert result["ate_slam_m"] > 2 * result["ate_odometry_m"], result
     gt = read_tum(bonn / "groundtruth.txt")
     assert ate_rmse(gt, read_tum(out / "trajectory_slam.tum")) == pytest.approx(result["ate_slam_m"])
+
+
+@pytest.mark.slow
+@pytest.mark.needs_data
+def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, router, semmap_run,
+                                                              data_root: Path) -> None:
+    """`semmap run external --odometry orbslam3`: a robot's camera (a client, as `semmap ros2` is one) sends frames
+    and the run poses them with its own ORB-SLAM3; the poses the client has are not sent (counted), the run file
+    says so, and the trajectory follows the camera (TUM fr1_rpy window: within a few centimetres)."""
+    from semmap.algorithms.evaluation import ate_rmse
+    from semmap.datasets.trajectory_io import read_tum
+
+    rpy = data_root / "tum_freiburg1_rpy"
+    vocabulary = data_root / "orbslam3" / "ORBvoc_redkitchen_k10L5.txt"
+    if not vocabulary.is_file():
+        pytest.skip("no shared ORB vocabulary")
+    out = tmp_path / "run"
+    outcome: dict = {}
+    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
+        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client",
+         "--odometry", "orbslam3", "--set", f"odometry.orbslam3_vocabulary={vocabulary}"], timeout=900)))
+    runner.start()
+    dataset = open_dataset(str(rpy))
+    frames = 60
+    from semmap.runtime.transport.run_registry import RunNotFound, find_run
+
+    deadline = time.monotonic() + 120
+    while True:  # (the run file appears once the run's bus is up)
+        try:
+            info = find_run(str(out), None)
+            break
+        except (RunNotFound, OSError, ValueError):
+            assert time.monotonic() < deadline, "the run never registered"
+            time.sleep(0.2)
+    client = SemmapClient("robot1", router.endpoint, front_end=info.front_end)
+    assert info.front_end == "orbslam3" and not info.check_slam
+    with client:
+        client.wait_ready(timeout=120)
+        for i in range(frames):
+            f = dataset[i]
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale, f.intrinsics)
+            client.publish_pose(i, f.stamp, np.eye(4))  # (a robot's own odometry: not sent)
+            client.wait_frame_done(i, timeout=180)
+        client.end_of_stream(frames - 1)
+        assert client.poses_not_sent == frames
+    runner.join(timeout=600)
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    assert "ORB-SLAM3" in outcome["run"].stderr + outcome["run"].stdout
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["odometry"]["mode"] == "orbslam3"
+    odometry = read_tum(out / "trajectory_odometry.tum")
+    assert len(odometry) >= 0.9 * frames
+    assert ate_rmse(read_tum(rpy / "groundtruth.txt"), odometry) < 0.06

@@ -200,6 +200,7 @@ class PoseGraph:
         self.refactorised_because = ""  # why iSAM2 was rebuilt with QR factorisation, if it was
         self._bridged: list[int] = []  # frames bridged (no measurement) since the last measured one
         self._last_measured: int | None = None
+        self._unmeasured: set[int] = set()  # frames whose pose is a stand-in: left out of `measured_poses`
         # how far the odometry is trusted beyond its declared sigmas, as the closures that witnessed it earned
         self.trust = OdometryTrust()
         self.trust_factors = (1.0, 1.0)  # (translation, rotation): the chain sigmas are scaled by these
@@ -236,9 +237,11 @@ class PoseGraph:
             self._ensure_node(frame_id)
         if bridged:
             self._bridged.append(frame_id)
-        elif self._bridged:
-            self._place_bridged(frame_id)
-        if not bridged:
+            self._unmeasured.add(frame_id)
+        else:
+            self._unmeasured.discard(frame_id)
+            if self._bridged:
+                self._place_bridged(frame_id)
             self._last_measured = frame_id
         waiting = self._unposed.pop(frame_id, None)
         if waiting:
@@ -611,6 +614,22 @@ class PoseGraph:
         is_node = node_ids[k] == ids
         poses[is_node] = corrected_nodes[k[is_node]]
         return ids, stamps, poses
+
+    def measured_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`corrected_poses` without the frames no front end measured (bridged: the SLAM had lost track). Their
+        stand-in poses serve the map while it is built, but a trajectory lists what was measured, as the SLAM's own
+        does: an interpolated guess where the SLAM was failing is no estimate of where the camera was (TUM fr1_rpy,
+        5 frames of a fast turn lost, 4-8 cm off)."""
+        ids, stamps, poses = self.corrected_poses()
+        if not self._unmeasured:
+            return ids, stamps, poses
+        keep = ~np.isin(ids, np.fromiter(self._unmeasured, dtype=np.int64))
+        return ids[keep], stamps[keep], poses[keep]
+
+    @property
+    def num_unmeasured(self) -> int:
+        """Frames whose pose is a stand-in (bridged), left out of `measured_poses`."""
+        return len(self._unmeasured)
 
     def frame_table(self) -> tuple[np.ndarray, np.ndarray]:
         """(frame_ids, stamps) of every frame with odometry, ascending (views: do not modify)."""

@@ -209,7 +209,7 @@ def agreement(
     return f1, recall, precision, per_class
 
 
-def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0) -> Measured | None:
+def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0, others: float | None = None) -> Measured | None:
     """Among the configurations whose detections agree with fp32 at full size: the most faithful one (F1 against
     it) that still detects at least `FAITHFUL_SHARE` of the frames of a real-time run, else the one that detects
     most often (`rank_for_realtime`: its CPU time over the cores the other services leave, or its latency).
@@ -219,8 +219,9 @@ def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0) -> Measured 
     with VNNI: 21 detections a second at 640x480), the fastest would trade those objects for detections the map
     does not need: every 3rd frame at 640x480 maps what every frame does (lockstep, 7-Scenes), every 2nd leaves
     real time's uneven cadence a margin. On an AVX2-only CPU nothing at full size gets there, and the fastest wins
-    as before."""
-    others = DEFAULT_OTHERS_CPU_MS["gt"]
+    as before. `others`: the other services' CPU per frame (default: `gt`'s estimate, what the doctor plans for;
+    a run re-chooses with its front end's measured cost, `for_front_end`)."""
+    others = DEFAULT_OTHERS_CPU_MS["gt"] if others is None else others
     ranked = rank_for_realtime(rows, cores, fps, others)
     if not ranked:
         return None
@@ -713,6 +714,7 @@ def rank_for_realtime(rows: Sequence[Measured], cores: int, fps: float = 30.0,
 
 
 MEASURED_HERE = "measured on this machine"
+MEASURED_FOR_FRONT_END = "measured on this machine, chosen for the front end's measured cost"
 
 
 @dataclass(frozen=True)
@@ -841,6 +843,31 @@ def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | 
             f"1 x {single.threads} threads {single.detections_per_s:.1f}/s (`semmap models doctor`)")
     return CadencePlan(plan.detect_alone_ms, 1e3 / best.detections_per_s, plan.free_cores, plan.others_cpu_ms,
                        plan.fps, best.threads, best.replicas, note)  # fmt: skip
+
+
+def for_front_end(setup: DetectorSetup, odometry: str, model_dir: Path | None = None) -> DetectorSetup:
+    """The measured choice again, for the front end this run really uses, where a real-time run here measured
+    what it costs: `choose` with its CPU per frame instead of the doctor's `gt` estimate. A setup that is not the
+    machine's measured choice (settings given) is kept.
+
+    Why: the doctor plans for 30 ms of the other services a frame; ORB-SLAM3 and its checks take 45. fp32 640x480
+    is then held to every 4th frame, where int8 at the same size, as faithful (F1 0.98), detects every 2nd frame
+    for the same CPU (7-Scenes in real time: 12 landmarks of lockstep's 14 with fp32)."""
+    if setup.origin != MEASURED_HERE:
+        return setup
+    doc = load_choice(model_dir)
+    others, source = others_cpu_ms(odometry, doc)
+    if doc is None or not source.startswith("measured"):
+        return setup
+    rows = [Measured.from_dict(r) for r in doc.get("rows", [])]
+    cores = int((doc.get("key") or {}).get("cores") or os.cpu_count() or 1)
+    best = choose(rows, cores, others=others)
+    if best is None or (best.config.precision, best.config.threads, best.config.hw) == (
+            setup.precision, setup.threads, setup.hw or FULL_HW):
+        return setup
+    c = best.config
+    return DetectorSetup(c.precision, c.threads, (c.height, c.width),
+                         f"{MEASURED_FOR_FRONT_END} ({odometry.split(':', 1)[0]}: {others:.0f} ms a frame)", best)
 
 
 def load_detector_model(setup: DetectorSetup, model_dir: Path | None = None) -> Path | bytes:

@@ -415,7 +415,8 @@ class LockstepDriver:
             pose = self.to_session @ pose
         self.odo = odometry_message(front, i, stamp, pose, i % self.keyframe_every == 0, self.odometry_mode,
                                     self.odometry_poses is None)
-        self.odo_traj.append((stamp, pose.copy()))
+        if not self.odo.bridged:  # (a stand-in pose is no measurement: the trajectory lists what was measured)
+            self.odo_traj.append((stamp, pose.copy()))
 
     def associator(self) -> None:
         """With the prior map's relocalisation and statuses, when there is one; held for the backend's answer."""
@@ -458,7 +459,7 @@ class LockstepDriver:
 
     def result(self, t_start: float) -> LoopResult:
         graph, associator, front = self.backend_stage.graph, self.associator_stage, self.front
-        _, stamps, corrected = graph.corrected_poses()
+        _, stamps, corrected = graph.measured_poses()  # (not the stand-ins of frames no front end measured)
         optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
         gt = [(s, g) for s, g in zip(self.rec.stamps, self.rec.gt, strict=True) if g is not None]
         landmarks = associator.mapper.landmarks()

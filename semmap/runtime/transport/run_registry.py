@@ -36,6 +36,7 @@ class RunInfo:
     pid: int
     schema: str = SCHEMA
     check_slam: bool = False  # the run checks the SLAM's poses: publish them on the `slam` key (--check-slam)
+    front_end: str = ""  # the run poses the frames with semmap's own front end (--odometry orbslam3): send none
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -46,7 +47,7 @@ class RunInfo:
         if d.get("schema") != SCHEMA:
             raise ValueError(f"{path}: not a semmap run file (schema {d.get('schema')!r})")
         return cls(str(d["robot"]), str(d["run_id"]), str(d["endpoint"]), str(d["out_dir"]), int(d["pid"]),
-                   check_slam=bool(d.get("check_slam", False)))
+                   check_slam=bool(d.get("check_slam", False)), front_end=str(d.get("front_end", "")))
 
 
 def runtime_dir() -> Path:

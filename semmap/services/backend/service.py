@@ -340,7 +340,8 @@ class BackendService(StageService):
     def write_outputs(self) -> None:
         if self.out_dir is None or self.graph.num_frames == 0:
             return
-        ids, stamps, poses = self.graph.corrected_poses()
+        ids, stamps, poses = self.graph.measured_poses()  # (not the stand-ins of frames no front end measured)
+        self.metrics.counters["frames_unmeasured"] = self.graph.num_unmeasured
         write_tum(self.out_dir / "trajectory_optimized.tum", zip(stamps.tolist(), poses, strict=True))
         final = self.stage.aligner.final(self.graph)
         if final is not None:

@@ -150,8 +150,10 @@ class OdometryService(StageService):
                                sigma_translation=sigma_t, sigma_rotation=sigma_r, source=self.mode,
                                bridged=bool(getattr(self.frontend, "bridged", False)),
                                step=str(getattr(self.frontend, "step_source", "")))
-        self.trajectory.append((frame.stamp, pose))
+        if not message.bridged:  # (a stand-in pose is no measurement: the trajectory lists what was measured)
+            self.trajectory.append((frame.stamp, pose))
         self.metrics.count("poses_published")
+        self.metrics.count("poses_bridged", message.bridged)
         self.complete_frame(frame.frame_id, [(self.out["odometry"], message)],
                             (message.encode(), msgpack.packb(self.frontend.state())))
 
@@ -163,7 +165,8 @@ class OdometryService(StageService):
         state = None
         for frame_id, pose_bytes, state_bytes, _ in self.journal.frames():
             pose = OdometryPose.decode(pose_bytes)
-            self.trajectory.append((pose.stamp, pose.pose))
+            if not pose.bridged:
+                self.trajectory.append((pose.stamp, pose.pose))
             self.resume_after(frame_id)
             state = state_bytes
         self.remember_newest(self.out["odometry"], OdometryPose.decode)

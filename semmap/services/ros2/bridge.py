@@ -327,6 +327,7 @@ def _declare(node: Any) -> dict[str, Any]:
 def run_bridge(
     robot: str, connect: str, zenoh_mode: str | None, ros_args: list[str], fastdds_profile: bool = True,
     check_slam: bool = False,
+    front_end: str = "",
 ) -> int:
     """The bridge's process: rclpy node + Zenoh client until SIGINT / SIGTERM."""
     environment.set_default(environment.ROS_DISCOVERY_RANGE, "LOCALHOST")  # safe default: no multicast off-host
@@ -348,7 +349,7 @@ def run_bridge(
     client = None
     node = None
     try:
-        client = SemmapClient(robot, connect, zenoh_mode, check_slam=check_slam)
+        client = SemmapClient(robot, connect, zenoh_mode, check_slam=check_slam, front_end=front_end)
         node = node_class(client)
         node.start()
         rclpy.spin(node)
@@ -930,6 +931,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
     connect = args.connect or environment.read(environment.ZENOH_CONNECT)
     robot = args.robot
     check_slam = bool(args.check_slam)
+    front_end = ""  # (a run that poses the frames itself says so in its run file)
     if args.run or not connect:
         try:
             info = find_run(args.run, None if args.run else robot)
@@ -942,6 +944,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
         connect = connect if args.connect else info.endpoint
         robot = info.robot
         check_slam = check_slam or info.check_slam  # (the run says whether it checks the SLAM's poses)
+        front_end = info.front_end
         log.info("serving run %s (robot %s, %s, out %s)", info.run_id, info.robot, connect, info.out_dir)
     return run_bridge(
         robot or "robot1",
@@ -950,6 +953,7 @@ def run(args: argparse.Namespace, ros_args: list[str]) -> int:
         ros_args,
         not args.no_fastdds_profile,
         check_slam,
+        front_end,
     )
 
 
