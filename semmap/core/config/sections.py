@@ -35,6 +35,9 @@ class RunConfig(Section):
         "lockstep", description="lockstep (deterministic, as fast as the machine allows) | realtime (dataset rate)"
     )
     speed: Positive = Field(1.0, description="real-time playback speed factor")
+    realtime_map_niceness: Count = Field(
+        5, description="real time: the tracker, associator and backend lower their CPU priority by this much (nice), "
+        "so the front end poses every frame first; they answer later instead (0: equal shares)")
     max_frames: Count = Field(0, description="0 = all")
     start_frame: Count = Field(
         0, description="begin at this frame of the dataset (renumbered from 0): a later session of it"

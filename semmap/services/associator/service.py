@@ -50,6 +50,7 @@ class AssociatorService(StageService):
     inputs in between (`map.journal.sqlite`), as the map is too large to journal with every frame."""
 
     name = "associator"
+    yields_to_front_end = True  # (real time: see StageService.yield_to_front_end)
     realtime_max_pending = REALTIME_MAX_PENDING
     duplicates_counter = "tracks_duplicates"
 

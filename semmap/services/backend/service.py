@@ -46,6 +46,7 @@ class BackendService(StageService):
     """Optimises the trajectory with landmark constraints (see module docstring)."""
 
     name = "backend"
+    yields_to_front_end = True  # (real time: see StageService.yield_to_front_end)
     # per frame, once complete: its odometry and observations (and, as its extra, a keyframe's cloud and closure)
     journal_file = "backend.sqlite"
     # the frame inputs re-ordered are the odometry's; real time: a pose of a dropped frame never comes, so a frame

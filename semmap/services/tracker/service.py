@@ -34,6 +34,7 @@ class TrackerService(StageService):
     """Turns per-frame detections into tracklets and landmark candidates (see module docstring)."""
 
     name = "tracker"
+    yields_to_front_end = True  # (real time: see StageService.yield_to_front_end)
     journal_file = "tracker.sqlite"  # per frame: its tracks and the tracker's state after it
     journal_keeps = REPLAY_FRAMES  # a restart reads the newest rows only
     lockstep_max_pending = 256  # (several detector replicas: frames come out of order)
