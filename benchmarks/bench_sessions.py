@@ -4,17 +4,18 @@
         [--offset 2.0,-1.5,0.4,4,-6,35] [--drift-seed 1] [--prior-odometry gt] [--reuse-prior] [--merge]
         [--analyse-only] [--set section.key=value ...]
 
-Runs the real pipeline (`semmap run`, lockstep, fp32 detector) three times: session 1 = frames 0-499 (seed 0,
-`--prior-odometry`), session 2 = frames 500-999 (`gt+drift` seeded by `--drift-seed`) in a frame moved by
-`--offset` (x, y, z m, roll, pitch, yaw deg) with `--map` session 1, and one 1000-frame run (seed 0,
-`--prior-odometry`) as the reference; with `--merge` also session 2 without `--map`, merged with session 1 by
-`semmap merge`. `--reuse-prior` keeps session 1 and the reference already in `--work` (neither depends on the
+Runs the real pipeline (`semmap run`, lockstep, fp32 detector) three times: the first session = frames 0-499 (seed 0,
+`--prior-odometry`), the second session = frames 500-999 (`gt+drift` seeded by `--drift-seed`) in a frame moved by
+`--offset` (x, y, z m, roll, pitch, yaw deg) with `--map` the first session, and one 1000-frame run (seed 0,
+`--prior-odometry`) as the reference; with `--merge` also the second session without `--map`, merged with the first
+session by
+`semmap merge`. `--reuse-prior` keeps the first session and the reference already in `--work` (neither depends on the
 offset or the drift seed), so several offsets cost one session each.
 
-Why session 1 runs on ground truth by default: the recovered transform is judged against the ground truth, so
-the prior map must be in the ground truth's frame. A drifting session 1 (`--prior-odometry gt+drift`) leaves a
+Why the first session runs on ground truth by default: the recovered transform is judged against the ground truth, so
+the prior map must be in the ground truth's frame. A drifting first session (`--prior-odometry gt+drift`) leaves a
 map that is itself bent (its optimised camera ends 12.5 degrees off in orientation on this sequence): a perfect
-relocalisation into that map is then degrees away from the ground truth, and what is measured is session 1's
+relocalisation into that map is then degrees away from the ground truth, and what is measured is the first session's
 drift, not relocalisation. Then prints:
 
 - the relocalisation: frame, agreeing landmarks, runner-up, residual, and the recovered transform's error
@@ -22,16 +23,19 @@ drift, not relocalisation. Then prints:
   camera right: the truth it is judged by), at that frame's camera and at the session frame's origin; both for the
   associator's first fit on objects (relocalization.json) and for the transform the session ends with (the
   optimised pose of that frame against its odometry: after the keyframes registered to the prior run's);
-- session 1's objects against their session-1 places (same id) in the relocalised map: how many stayed within
-  10 cm, which moved further or changed class, and which of session 1's classes the map lost;
-- duplicates: landmarks session 2 added (ids after session 1's) with a same-class prior landmark within 0.3 m;
+- the first session's objects against their session-1 places (same id) in the relocalised map: how many stayed within
+  10 cm, which moved further or changed class, and which of the first session's classes the map lost;
+- duplicates: landmarks the second session added (ids after the first session's) with a same-class prior landmark
+within 0.3 m;
 - the final map against the single 1000-frame run: objects paired one-to-one (same class, nearest first), the
   centroid distances of the pairs, and what either map has that the other has not; then with classes the mapper
-  confuses paired, and session 2's own landmarks (ids after session 1's) alone: session 1's hold their places;
-- the optimised trajectory of session 2 in the prior frame: ATE against the ground truth without any alignment
+  confuses paired, and the second session's own landmarks (ids after the first session's) alone: the first session's
+  hold their places;
+- the optimised trajectory of the second session in the prior frame: ATE against the ground truth without any alignment
   (the frame must be right, not just the shape), and with SE(3) alignment, next to its odometry's;
 - with `--merge`: the merged map against the relocalised run's, paired the same way (`semmap merge`, which
-  re-optimises session 2's trajectory in session 1's frame, and `semmap merge --rigid`, which does not).
+  re-optimises the second session's trajectory in the first session's frame, and `semmap merge --rigid`, which does
+  not).
 `--analyse-only` reads the runs already in `--work`.
 """
 
@@ -68,7 +72,8 @@ def run(args: list[str]) -> None:
 
 def same_object_classes(x: str, y: str) -> bool:
     """One class, or two the mapper takes for one object (`confusable_classes`: the 7-Scenes microwave is boxed as
-    a laptop from session 2's side, and one 1000-frame run elects it a laptop while a relocalised map keeps session
+    a laptop from the second session's side, and one 1000-frame run elects it a laptop while a relocalised map keeps
+    session
     1's microwave)."""
     groups = [set(g.split("|")) for g in MapperParams().confusable_classes.split(";")]
     return x == y or any(x in g and y in g for g in groups)
@@ -113,8 +118,9 @@ def compare(name: str, a: list[Landmark], b: list[Landmark], confusable: bool = 
 
 
 def prior_kept(s1: list[Landmark], s2: list[Landmark]) -> tuple[int, list[str]]:
-    """Print how far each of session 1's landmarks lies from its session-1 place in the relocalised map (same id)
-    and which of session 1's classes the relocalised map has lost; returns (within 10 cm, classes lost).
+    """Print how far each of the first session's landmarks lies from its session-1 place in the relocalised map (same
+    id)
+    and which of the first session's classes the relocalised map has lost; returns (within 10 cm, classes lost).
 
     Why by id: a prior landmark keeps its id in the session that relocalised against it, so this is where the
     map says that object is now, against where it said so yesterday: objects that stood still but moved in
@@ -137,7 +143,7 @@ def prior_kept(s1: list[Landmark], s2: list[Landmark]) -> tuple[int, list[str]]:
     # is still in the map, and a removed object is missing rightly; those are listed by status above)
     lost = sorted({lm.class_name for lm in s1} - {lm.class_name for lm in s2})
     print(
-        f"session 1 objects within 10 cm of their session-1 place in the relocalised map: {within} of {len(s1)}; "
+        f"first-session objects within 10 cm of their session-1 place in the relocalised map: {within} of {len(s1)}; "
         f"classes lost: {', '.join(lost) or 'none'}"
     )
     for line in lines:
@@ -156,13 +162,13 @@ def main() -> None:
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "7scenes-redkitchen"))
     ap.add_argument("--work", default="out/sessions")
     ap.add_argument("--offset", default="2.0,-1.5,0.4,4,-6,35")
-    ap.add_argument("--drift-seed", type=int, default=1, help="seed of session 2's `gt+drift` odometry")
+    ap.add_argument("--drift-seed", type=int, default=1, help="seed of the second session's `gt+drift` odometry")
     ap.add_argument(
         "--reuse-prior",
         action="store_true",
-        help="keep session 1 and the 1000-frame run already in --work (they depend on neither offset nor seed)",
+        help="keep the first session and the 1000-frame run already in --work (they depend on neither offset nor seed)",
     )
-    ap.add_argument("--prior-odometry", default="gt", help="odometry of session 1 and of the reference run")
+    ap.add_argument("--prior-odometry", default="gt", help="odometry of the first session and of the reference run")
     ap.add_argument("--merge", action="store_true")
     ap.add_argument("--analyse-only", action="store_true")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
@@ -195,7 +201,7 @@ def main() -> None:
     # what the fit should find at that frame: the offset, and the drift the odometry had gathered by then
     at_frame = gt_by_stamp[round(stamp, 4)] @ np.linalg.inv(pose)
     print(
-        f"relocalised at frame {fit['frame_id']} (of session 2): {fit['inliers']} landmarks agree, runner-up "
+        f"relocalised at frame {fit['frame_id']} (of the second session): {fit['inliers']} landmarks agree, runner-up "
         f"{fit['runner_up']}, residual {fit['rms_m'] * 100:.1f} cm, refined on clouds: {fit['refined_on_clouds']}"
     )
     # the transform the session ends with: where the optimised trajectory puts that frame against its odometry
@@ -227,7 +233,7 @@ def main() -> None:
     ]
     statuses = {s: sum(lm.status == s for lm in s2) for s in ("present", "prior", "missing")}
     print(
-        f"session 2 map: {len(s2)} landmarks ({len(s2) - len(prior_ids & {lm.id for lm in s2})} new), "
+        f"second-session map: {len(s2)} landmarks ({len(s2) - len(prior_ids & {lm.id for lm in s2})} new), "
         f"statuses {statuses}; duplicates of a prior landmark: {len(dup)}"
     )
     for n, p in dup:
@@ -235,12 +241,12 @@ def main() -> None:
     kept, lost = prior_kept(s1, s2)
     full = read_map_json(work / "full" / "map.json")
     compare("final map vs one 1000-frame run", s2, full)
-    # session 1's landmarks hold their session-1 places, so the session's own are what it placed
+    # the first session's landmarks hold their session-1 places, so the session's own are what it placed
     pairs, only_s2, only_full = pair(s2, full, confusable=True)
     own = [d for x, _, d in pairs if x.id not in prior_ids]
     print(
         f"  with classes the mapper confuses paired: {len(pairs)} paired, {len(only_s2)} / {len(only_full)} left; "
-        f"session 2's own landmarks: {sum(d <= 0.10 for d in own)} of {len(own)} within 10 cm"
+        f"the second session's own landmarks: {sum(d <= 0.10 for d in own)} of {len(own)} within 10 cm"
         + (f" (max {max(own) * 100:.1f} cm)" if own else "")
     )
     missing = [lm for lm in s2 if lm.status == "missing"]
@@ -255,7 +261,7 @@ def main() -> None:
     aligned_opt = ate_rmse(read_tum(gt), read_tum(work / "s2" / "trajectory_optimized.tum"))
     aligned_odo = ate_rmse(read_tum(gt), read_tum(work / "s2" / "trajectory_odometry.tum"))
     print(
-        f"session 2 ATE in the prior frame, no alignment: optimised "
+        f"second-session ATE in the prior frame, no alignment: optimised "
         f"{ate_no_alignment(work / 's2' / 'trajectory_optimized.tum', gt) * 100:.1f} cm; with SE(3) alignment: "
         f"optimised {aligned_opt * 100:.1f} cm, odometry {aligned_odo * 100:.1f} cm"
     )
@@ -264,11 +270,11 @@ def main() -> None:
         "optimised transform within 10 cm and 3 deg of the truth": deg <= 3.0 and metres <= 0.10,
         "no duplicate of a prior landmark": not dup,
         "same objects as one 1000-frame run (confusable classes paired)": not only_s2 and not only_full,
-        "session 2's own landmarks within 10 cm of the 1000-frame run's": all(d <= 0.10 for d in own),
+        "the second session's own landmarks within 10 cm of the 1000-frame run's": all(d <= 0.10 for d in own),
         "no landmark marked missing that the 1000-frame run has": not wrongly_missing,
-        # >= 11 of session 1's 13 objects within 10 cm of their session-1 place, no class lost
-        "session 1 objects within 10 cm of their session-1 place (>= 11 of 13)": kept * 13 >= 11 * len(s1),
-        "no class of session 1 lost": not lost,
+        # >= 11 of the first session's 13 objects within 10 cm of their session-1 place, no class lost
+        "first-session objects within 10 cm of their session-1 place (>= 11 of 13)": kept * 13 >= 11 * len(s1),
+        "no class of the first session lost": not lost,
     }
     for what, ok in verdict.items():
         print(f"target: {what}: {'yes' if ok else 'NO'}")
@@ -278,7 +284,7 @@ def main() -> None:
         )
     if (work / "merged_rigid" / "map.json").is_file():
         compare(
-            "  the same with --rigid (session 2 alone moved by the objects' fit only)",
+            "  the same with --rigid (the second session alone moved by the objects' fit only)",
             read_map_json(work / "merged_rigid" / "map.json"),
             s2,
         )

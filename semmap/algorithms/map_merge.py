@@ -86,13 +86,15 @@ def transform_landmark(lm: Landmark, T: np.ndarray) -> Landmark:
 
 
 # Two whole maps, B's drifted over its whole length: a rigid fit of B's objects onto A's keeps B's drift in its
-# residual (7-Scenes session 2 alone, gt+drift: 0.159 m over 10 objects), while a relocalisation at the start of a
+# residual (the second 7-Scenes session alone, gt+drift: 0.159 m over 10 objects), while a relocalisation at the start
+# of a
 # session fits the few objects seen in its first seconds (0.15 m, RelocParams). The merge re-optimises B in A's frame
 # after this fit, so the fit only has to pair the objects; it stays under the inlier gate (0.3 m), and every other
 # guard against a false fit (4 inliers, pair distances, ambiguity, rotation sigma) is the relocalisation's.
 MERGE_MAX_RMS_M = 0.25
 # The same drift inflates the centres' residual, and with it the rotation uncertainty the fit's guard computes from
-# it (7-Scenes session 2 alone: 10 objects within 12.9 cm, 2.2 deg). Where B's trajectory is re-optimised in A's frame
+# it (the second 7-Scenes session alone: 10 objects within 12.9 cm, 2.2 deg). Where B's trajectory is re-optimised in
+# A's frame
 # afterwards (its keyframes registered to A's run's, each from this fit as a first guess: a 3 deg error is 10 cm at
 # 2 m, inside the keyframe registration's reach), the fit only has to pair the objects, and this looser guard holds;
 # B moved by the fit alone (`--rigid`, `semmap diff`, or a re-optimisation that fails) keeps the relocalisation's.

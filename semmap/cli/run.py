@@ -150,6 +150,10 @@ def _user_overrides(args: argparse.Namespace) -> tuple[list[str], Path | None] |
             print(f"error: {exc}", file=sys.stderr)
             return 2
     if args.check_slam:
+        if args.odometry in OWN_FRONT_ENDS:
+            print(f"error: --check-slam checks the SLAM's own poses; --odometry {args.odometry} poses the frames with "
+                  "semmap's front end instead: choose one", file=sys.stderr)
+            return 2
         if args.data != "external":
             print("error: --check-slam is for `semmap run external` (a dataset's SLAM: --odometry file:TRAJ.tum, "
                   "checked by default)", file=sys.stderr)
@@ -187,11 +191,6 @@ def preflight(args: argparse.Namespace) -> Preflight | int:
         chosen, odometry_line = choose_odometry(config, synthetic=special, data=args.data)
         overrides += chosen
     elif config.odometry.mode in OWN_FRONT_ENDS:  # (a camera's frames posed by semmap's own front end)
-        if args.check_slam:
-            print("error: --check-slam checks the SLAM's own poses; --odometry "
-                  f"{config.odometry.mode} poses the frames with semmap's front end instead: choose one",
-                  file=sys.stderr)
-            return 2
         chosen, odometry_line = choose_odometry(config, synthetic=False)
         if config.odometry.mode == "orbslam3" and not any(o.startswith("odometry.orbslam3_vocabulary") for o in chosen)\
                 and not config.odometry.orbslam3_vocabulary:

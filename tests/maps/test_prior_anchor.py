@@ -27,8 +27,10 @@ SESSION_FRAME = frame_offset([0.5, -0.3, 0.1, 5.0, -8.0, 30.0])  # the session's
 def _relocalised(
     prior_sphere: Sphere, session_sphere: Sphere, registration_error: np.ndarray, params: MapperParams | None = None
 ) -> tuple[LandmarkState, LandmarkState, LandmarkMapper]:
-    """(the prior landmark as session 1 left it (a copy), the same landmark in session 2's map, session 2's mapper):
-    session 1 maps `prior_sphere` for 45 frames; session 2 maps `session_sphere` for 120 frames in its own frame and
+    """(the prior landmark as the first session left it (a copy), the same landmark in the second session's map, the
+    second session's mapper):
+    the first session maps `prior_sphere` for 45 frames; the second session maps `session_sphere` for 120 frames in its
+    own frame and
     is relocalised with the sphere matched to the prior one, its poses off by `registration_error`."""
     prior_mapper, _ = run(lambda t: [prior_sphere], range(45), mapper=LandmarkMapper(params))
     (before,) = LandmarkMap.from_state(prior_mapper.map.to_state()).all()
@@ -44,7 +46,8 @@ def _relocalised(
 
 
 def test_a_prior_landmark_keeps_its_place_and_class_against_the_sessions_views() -> None:
-    """Session 2 boxes the microwave as a laptop (more often than session 1 boxed it at all) and its poses are 8 cm
+    """The second session boxes the microwave as a laptop (more often than the first session boxed it at all) and its
+    poses are 8 cm
     off: the landmark stays within 2.5 cm of its prior place (measured 1.4) and stays a microwave. Without the anchor
     the fused views would put it most of the way to the session's place (7.8 cm: 40 views of the session against 15
     of the prior), and the votes would make it a laptop (as they would the 7-Scenes microwave)."""
@@ -62,7 +65,8 @@ def test_a_prior_landmark_keeps_its_place_and_class_against_the_sessions_views()
 
 
 def test_a_prior_landmark_that_moved_follows_the_session() -> None:
-    """The cup stands 35 cm from where session 1 saw it (matched to it by the relocalisation): far beyond what the
+    """The cup stands 35 cm from where the first session saw it (matched to it by the relocalisation): far beyond what
+    the
     registration and the cup's size explain, so it takes the session's place and cloud."""
     before, lm, _ = _relocalised(Sphere((0.0, 0.0, 0.8), 0.05, "cup"), Sphere((0.35, 0.0, 0.8), 0.05, "cup"), np.eye(4))
     assert lm.anchor is not None and lm.anchor.moved
@@ -72,7 +76,8 @@ def test_a_prior_landmark_that_moved_follows_the_session() -> None:
 
 def test_prior_views_keep_their_weight() -> None:
     """`max_views` caps this session's views of a prior landmark, not its prior views: the newest views win, and on
-    7-Scenes session 2 would thin out session 1's views of a landmark until those left were 15-23 cm off."""
+    the second 7-Scenes session would thin out the first session's views of a landmark until those left were 15-23 cm
+    off."""
     params = MapperParams(max_views=8)
     before, lm, _ = _relocalised(
         Sphere((0.0, 0.0, 0.8), 0.05, "cup"), Sphere((0.0, 0.0, 0.8), 0.05, "cup"), np.eye(4), params

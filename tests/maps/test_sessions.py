@@ -6,15 +6,15 @@ about the others); each must relocalise, map no duplicate of a prior landmark, l
 10 cm of its place (the spheres look the same from every side: within 1.5 cm) and lose no class, though the
 second session's detector calls one object by another class (a microwave boxed as a laptop, as on 7-Scenes).
 
-Slow (the synthetic room through the real pipeline): session 1 maps the room (300 frames, one camera loop,
+Slow (the synthetic room through the real pipeline): the first session maps the room (300 frames, one camera loop,
 ground-truth odometry). A day later two table-top objects stand elsewhere and one is gone (`moved=2,removed=1`,
-seeded), and session 2 (150 frames: half the loop, so some objects stay out of view) runs with `gt+drift`
-odometry in a frame of its own (`odometry.frame_offset`), both drawn (seeded), with `--map` session 1. It must
+seeded), and the second session (150 frames: half the loop, so some objects stay out of view) runs with `gt+drift`
+odometry in a frame of its own (`odometry.frame_offset`), both drawn (seeded), with `--map` the first session. It must
 relocalise (the recovered transform close to the offset), map no duplicate of a prior landmark, keep the prior
 landmarks of objects that stayed within 10 cm of their places and lose no class, show the moved objects as
 missing at their old place and present at the new, the removed one missing, nothing out of view missing, and
 its optimised trajectory must lie in the prior frame. The same session run without `--map`, merged with
-session 1 by `semmap merge`, must give the same landmarks as the relocalised run, and `semmap diff` must name
+the first session by `semmap merge`, must give the same landmarks as the relocalised run, and `semmap diff` must name
 the changes.
 """
 
@@ -164,7 +164,7 @@ def test_changes_between_sessions(sessions: dict[str, Path]) -> None:
             if lm.class_name == objects[oid].class_name and math.dist(lm.centroid, objects[oid].centroid) < 0.1
         ]
         assert len(new) == 1 and new[0].id not in {lm.id for lm in day1}
-    # objects out of session 2's view stay `prior` (not missing); seen ones are present
+    # objects out of the second session's view stay `prior` (not missing); seen ones are present
     assert any(lm.status == "prior" for lm in day2)
     assert sum(lm.status == "present" for lm in day2) >= 10
 

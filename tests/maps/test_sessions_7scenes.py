@@ -1,15 +1,15 @@
 """Two sessions of 7-Scenes redkitchen through the real pipeline.
 
-Session 1 maps frames 0-499 on ground-truth odometry (so the prior map is in the ground truth's frame, and the
-recovered transform can be judged against it); session 2 plays frames 500-999 with `gt+drift` odometry in a
-frame of its own, with `--map` session 1. The frame offset and the drift seed are drawn at random, seeded
+The first session maps frames 0-499 on ground-truth odometry (so the prior map is in the ground truth's frame, and the
+recovered transform can be judged against it); the second session plays frames 500-999 with `gt+drift` odometry in a
+frame of its own, with `--map` the first session. The frame offset and the drift seed are drawn at random, seeded
 (tests/maps/session_checks.py: a few metres, 25-40 degrees about one axis, 5-15 about the others): one fixed
 case (2, -1.5, 0.4 m, 4, -6, 35 degrees, seed 1) can pass where another offset and seed move prior landmarks
 12-15 cm and lose the microwave. It must relocalise with the transform within 10 cm and 3 degrees of
-the truth, map no duplicate of a prior landmark, keep >= 11 of session 1's 13 objects (the same share of however
+the truth, map no duplicate of a prior landmark, keep >= 11 of the first session's 13 objects (the same share of however
 many it maps) within 10 cm of their session-1 places and lose none of its classes, its optimised trajectory must
-lie in the prior frame, and its final map must hold the objects of one 1000-frame run. Session 2 run alone and
-merged with session 1 by `semmap merge` must give the relocalised run's landmarks. Measured and documented in
+lie in the prior frame, and its final map must hold the objects of one 1000-frame run. The second session run alone and
+merged with the first session by `semmap merge` must give the relocalised run's landmarks. Measured and documented in
 docs/MAPS.md ("Measured"); `benchmarks/bench_sessions.py` prints the same figures.
 """
 
@@ -53,9 +53,10 @@ def sessions(kitchen_dir: Path, kitchen_gt_run: Path, tmp_path_factory: pytest.T
     offset = "odometry.frame_offset=[" + ",".join(str(v) for v in OFFSET) + "]"
     second = ["--start-frame", "500", "--seed", str(DRIFT_SEED), "--odometry", "gt+drift", "--set", offset]
     runs = [
-        ("session 1", [str(kitchen_dir), "--out", str(out["s1"]), "--max-frames", "500", "--odometry", "gt", *COMMON]),
-        ("session 2", [str(kitchen_dir), "--out", str(out["s2"]), *second, "--map", str(out["s1"]), *COMMON]),
-        ("session 2 alone", [str(kitchen_dir), "--out", str(out["s2_alone"]), *second, *COMMON]),
+        ("first session",
+         [str(kitchen_dir), "--out", str(out["s1"]), "--max-frames", "500", "--odometry", "gt", *COMMON]),
+        ("second session", [str(kitchen_dir), "--out", str(out["s2"]), *second, "--map", str(out["s1"]), *COMMON]),
+        ("second session alone", [str(kitchen_dir), "--out", str(out["s2_alone"]), *second, *COMMON]),
     ]
     for name, args in runs:
         result = _semmap_run(args, timeout=1500)
@@ -100,7 +101,7 @@ def test_second_session_relocalises_within_10_cm_and_3_degrees(sessions: dict[st
     truth = {round(t, 4): p for t, p in read_tum(s2 / "groundtruth.tum")}
     at_start = truth[round(stamp, 4)] @ np.linalg.inv(first)
     assert rotation_angle_deg((np.linalg.inv(at_start) @ T)[:3, :3]) <= 3.0
-    # the transform the session ends with (its keyframes registered to session 1's) places that frame's camera
+    # the transform the session ends with (its keyframes registered to the first session's) places that frame's camera
     # within 10 cm and 3 degrees even against the drift gathered by then (measured on this draw 1.35 deg, 3.0 cm;
     # the object fit alone: 2.5 deg; the old fixed case: 1.7 deg, 3.5 cm, the fit alone 3.2 deg)
     stamp, _ = read_tum(s2 / "trajectory_odometry.tum")[fit["frame_id"]]
@@ -125,7 +126,7 @@ def test_no_duplicate_of_a_prior_landmark_and_the_trajectory_in_the_prior_frame(
     opt = read_tum(sessions["s2"] / "trajectory_optimized.tum")
     err = [np.linalg.norm(p[:3, 3] - gt[round(t, 4)][:3, 3]) for t, p in opt if round(t, 4) in gt]
     # measured 4.3 cm on this draw (5.2 cm on the old fixed case, 8-10 cm before the keyframes registered to
-    # session 1's); the odometry alone, in its own frame, is metres away
+    # the first session's); the odometry alone, in its own frame, is metres away
     assert len(err) == 500 and math.sqrt(np.mean(np.square(err))) < 0.08
 
 
@@ -153,8 +154,9 @@ def _paired(a: list, b: list, confusable: bool = False) -> tuple[list[float], li
 
 
 def test_session_1s_objects_keep_their_places_and_classes(sessions: dict[str, Path]) -> None:
-    """>= 11 of session 1's 13 objects (that share of however many it maps) within 10 cm of their session-1
-    places in the relocalised map, no duplicate, no class of session 1 lost. Without the prior anchor, on two other
+    """>= 11 of the first session's 13 objects (that share of however many it maps) within 10 cm of their session-1
+    places in the relocalised map, no duplicate, no class of the first session lost. Without the prior anchor, on two
+    other
     offsets and seeds: 11 and 10 of 13, the microwave a laptop; with it: 13 of 13 (docs/MAPS.md). Measured
     on this draw: 13 of 13 (the farthest 1.3 cm from its place in process)."""
     s1 = read_map_json(sessions["s1"] / "map.json")
@@ -164,13 +166,15 @@ def test_session_1s_objects_keep_their_places_and_classes(sessions: dict[str, Pa
 
 def test_the_final_map_holds_the_objects_of_one_1000_frame_run(sessions: dict[str, Path]) -> None:
     """Every object of one 1000-frame run is in the relocalised map and nothing else, one to one; the landmarks
-    session 2 mapped itself lie within 10 cm of the 1000-frame run's (without the prior anchor: 16 of 16, median
-    1.9, max 9.9 cm, one object over the run-to-run margin allowed). Session 1's landmarks hold their session-1
-    places, so against the 1000-frame run they are as far as session 1's own partial views put them from all 1000
+    the second session mapped itself lie within 10 cm of the 1000-frame run's (without the prior anchor: 16 of 16,
+    median
+    1.9, max 9.9 cm, one object over the run-to-run margin allowed). The first session's landmarks hold their session-1
+    places, so against the 1000-frame run they are as far as the first session's own partial views put them from all
+    1000
     frames' (measured: the screen 23 cm, the table and a book 12 cm): within the 0.5 m pairing, not bounded here.
     Classes pair where the mapper takes them for one object: the 1000-frame run elects the microwave a laptop from
-    both halves' boxes, the relocalised map keeps session 1's microwave. Measured on this draw: 16 of 16 paired,
-    session 2's own 3 within 8.1 cm."""
+    both halves' boxes, the relocalised map keeps the first session's microwave. Measured on this draw: 16 of 16 paired,
+    the second session's own 3 within 8.1 cm."""
     prior = {lm.id for lm in read_map_json(sessions["s1"] / "map.json")}
     s2 = read_map_json(sessions["s2"] / "map.json")
     full = read_map_json(sessions["full"] / "map.json")
@@ -182,21 +186,25 @@ def test_the_final_map_holds_the_objects_of_one_1000_frame_run(sessions: dict[st
 
 def test_merge_of_the_two_sessions_gives_the_relocalised_runs_landmarks(sessions: dict[str, Path]) -> None:
     """Without the prior anchor (the fixed offset): 15 paired, all within 10 cm (max 4.4 cm); the relocalised run
-    had one more, a laptop seen 13 times at the end of session 2, whose tracklet (7 views in 1 s) missed the static
-    test for short tracklets by a hair under session 2 alone's own poses: a merge fuses only what both maps hold. A
+    had one more, a laptop seen 13 times at the end of the second session, whose tracklet (7 views in 1 s) missed the
+    static
+    test for short tracklets by a hair under the second session alone's own poses: a merge fuses only what both maps
+    hold. A
     merge holds A's places as the relocalised run holds the prior's, so the pairs agree: measured on this
     draw 16 paired, all within 3.3 cm (median 0.1), and the merge's one more, the laptop below."""
     dist, only_merged, only_s2 = _paired(
         read_map_json(sessions["merged"] / "map.json"), read_map_json(sessions["s2"] / "map.json")
     )
-    # a merge pairs one class only: session 2 alone calls the microwave a laptop, which joins beside session 1's
+    # a merge pairs one class only: the second session alone calls the microwave a laptop, which joins beside the first
+    # session's
     # microwave (the relocalised run, which keeps the microwave, has no such laptop); at most one either side
     assert len(only_merged) <= 1 and len(only_s2) <= 1, (only_merged, only_s2)
     assert max(dist) < 0.10, dist
 
 
 def test_merging_the_relocalised_run_itself_keeps_its_landmarks(sessions: dict[str, Path], tmp_path: Path) -> None:
-    """Session 2 was started from session 1's map: its odometry is in its own frame, its map in session 1's. The
+    """The second session was started from the first session's map: its odometry is in its own frame, its map in the
+    first session's. The
     replay must take its odometry through its own alignment too (measured: 16 of 16 within 4.3 cm; on this draw,
     with the prior places held in both, within 1.4 cm)."""
     merge = subprocess.run(
@@ -209,6 +217,7 @@ def test_merging_the_relocalised_run_itself_keeps_its_landmarks(sessions: dict[s
     dist, only_merged, only_s2 = _paired(
         read_map_json(tmp_path / "map.json"), read_map_json(sessions["s2"] / "map.json")
     )
-    # (without the prior anchor the relocalised run loses session 1's microwave, which comes back from session 1's
+    # (without the prior anchor the relocalised run loses the first session's microwave, which comes back from the
+    # first session's
     # map: one more in the merge)
     assert len(only_merged) <= 1 and not only_s2 and max(dist) < 0.10, (dist, only_merged, only_s2)

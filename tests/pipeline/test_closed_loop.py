@@ -73,7 +73,7 @@ def test_the_two_drivers_give_the_same_map_and_trajectory(tmp_path: Path, semmap
 @pytest.mark.slow
 def test_the_two_drivers_agree_on_a_later_session_of_the_recording(tmp_path: Path, semmap_run) -> None:
     """`--start-frame` (`run.start_frame`: a later session, renumbered from frame 0) in both drivers: the in-process
-    one replays the same window the player plays (what traced session 2 alone of the 7-Scenes benchmark)."""
+    one replays the same window the player plays (what traced the second session alone of the 7-Scenes benchmark)."""
     data, settings = "synthetic:frames=240", ["run.start_frame=120"]
     _run(semmap_run, data, tmp_path / "bus", "--odometry", "gt+drift", "--seed", "2", "--start-frame", "120")
     inproc, rec = closed_loop(data, "gt+drift", 2, overrides=settings, cache_dir=tmp_path / "cache")

@@ -95,3 +95,18 @@ def test_config_show_prints_the_effective_configuration(tmp_path: Path) -> None:
     result = _config_show("--set", "detector.confidence=7")
     assert result.returncode == 2 and "detector.confidence: expected a number <= 1" in result.stderr
     assert result.stdout == ""
+
+
+def test_an_external_run_posed_by_semmap_refuses_a_slam_check_and_needs_a_vocabulary(
+        tmp_path: Path, semmap_run, monkeypatch) -> None:  # noqa: ANN001
+    """`semmap run external --odometry orbslam3` poses the camera's frames itself: asked to check the SLAM's poses
+    too it says to choose one; without an ORB vocabulary (none set, none in the model directory) it says how to
+    make one. Both before any process starts."""
+    both = semmap_run(["external", "--odometry", "orbslam3", "--check-slam", "--out", str(tmp_path / "a")], timeout=60)
+    assert both.returncode == 2 and "choose one" in both.stderr
+    empty = tmp_path / "models"
+    empty.mkdir()
+    monkeypatch.setenv("SEMMAP_MODEL_DIR", str(empty))
+    bare = semmap_run(["external", "--odometry", "orbslam3", "--out", str(tmp_path / "b")], timeout=60)
+    assert bare.returncode == 2 and "semmap models vocabulary" in bare.stderr, bare.stderr
+    assert not (tmp_path / "b" / "stats.json").exists()

@@ -99,7 +99,7 @@ class LandmarkState:
     def _own_views(self) -> list[int]:
         """Indices of the views the `max_views` cap applies to: all, but for a prior landmark in a relocalised
         session (`anchor`) only this session's. Its prior views (frozen: negative frame ids) keep their weight:
-        the newest views win the cap, and on 7-Scenes session 2 would thin a prior landmark's views until those
+        the newest views win the cap, and on the second 7-Scenes session would thin a prior landmark's views until those
         left put its centre 15-23 cm from where all of them had."""
         if self.anchor is None:
             return list(range(len(self.views)))

@@ -5,9 +5,10 @@ session's own views of it are placed by the session's poses. Where both kinds of
 whose robust box gives the centre, on 7-Scenes (frames 0-499, then 500-999 in a frame moved by a few metres and
 up to 40 degrees) a table, a book and the wall screen move 10-14 cm from their session-1 places although nothing
 has moved. Two causes add up: the centre of a partly seen object moves with the viewpoint
-(session 2's views alone put the table 40-43 cm, the screen 19-23 cm, a book 16-18 cm from session 1's centres,
-from the other side of the room), and session 2's views carry its registration error (1-2 degrees, a few cm).
-A landmark keeps a bounded number of views, the newest winning, so session 1's views would also be thinned out.
+(the second session's views alone put the table 40-43 cm, the screen 19-23 cm, a book 16-18 cm from the first
+session's centres, from the other side of the room), and the second session's views carry its registration error
+(1-2 degrees, a few cm). A landmark keeps a bounded number of views, the newest winning, so the first session's
+views would also be thinned out.
 
 So a prior landmark holds its prior place as a prior (`PriorAnchor`), and the session's evidence moves it only
 as far as that evidence is worth:
@@ -26,7 +27,7 @@ as far as that evidence is worth:
   moved and the landmark takes the session's place, cloud and extent (and may change class, below).
 
 Class: a detector's class for one object depends on the viewpoint (the 7-Scenes microwave is boxed as a laptop
-from most of session 2's places), so a majority over both sessions' boxes measures where the second session
+from most of the second session's places), so a majority over both sessions' boxes measures where the second session
 stood rather than what the object is: it turns the microwave into a laptop and the class is gone from the
 map. A prior landmark in its place keeps its prior class (the votes still grow, so boxes of the other classes
 keep joining it); one the evidence says moved is elected by its votes like any landmark.

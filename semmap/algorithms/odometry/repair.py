@@ -475,26 +475,25 @@ class SlamRepair:
         r.note_judgement(frame_id, "slam", difference, verdict, fitness)
         return slam_step
 
-    def _weigh(self, verdict: Verdict | None, walker_prior: bool = True) -> bool:
+    def _weigh(self, verdict: Verdict | None) -> bool:
         """Add a verdict to the evidence of the recent disagreements (faded by `evidence_memory`, each verdict
         clipped to `evidence_clip`): does it now favour semmap's estimate by `min_t`? Why a running sum: a SLAM that
         people drag is dragged for a while, a few millimetres a frame, and each frame pair alone is within the
         noise as often as not (Bonn crowd: semmap's registration won 50 % of single judgements); the sum of a few
-        consecutive ones is not. A single strong verdict still decides alone. `walker_prior`: a walker in view lowers
-        the bar (`_threshold`) for a measurement of semmap's, not for the motion model, which measures nothing."""
+        consecutive ones is not. A single strong verdict still decides alone."""
         a = self.params.arbiter
         self._verdict = verdict
         if verdict is None or verdict.matches < a.min_matches:
-            return self.evidence >= self._threshold(walker_prior) and verdict is not None
+            return self.evidence >= self._threshold() and verdict is not None
         def clipped(t: float) -> float:
             return max(-a.evidence_clip, min(a.evidence_clip, t))
 
         self.evidence = a.evidence_memory * self.evidence + clipped(verdict.t) + clipped(verdict.t_long)
-        return self.evidence >= self._threshold(walker_prior)
+        return self.evidence >= self._threshold()
 
-    def _threshold(self, walker_prior: bool = True) -> float:
+    def _threshold(self) -> float:
         a = self.params.arbiter
-        return a.min_t - a.walker_prior if self._walker and walker_prior else a.min_t
+        return a.min_t - a.walker_prior if self._walker else a.min_t
 
     def _judge(self, slam_pose: np.ndarray, check_step: np.ndarray, judge: Judge | None) -> Verdict | None:
         """The static scene's verdict on the two motions over the window: the SLAM's from its pose at the window's
@@ -553,11 +552,7 @@ class SlamRepair:
             self._recent.clear()  # (the camera changed its speed for good: its old motion is no model any more)
             return slam_step
         difference = step_difference(slam_step, self._velocity())
-        # (a fast turn, a camera that changed its speed: the SLAM's to make unless the scene says otherwise, by
-        # `min_t` even with a walker in view: the motion model measures nothing. With a walker's lower bar it carried
-        # 17 frames of a turn in Bonn crowd, 3 cm a frame off. The running evidence still carries it where the
-        # walker leaves too few static matches to judge a frame alone: without that the shared Bonn runs end 5x worse)
-        if not self._weigh(self._judge(slam_pose, self._velocity(), judge), walker_prior=False):
+        if not self._weigh(self._judge(slam_pose, self._velocity(), judge)):  # (a fast turn: the SLAM's to make)
             r.kept += 1
             r.note_judgement(frame_id, "slam", difference, self._verdict, 0.0)
             return slam_step

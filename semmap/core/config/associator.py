@@ -205,7 +205,8 @@ class PriorParams(Section):
     missing_margin: Fraction = 0.1  # share of the image width / height kept clear at each border
     missing_min_px: NonNegative = 12.0
     # ... and only from a viewing direction within this of one it was detected from (detectors find many objects
-    # from some sides only: on 7-Scenes a microwave and a table boxed in session 1 are never boxed from session 2's)
+    # from some sides only: on 7-Scenes a microwave and a table boxed in the first session are never boxed from the
+    # second session's)
     missing_max_view_angle_deg: Positive = 30.0
 
 
