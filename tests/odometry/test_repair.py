@@ -422,3 +422,26 @@ def test_declared_sigmas_take_the_registrations_disagreement_where_it_witnessed(
                   judge=favours_semmap)
     assert repair.report.overruled == 1 and repair.declared_sigmas(fixed) != fixed
 
+
+def test_a_walker_lowers_the_bar_for_a_registration_not_for_the_motion_model():
+    """With a walker in view an undecided scene lets semmap's registration win (the walker itself is evidence
+    that the SLAM may be dragged), but not a hand-held camera's motion model, which measures nothing: a SLAM step
+    that breaks the recent motion stands unless the scene favours the motion model by `min_t`. (A car's, at 10 Hz,
+    keeps the walker's bar: its motion is smooth.)"""
+    def undecided(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+        return Verdict(0.5, 200, 1.0, 1.0)
+
+    truth = _truth(40)
+    slam = list(truth)
+    slam[20:] = [_pose(0.2) @ p for p in truth[20:]]  # a jump (or a sudden turn the SLAM saw right)
+    checks = _steps(truth)
+    repair = SlamRepair(RepairParams(min_fitness=0.15))
+    out = _run(repair, slam, checks, [0.01] * len(checks), judge=undecided)  # no registration to witness
+    assert repair.report.implausible == 0 and repair.report.kept >= 1
+    assert _error(out, slam) < 1e-9
+    repair = SlamRepair(RepairParams(min_fitness=0.15))
+    _run(repair, slam, checks, [0.01] * len(checks), judge=favours_semmap)
+    assert repair.report.implausible == 1
+    repair = SlamRepair()  # a registration that witnesses every step
+    out = _run(repair, slam, checks, judge=undecided)
+    assert repair.report.overruled == 1 and _error(out, truth) < 0.01
