@@ -38,7 +38,7 @@ def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, 
              odometry: list[str]) -> dict:
     import zenoh
 
-    from semmap.runtime.orchestrator import free_loopback_port
+    from semmap.runtime.orchestrator import free_loopback_port, front_end_posed
     from semmap.runtime.transport.bus import BusConfig
 
     work.mkdir(parents=True)
@@ -104,8 +104,7 @@ def _session(data: Path, frames: int, rate: float, config: str, lockstep: bool, 
     status = json.loads(listened.read_text())["status"] or {}
     stats = json.loads((out / "stats.json").read_text())
     landmarks = json.loads((out / "map.json").read_text())["landmarks"] if (out / "map.json").exists() else []
-    front = [s.get("counters", {}) for s in stats.get("services", {}).values() if s.get("service") == "odometry"]
-    posed = sum(int(c.get("poses_published", 0)) - int(c.get("poses_bridged", 0)) for c in front) if front else None
+    posed = front_end_posed(stats.get("services", {}))
     return {
         "front_end_posed": posed,
         "config": config,

@@ -54,6 +54,15 @@ class ServiceSpec:
     lockstep: bool = True  # whether lockstep playback waits for its progress
 
 
+def front_end_posed(services: dict[str, dict]) -> int | None:
+    """Frames the odometry service posed, from stats.json's `services` (None without one): a frame the front end
+    lost is published with a stand-in pose, marked bridged, and is not posed."""
+    odometry = [s.get("counters", {}) for s in services.values() if s.get("service") == "odometry"]
+    if not odometry:
+        return None
+    return sum(int(c.get("poses_published", 0)) - int(c.get("poses_bridged", 0)) for c in odometry)
+
+
 @dataclass
 class RunPlan:
     data: str
@@ -519,10 +528,7 @@ class Orchestrator:
         others_by_service = {name: s.get("cpu_s", 0.0) - start.get(name, 0.0) for name, s in services.items()
                              if s.get("service") not in ("detector", None)}
         others_cpu = sum(others_by_service.values())
-        odometry = [s for s in services.values() if s.get("service") == "odometry"]
-        # (a frame the front end lost is published with a stand-in pose, marked bridged: not posed)
-        posed = sum(int(s.get("counters", {}).get("poses_published", 0)) - int(s.get("counters", {}).get(
-            "poses_bridged", 0)) for s in odometry) if odometry else None
+        posed = front_end_posed(services)
         per_replica = [s.get("timings_ms", {}).get("detect_ms", {}) for s in det]
         detect = {k: round(median(t[k] for t in per_replica if k in t), 1)  # (replicas: their median)
                   for k in ("p50", "p95") if any(k in t for t in per_replica)}

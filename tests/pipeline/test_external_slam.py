@@ -24,6 +24,17 @@ PROJECT = Path(__file__).resolve().parents[2]
 SYNTH = "synthetic:frames=40"
 
 
+def _external_run(semmap_run, out: Path, router, *extra: str) -> tuple[threading.Thread, dict]:  # noqa: ANN001
+    """`semmap run external --out OUT ... EXTRA` started in a thread on the router; its result lands in
+    `outcome["run"]` once the thread is joined."""
+    outcome: dict = {}
+    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
+        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client", *extra],
+        timeout=900)))
+    runner.start()
+    return runner, outcome
+
+
 def _drifted_trajectory(path: Path) -> None:
     """A SLAM-like estimate: the synthetic ground truth with a slow drift."""
     poses = []
@@ -123,11 +134,7 @@ def test_a_live_slam_is_checked_and_repaired(tmp_path: Path, router, semmap_run,
     if not slam_file.is_file():
         pytest.skip("no shared ORB-SLAM3 trajectory of the Bonn window")
     out = tmp_path / "run"
-    outcome: dict = {}
-    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
-        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client",
-         "--check-slam"], timeout=900)))
-    runner.start()
+    runner, outcome = _external_run(semmap_run, out, router, "--check-slam")
     dataset = open_dataset(str(bonn))
     slam = read_tum(slam_file)
     stamps = np.array([t for t, _ in slam])
@@ -168,11 +175,8 @@ def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, rou
     if not vocabulary.is_file():
         pytest.skip("no shared ORB vocabulary")
     out = tmp_path / "run"
-    outcome: dict = {}
-    runner = threading.Thread(target=lambda: outcome.setdefault("run", semmap_run(
-        ["external", "--out", str(out), "--no-viz", "--connect", router.endpoint, "--zenoh-mode", "client",
-         "--odometry", "orbslam3", "--set", f"odometry.orbslam3_vocabulary={vocabulary}"], timeout=900)))
-    runner.start()
+    runner, outcome = _external_run(semmap_run, out, router, "--odometry", "orbslam3", "--set",
+                                    f"odometry.orbslam3_vocabulary={vocabulary}")
     dataset = open_dataset(str(rpy))
     frames = 60
     from semmap.runtime.transport.run_registry import RunNotFound, find_run

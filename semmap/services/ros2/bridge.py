@@ -272,6 +272,8 @@ class SemmapLink:
                 "frames_done": min(processed, self.last_id + 1),
                 "queued": len(self._queue),
                 "ended": self.ended,
+                # the robot's poses not sent: the run poses the frames with its own front end (run file: front_end)
+                "poses_not_sent": self.client.poses_not_sent,
             }
 
 
