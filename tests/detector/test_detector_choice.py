@@ -243,6 +243,13 @@ def test_auto_in_real_time_takes_the_cached_choice(tmp_path: Path, monkeypatch) 
     assert not dc.record_pipeline_cost("gt", 9.0, tmp_path, detector="fp32 512x384 1 thread", detections_per_s=3.1,
                                        speed=3.0)
     assert dc.last_achieved("gt", "fp32 512x384 1 thread", tmp_path) == 9.4
+    # the next plan takes the median of the last runs: one run on a busy machine does not flip the choice
+    for cost in (47.0, 53.0, 48.0, 90.0):
+        dc.record_pipeline_cost("rgbd", cost, tmp_path)
+    assert dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)[0].others_cpu_ms == 50.0  # of 50, 47, 53, 48, 90
+    for cost in (40.0, 41.0, 42.0):
+        dc.record_pipeline_cost("rgbd", cost, tmp_path)
+    assert dc.setup_plan(rt, 30.0, "rgbd", tmp_path, cores=2)[0].others_cpu_ms == 42.0  # the last 5 only
 
 
 def test_a_read_only_model_dir_keeps_the_measurement_in_the_choice_dir(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001

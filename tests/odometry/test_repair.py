@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from semmap.algorithms.odometry.arbiter import Verdict
@@ -445,3 +446,29 @@ def test_a_walker_lowers_the_bar_for_a_registration_not_for_the_motion_model():
     repair = SlamRepair()  # a registration that witnesses every step
     out = _run(repair, slam, checks, judge=undecided)
     assert repair.report.overruled == 1 and _error(out, truth) < 0.01
+
+
+def _lost_for(rate_hz: float, speed_mps: float, lost: int, half_life_s: float = 0.25,
+              back: bool = False) -> tuple[SlamRepair, list[np.ndarray], list[np.ndarray]]:
+    """A camera at `speed_mps` along x whose SLAM has no pose for `lost` frames after 30, with nothing to witness
+    the steps (the front end behind in real time); `back`: the SLAM returns for 10 frames (its map: not said)."""
+    n = 30 + lost + (10 if back else 0)
+    truth = [_pose(speed_mps * i / rate_hz) for i in range(n)]
+    slam = [None if 30 <= i < 30 + lost else p for i, p in enumerate(truth)]
+    repair = SlamRepair(RepairParams(gap_half_life_s=half_life_s))
+    out = [repair.update(i, s, None, 0.0, moving_in_view=False, stamp=i / rate_hz) for i, s in enumerate(slam)]
+    return repair, out, truth
+
+
+def test_a_gap_nothing_measured_slows_to_a_stop_at_a_hand_held_cameras_rate_not_at_a_cars():
+    """Nothing measured the frames of a gap: a hand-held camera's motion over seconds is no straight line, so
+    the motion model slows to a stop; a car keeps going. A SLAM back in the same map still rejoins."""
+    walk = 29 / 30.0  # where the hand-held camera was when its SLAM left (frame 29, at 1 m/s)
+    _, out, _ = _lost_for(30.0, 1.0, 120)  # 4 s lost
+    assert 0.1 < out[-1][0, 3] - walk < 0.6  # (at its old speed: 4 m on)
+    _, straight, _ = _lost_for(30.0, 1.0, 120, half_life_s=float("inf"))
+    assert straight[-1][0, 3] - walk == pytest.approx(4.0, abs=0.01)
+    _, car, truth = _lost_for(10.0, 7.0, 10)  # a car at 10 Hz, 1 s lost: its speed kept
+    assert _error(car, truth) < 1e-6
+    repair, back, truth = _lost_for(30.0, 1.0, 15, back=True)  # half a second lost, the SLAM back
+    assert repair.report.gaps_rejoined == 1 and _error(back[45:], truth[45:]) < 1e-9

@@ -134,7 +134,8 @@ def repair_params(c: OdometryConfig):  # noqa: ANN201 - RepairParams (imported o
                             min_t=c.arbiter_min_t, min_matches=c.arbiter_min_matches)
     return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness, scope=c.repair_scope,
                         hold_s=c.repair_hold_s, arbiter=arbiter, witness_every=c.repair_witness_every,
-                        registration_scale=2 if c.registration_resolution == "half" else 1)
+                        registration_scale=2 if c.registration_resolution == "half" else 1,
+                        gap_half_life_s=c.repair_gap_half_life_s)
 
 
 def motion_params(c: OdometryConfig):  # noqa: ANN201 - MotionParams

@@ -28,6 +28,10 @@ class OdometryInput:
     # real time: the front end is behind the video (frames queue up); a check of the SLAM's step waits for a frame
     # with time for it, the SLAM's own tracking does not (a SLAM that misses frames loses track)
     behind: bool = False
+    # real time: the tracker's dynamic objects that came since the previous frame, as (frame id, stamp, boxes),
+    # oldest first: each is seen at its own frame's pose (motion.py), not at this one's. None: `dynamic` are this
+    # frame's own (lockstep), seen with it
+    dynamic_seen: list[tuple[int, float, list[DynamicBox]]] | None = None
 
 
 class FrontEnd(ABC):

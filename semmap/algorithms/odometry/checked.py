@@ -14,6 +14,7 @@ The `file:`, `external` and `orbslam3` front ends each hand it their SLAM's pose
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -28,6 +29,7 @@ from .repair import RepairParams, SlamRepair
 # what a SLAM says of a frame: its camera-to-world pose (None: none), whether it calls that pose weak, and whether a
 # pose after a gap is in the map it left (None: it does not say)
 SlamReading = tuple[np.ndarray | None, bool, bool | None]
+POSES_KEPT = 128  # frames whose poses place dynamic objects that come late (real time: the tracker lags)
 
 
 class CheckedSlam:
@@ -45,6 +47,7 @@ class CheckedSlam:
         self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
         self._frames = 0
         self._tracker: ThreadPoolExecutor | None = None  # the SLAM's tracking beside semmap's registration
+        self._poses: OrderedDict[int, np.ndarray] = OrderedDict()  # recent frames' repaired poses (`dynamic_seen`)
 
     @property
     def checks(self) -> bool:
@@ -89,9 +92,16 @@ class CheckedSlam:
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
                                   judge=None if skipped else self._judge, slam_weak=slam_weak, undecided=undecided,
                                   same_map=same_map)
+        self._poses[frame.frame_id] = pose
+        while len(self._poses) > POSES_KEPT:
+            self._poses.popitem(last=False)
         k = np.asarray(frame.intrinsics, float)
-        self.moving.observe(float(frame.stamp), boxes, pose, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
-                            frame.depth.shape[1], frame.depth.shape[0])
+        seen = [(frame.frame_id, float(frame.stamp), boxes)] if frame.dynamic_seen is None else frame.dynamic_seen
+        for frame_id, stamp, seen_boxes in seen:  # (each at its own frame's pose: a box placed by a later pose is
+            at = self._poses.get(frame_id)        # off by the camera's motion in between)
+            if at is not None:
+                self.moving.observe(stamp, seen_boxes, at, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+                                    frame.depth.shape[1], frame.depth.shape[0])
         return pose
 
     def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:

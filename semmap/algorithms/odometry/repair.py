@@ -63,6 +63,11 @@ class RepairParams:
     # Bonn crowd a SLAM dragged by people stays wrong for seconds, and 1 s let it back in (1.16 m stayed 1.27 m)
     max_coast_s: float = float("inf")
     motion_steps: int = 5  # the motion model is the mean of the last steps taken (a sixth of a second at 30 Hz)
+    # where the SLAM has no pose and nothing measured the step (real time, the front end behind), the motion
+    # model's speed halves every this many seconds at the gates' rate: a hand-held camera's motion over seconds is
+    # no straight line (Bonn crowd in real time: ORB-SLAM3 lost for 4 s, carried at its old speed, ended 1.3 m off
+    # where the SLAM alone, in two maps, was 0.7 m); a slower stream (a car) keeps its speed
+    gap_half_life_s: float = 0.25
     rejoin_m: float = 0.1  # a SLAM back after a gap continues from its own motion over it if that agrees this well
     rejoin_deg: float = 10.0
     # without a witness a step breaks the recent motion only if it also differs by this share of the step's length:
@@ -258,6 +263,9 @@ class SlamRepair:
         self._dynamic_seen: float | None = None  # stamp of the last frame with a dynamic object in view
         self._stamp: float | None = None  # of the previous frame (the gates scale with the frame interval)
         self._coast_since: float | None = None  # stamp where the motion model began to carry the chain
+        self._bridged = 0  # frames in a row without a SLAM pose
+        self._velocity_at_slam_last = np.eye(4)  # the motion model where the SLAM's last pose was
+        self._gap_start: float | None = None  # the stamp of the SLAM's last pose before the gap
         # the SLAM's steps against the trusted registrations: the declared sigmas (0: the fixed ones, always)
         self.agreement = StepAgreement(max(1, measured_sigmas_after))
         self.measured_sigmas = measured_sigmas_after > 0
@@ -386,7 +394,9 @@ class SlamRepair:
             # no SLAM step (lost, or the first pose of a new map: its origin says nothing)
             r.slam_missing += 1
             self.agreement.add_slam_step(None)
-            step = check_step if trusted else self._velocity()
+            if self._bridged == 0:  # (the gap's first frame: the camera's motion where the SLAM left)
+                self._velocity_at_slam_last, self._gap_start = self._velocity(), self._stamp
+            step = check_step if trusted else self._coasting(stamp, scale)
         else:
             slam_step = np.linalg.inv(self._slam_prev) @ slam_pose
             self.agreement.add_slam_step(slam_step)
@@ -420,9 +430,16 @@ class SlamRepair:
             return True
         slam_motion = np.linalg.inv(self._slam_last) @ slam_pose
         bridge = np.linalg.inv(self._out_at_slam_last) @ self._pose @ self._velocity()
-        dt, dr = step_difference(slam_motion, bridge)
+        # (and the camera's speed where the SLAM left, kept over the gap: the bridge slowed to a stop, see
+        # `_coasting`, but a camera that kept going is as likely)
+        straight = np.linalg.matrix_power(self._velocity_at_slam_last, self._bridged + 1)
         p = self.params
-        return dt <= max(p.rejoin_m, 0.5 * float(np.linalg.norm(bridge[:3, 3]))) and dr <= p.rejoin_deg
+
+        def agrees(motion: np.ndarray) -> bool:
+            dt, dr = step_difference(slam_motion, motion)
+            return dt <= max(p.rejoin_m, 0.5 * float(np.linalg.norm(motion[:3, 3]))) and dr <= p.rejoin_deg
+
+        return agrees(bridge) or agrees(straight)
 
     def _velocity(self) -> np.ndarray:
         """The motion model: the mean of the last steps taken (identity before any)."""
@@ -436,12 +453,29 @@ class SlamRepair:
         mean[:3, 3] = steps[:, :3, 3].mean(axis=0)
         return mean
 
+    def _coasting(self, stamp: float | None, scale: float) -> np.ndarray:
+        """The motion model for a frame of a gap nothing measured: the camera's motion where the SLAM left, its
+        speed halved every `gap_half_life_s` since (a long gap slows to a stop), at the gates' rate; a slower
+        stream (`scale` > 1: a car) keeps its speed."""
+        half_life = self.params.gap_half_life_s
+        if scale > 1.0 or stamp is None or self._gap_start is None or not math.isfinite(half_life) or half_life <= 0:
+            return self._velocity()
+        velocity = self._velocity_at_slam_last
+        keep = 0.5 ** (max(0.0, stamp - self._gap_start) / half_life)
+        slowed = np.eye(4)
+        slowed[:3, :3] = Rotation.from_rotvec(keep * Rotation.from_matrix(velocity[:3, :3]).as_rotvec()).as_matrix()
+        slowed[:3, 3] = keep * velocity[:3, 3]
+        return slowed
+
     def _remember_slam(self, slam_pose: np.ndarray | None, stamp: float | None) -> None:
         """After this frame's pose is decided: the SLAM's pose as the next step's start, and, where it had one,
         as the anchor a return after a gap is measured from."""
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         if slam_pose is not None:
             self._slam_last, self._out_at_slam_last = slam_pose.copy(), self._pose.copy()
+            self._bridged = 0
+        else:
+            self._bridged += 1
         if stamp is not None:
             self._stamp = float(stamp)
 

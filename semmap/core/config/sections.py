@@ -257,9 +257,11 @@ class OdometryConfig(Section):
         10.0, description="lockstep: longest wait for a frame's dynamic objects, then without them"
     )
     realtime_queue_s: Positive = Field(
-        1.0,
+        2.0,
         description="real time: how much video (at 30 fps) the front end queues through a stall before it drops "
-        "the oldest frames (a SLAM fed every 4th frame of a hand-held camera loses track)",
+        "the oldest frames (a SLAM fed every 4th frame of a hand-held camera loses track; ORB-SLAM3 on 2 cores "
+        "takes about a frame's time a frame, so its backlog wanders: Bonn crowd dropped 19-64 frames with 1 s, "
+        "0-30 with 2 s, at ~100 MB more memory and up to 2 s more latency)",
     )
     registration_resolution: Literal["auto", "full", "half"] = Field(
         "auto",
@@ -310,6 +312,12 @@ class OdometryConfig(Section):
     )
     repair_hold_s: NonNegative = Field(
         2.0, description="repair: seconds after the last moving object left the view that steps are still checked"
+    )
+    repair_gap_half_life_s: Positive = Field(
+        0.25,
+        description="repair: where the SLAM has no pose and nothing measured the step, the motion model's speed "
+        "halves every this many seconds (a hand-held camera's motion over seconds is no straight line); a slower "
+        "stream (a car at 10 Hz) keeps its speed; inf: constant velocity",
     )
     repair_witness_every: AtLeastOne = Field(
         5,

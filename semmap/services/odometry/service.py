@@ -6,7 +6,10 @@ A front end that leaves out dynamic objects (`rgbd`) gets each frame's boxes fro
 (`semmap/v1/<robot>/dynamic`). Lockstep (with `--await-dynamic`, which `semmap run` passes when a tracker
 runs): a frame waits for its own boxes, so a replay is deterministic; the tracker depends only on the
 detector, never on the odometry, so the wait closes no cycle (the player waits for every service's progress,
-the odometry's included). Real time: the newest boxes at hand, never a wait.
+the odometry's included). Real time: the newest boxes at hand, never a wait, late ones included (the tracker
+yields the CPU to the front end and often answers after its frame was posed), each seen by the motion test at its
+own frame's pose. An earlier frame's boxes mask as they are: grown by how far their people may have walked, they
+blanked 35-50 % of Bonn crowd's images and ORB-SLAM3 lost track of up to 181 frames.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ class OdometryService(StageService):
         self.trajectory: list[tuple[float, object]] = []
         self.open_outputs()
         self.dynamic: dict[int, DynamicObjects] = {}  # recent frames' dynamic objects by frame id
+        self.dynamic_seen_upto = -1  # real time: the newest frame whose dynamic objects the front end has seen
         self.await_dynamic = self.frontend.uses_dynamic and self.lockstep and bool(self.args.await_dynamic)
         self.dynamic_wait_s = cfg.dynamic_wait_s
         self.waiting: tuple[Frame, float] | None = None  # lockstep: a frame waiting for its dynamic objects
@@ -68,15 +72,15 @@ class OdometryService(StageService):
     def listen_options(self, topic: str) -> dict:
         if topic != "frames":
             return {}
-        # real time: every frame, a second of them queued through a stall (a SLAM that misses frames of a hand-held
+        # real time: every frame, `realtime_queue_s` of them queued through a stall (a SLAM that misses frames of a hand-held
         # camera loses track); a front end slower than the video for longer skips to newer frames (counted)
         self.frames_stream = f"{self.bus.keys.frames}#{Frame.SCHEMA}"  # (the inbox's name for it: Service.listen)
         return {"realtime_capacity": max(1, round(self.config.odometry.realtime_queue_s * 30)),
                 "prepare": _decode if self.frontend.needs_images else None}
 
     def on_dynamic(self, message: DynamicObjects) -> None:
-        if message.frame_id <= self.last_frame_id:
-            return  # (a replay, or boxes of a frame already done)
+        if message.frame_id <= self.last_frame_id and self.lockstep:
+            return  # (a replay: lockstep took this frame's own boxes; real time keeps late ones, see `_boxes`)
         self.dynamic[message.frame_id] = message
         for old in sorted(self.dynamic)[:-DYNAMIC_KEPT]:
             del self.dynamic[old]
@@ -116,11 +120,21 @@ class OdometryService(StageService):
             self._estimate(self.waiting[0])
 
     def _boxes(self, frame_id: int) -> DynamicObjects | None:
-        """The frame's own dynamic objects, else (real time) the newest earlier ones."""
+        """The frame's own dynamic objects, else (real time) the newest earlier ones: the tracker, which yields
+        the CPU to the front end, often answers a frame after the front end has posed it, and its late answer is
+        still the newest word on where the people are."""
         if frame_id in self.dynamic:
             return self.dynamic[frame_id]
         earlier = [f for f in self.dynamic if f < frame_id]
         return self.dynamic[max(earlier)] if earlier else None
+
+    def _seen_since_last(self, frame_id: int) -> list[tuple[int, float, list]]:
+        """Real time: the dynamic objects of frames up to this one that came since the previous frame, oldest
+        first, for the front end to see each at its own frame's pose (`OdometryInput.dynamic_seen`)."""
+        new = sorted(f for f in self.dynamic if self.dynamic_seen_upto < f <= frame_id)
+        if new:
+            self.dynamic_seen_upto = new[-1]
+        return [(f, self.dynamic[f].stamp, self.dynamic[f].boxes) for f in new]
 
     def _estimate(self, frame: Frame) -> None:
         self.waiting = None
@@ -133,9 +147,11 @@ class OdometryService(StageService):
             if self.frontend.uses_dynamic:
                 dynamic = self._boxes(frame.frame_id)
                 data.dynamic = dynamic.boxes if dynamic is not None else []
-                self.metrics.count("frames_with_dynamic_boxes", bool(data.dynamic))
                 if dynamic is not None and dynamic.frame_id != frame.frame_id:
                     self.metrics.count("dynamic_from_earlier_frame")
+                self.metrics.count("frames_with_dynamic_boxes", bool(data.dynamic))
+                if not self.lockstep:
+                    data.dynamic_seen = self._seen_since_last(frame.frame_id)
             slam = self.slam.pop(frame.frame_id, None)
             if self.frontend.needs_slam:
                 data.slam_pose = None if slam is None else slam.pose
