@@ -131,7 +131,8 @@ def repair_params(c: OdometryConfig):  # noqa: ANN201 - RepairParams (imported o
     from .repair import RepairParams
 
     arbiter = ArbiterParams(window_frames=c.arbiter_window_frames, long_window_frames=c.arbiter_long_window_frames,
-                            min_t=c.arbiter_min_t, min_matches=c.arbiter_min_matches)
+                            min_t=c.arbiter_min_t, min_matches=c.arbiter_min_matches,
+                            sparse_min_inliers=c.arbiter_sparse_min_inliers)
     return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness, scope=c.repair_scope,
                         hold_s=c.repair_hold_s, arbiter=arbiter, witness_every=c.repair_witness_every,
                         registration_scale=2 if c.registration_resolution == "half" else 1,

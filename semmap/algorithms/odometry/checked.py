@@ -45,6 +45,7 @@ class CheckedSlam:
         self.moving = MovingObjects(motion)
         self.registrations = 0  # pairs registered (the rest were only remembered)
         self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
+        self.sparse_steps = 0  # steps measured on the static matches where the dense registration was not trusted
         self._frames = 0
         self._tracker: ThreadPoolExecutor | None = None  # the SLAM's tracking beside semmap's registration
         self._poses: OrderedDict[int, np.ndarray] = OrderedDict()  # recent frames' repaired poses (`dynamic_seen`)
@@ -78,6 +79,7 @@ class CheckedSlam:
             if self._tracker is None:
                 self._tracker = ThreadPoolExecutor(1, thread_name_prefix="slam-track")
             tracking = self._tracker.submit(track)
+        self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
         step, fitness = self._measure(frame) if wanted else (None, 0.0)
         if tracking is not None:
             slam_pose, slam_weak, same_map = tracking.result()
@@ -86,7 +88,6 @@ class CheckedSlam:
                 step, fitness = self._measure(frame)
             else:
                 self.registration.remember(frame)
-        self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
         # behind: nothing judged either (the static scene's ORB matches cost a frame's time: Bonn crowd in real
         # time judged 270 of 377 frames it had no time to check, and dropped 99 frames)
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
@@ -105,9 +106,19 @@ class CheckedSlam:
         return pose
 
     def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
-        assert self.registration is not None
+        """semmap's step to this frame: the dense registration, or where too few pixels are left to trust it, the
+        step fitted to the static scene's ORB matches (`StepArbiter.sparse_step`) if enough of them agree on it
+        (it then counts as a registration at the bar: `min_fitness`)."""
+        assert self.registration is not None and self.arbiter is not None
         self.registrations += 1
-        return self.registration.register(frame)
+        step, fitness = self.registration.register(frame)
+        if step is not None and fitness >= self.params.min_fitness:
+            return step, fitness
+        sparse, inliers = self.arbiter.sparse_step()
+        if sparse is None or inliers < self.params.arbiter.sparse_min_inliers:
+            return step, fitness
+        self.sparse_steps += 1
+        return sparse, self.params.min_fitness
 
     def close(self) -> None:
         if self._tracker is not None:
@@ -122,7 +133,7 @@ class CheckedSlam:
 
     def counters(self) -> dict[str, int]:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,
-                "repair_skipped_behind": self.skipped_behind,
+                "repair_skipped_behind": self.skipped_behind, "repair_sparse_steps": self.sparse_steps,
                 "repair_judged": 0 if self.arbiter is None else self.arbiter.judged,
                 "moving_objects": len(self.moving.seen_moving)}
 

@@ -352,6 +352,9 @@ class OdometryConfig(Section):
         "this many standard errors; weaker evidence keeps the SLAM's step",
     )
     arbiter_min_matches: AtLeastOne = Field(40, description="repair: fewer static matches are weak evidence")
+    arbiter_sparse_min_inliers: AtLeastOne = Field(
+        80, description="repair: where too few pixels are left to trust semmap's dense registration, a step fitted to "
+        "the static scene's ORB matches witnesses instead if this many of them agree on it")
     orbslam3_vocabulary: str = Field(
         "",
         description="orbslam3: the ORB vocabulary (ORBvoc.txt, or `semmap models vocabulary IMAGES --out FILE`); "

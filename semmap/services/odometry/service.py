@@ -72,8 +72,8 @@ class OdometryService(StageService):
     def listen_options(self, topic: str) -> dict:
         if topic != "frames":
             return {}
-        # real time: every frame, `realtime_queue_s` of them queued through a stall (a SLAM that misses frames of a hand-held
-        # camera loses track); a front end slower than the video for longer skips to newer frames (counted)
+        # real time: every frame, `realtime_queue_s` of them queued through a stall (a SLAM that misses frames of a
+        # hand-held camera loses track); a front end slower than the video for longer skips to newer frames (counted)
         self.frames_stream = f"{self.bus.keys.frames}#{Frame.SCHEMA}"  # (the inbox's name for it: Service.listen)
         return {"realtime_capacity": max(1, round(self.config.odometry.realtime_queue_s * 30)),
                 "prepare": _decode if self.frontend.needs_images else None}
