@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .arbiter import StepArbiter, Verdict
-from .base import OdometryInput
+from .base import OdometryError, OdometryInput
 from .motion import MotionParams, MovingObjects
 from .registration import PairRegistration
 from .repair import RepairParams, SlamRepair
@@ -64,6 +64,8 @@ class CheckedSlam:
             if track is not None:
                 slam_pose, slam_weak, same_map = track()
             return self.repair.copy(frame.frame_id, slam_pose)
+        if frame.rgb is None or frame.depth is None or frame.intrinsics is None:
+            raise OdometryError("checking a SLAM's steps needs RGB, depth and intrinsics")
         boxes = list(frame.dynamic or [])
         moving = self.moving.moving(boxes)
         undecided = self.moving.undecided(boxes)
