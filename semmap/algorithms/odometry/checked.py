@@ -46,6 +46,7 @@ class CheckedSlam:
         self.registrations = 0  # pairs registered (the rest were only remembered)
         self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
         self.sparse_steps = 0  # steps measured on the static matches where the dense registration was not trusted
+        self.dynamic_unplaced = 0  # real time: frames' dynamic objects the motion test could not place (no pose kept)
         self._frames = 0
         self._tracker: ThreadPoolExecutor | None = None  # the SLAM's tracking beside semmap's registration
         self._poses: OrderedDict[int, np.ndarray] = OrderedDict()  # recent frames' repaired poses (`dynamic_seen`)
@@ -102,9 +103,11 @@ class CheckedSlam:
         seen = [(frame.frame_id, float(frame.stamp), boxes)] if frame.dynamic_seen is None else frame.dynamic_seen
         for frame_id, stamp, seen_boxes in seen:  # (each at its own frame's pose: a box placed by a later pose is
             at = self._poses.get(frame_id)        # off by the camera's motion in between)
-            if at is not None:
-                self.moving.observe(stamp, seen_boxes, at, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
-                                    frame.depth.shape[1], frame.depth.shape[0])
+            if at is None:  # (a frame the front end never posed, or posed too long ago: counted)
+                self.dynamic_unplaced += 1
+                continue
+            self.moving.observe(stamp, seen_boxes, at, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+                                frame.depth.shape[1], frame.depth.shape[0])
         return pose
 
     def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
@@ -137,7 +140,7 @@ class CheckedSlam:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,
                 "repair_skipped_behind": self.skipped_behind, "repair_sparse_steps": self.sparse_steps,
                 "repair_judged": 0 if self.arbiter is None else self.arbiter.judged,
-                "moving_objects": len(self.moving.seen_moving)}
+                "moving_objects": len(self.moving.seen_moving), "dynamic_unplaced": self.dynamic_unplaced}
 
     def break_chain(self) -> None:
         self.repair.break_chain()

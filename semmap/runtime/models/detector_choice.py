@@ -700,22 +700,16 @@ def record_pipeline_cost(odometry: str, cpu_ms_per_frame: float, model_dir: Path
     if doc is None or cpu_ms_per_frame <= 0 or speed != 1.0:
         return False
     mode = odometry.split(":", 1)[0]
-    doc.setdefault("pipeline_cpu_ms_per_frame", {})[mode] = _remember(doc, "pipeline_cpu_ms", mode,
-                                                                      round(cpu_ms_per_frame, 1))
+    runs = doc.setdefault("pipeline_cpu_ms_runs", {}).setdefault(mode, [])
+    runs.append(round(cpu_ms_per_frame, 1))
+    del runs[:-RUNS_REMEMBERED]
+    doc.setdefault("pipeline_cpu_ms_per_frame", {})[mode] = float(median(runs))
     if front_end_share is not None:  # (the last run's: where it starved the front end, `replica_plan` holds back)
         doc.setdefault("front_end_posed_share", {})[mode] = round(front_end_share, 3)
     if detector and detections_per_s > 0:
         doc.setdefault("achieved_detections_per_s", {})[f"{mode} {detector}"] = round(detections_per_s, 2)
     atomic_write_bytes(choice_path(model_dir), (json.dumps(doc, indent=1) + "\n").encode())
     return True
-
-
-def _remember(doc: dict[str, Any], figure: str, mode: str, value: float) -> float:
-    """Add one run's `figure` to the last runs' kept in `doc` (`<figure>_runs`); their median."""
-    runs = doc.setdefault(f"{figure}_runs", {}).setdefault(mode, [])
-    runs.append(value)
-    del runs[:-RUNS_REMEMBERED]
-    return float(median(runs))
 
 
 def rank_for_realtime(rows: Sequence[Measured], cores: int, fps: float = 30.0,

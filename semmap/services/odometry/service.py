@@ -81,6 +81,8 @@ class OdometryService(StageService):
     def on_dynamic(self, message: DynamicObjects) -> None:
         if message.frame_id <= self.last_frame_id and self.lockstep:
             return  # (a replay: lockstep took this frame's own boxes; real time keeps late ones, see `_boxes`)
+        # (real time: later than the frame after its own, the motion test no longer sees them; they still mask)
+        self.metrics.count("dynamic_too_late_for_motion", message.frame_id <= self.dynamic_seen_upto)
         self.dynamic[message.frame_id] = message
         for old in sorted(self.dynamic)[:-DYNAMIC_KEPT]:
             del self.dynamic[old]
