@@ -1,13 +1,15 @@
 """Real time on the CPU at hand: the measured detector choice and what `semmap run --realtime` achieves.
 
     .venv/bin/python benchmarks/bench_realtime.py [--choice] [--runs 3] [--odometry orbslam3]
-        [--data 7scenes,bonn,rpy] [--write docs/RESULTS.md] [--json-out F]
+        [--data 7scenes,bonn,rpy] [--write docs/RESULTS.md] [--json-out F] [--keep DIR]
         [--realtime-args '--detectors 2 --set detector.precision=fp32 ...']
 
 The front end is the one a user gets, ORB-SLAM3 (`--odometry orbslam3`); `gt` (simulated from ground truth) only as a
 labelled reference (`--odometry orbslam3,gt`). Per run it also prints the share of the frames the front end posed
 (`posed`), the ATE of the SLAM alone (its own poses) and of the final trajectory, and whether a person became a
-landmark; `--write` puts the table between the `results:realtime` markers of a page.
+landmark; `--write` puts the table between the `results:realtime` markers of a page. `--keep DIR` keeps every run's
+output folder (its logs, stats.json, odometry_repair.json and trajectories) under DIR, to look into
+a run that stood out.
 
 1. `--choice`: measures every detector configuration on this machine (as `semmap models doctor --remeasure`) and
    prints the table: latency alone, CPU per frame, expected time per detection in a real-time run, F1 against
@@ -196,6 +198,8 @@ def main() -> int:
     ap.add_argument("--no-lockstep", action="store_true", help="skip the lockstep reference runs")
     ap.add_argument("--write", type=Path, default=None, help="a page with results:realtime markers to rewrite")
     ap.add_argument("--json-out", type=Path, default=None)
+    ap.add_argument("--keep", type=Path, default=None, metavar="DIR",
+                    help="keep every run's output folder under DIR (default: a temporary folder, removed)")
     ap.add_argument("--slower-cores", type=float, default=0.0, metavar="SHARE",
                     help="during each real-time run, take SHARE of every core (0.1: cores ~10 %% slower), a stand-in "
                          "for a slower CPU; its CPU is not counted in the run's figures")  # fmt: skip
@@ -215,18 +219,19 @@ def main() -> int:
     if doc is not None:
         print(dc.format_table(doc))
     results = []
-    with tempfile.TemporaryDirectory(prefix="semmap-rt-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="semmap-rt-") as scratch:
+        tmp = scratch if args.keep is None else str(args.keep)
         for name in args.data.split(","):
             data = root / RECORDINGS[name]
             for odometry in args.odometry.split(","):
-                lock, lock_map = (None, []) if args.no_lockstep else run(data, Path(tmp) / f"lock-{odometry}",
+                lock, lock_map = (None, []) if args.no_lockstep else run(data, Path(tmp) / f"lock-{name}-{odometry}",
                                                                          odometry, False)
                 if lock:
                     results.append(lock)
                     print(json.dumps(lock), flush=True)
                 for i in range(args.runs):
                     with SlowerCores(args.slower_cores):
-                        r, mapped = run(data, Path(tmp) / f"rt-{odometry}-{i}", odometry, True,
+                        r, mapped = run(data, Path(tmp) / f"rt-{name}-{odometry}-{i}", odometry, True,
                                         shlex.split(args.realtime_args))  # fmt: skip
                     if args.slower_cores:
                         r["slower_cores"] = args.slower_cores

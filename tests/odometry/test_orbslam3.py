@@ -120,14 +120,21 @@ def test_orbslam3_end_to_end_on_people_walking(semmap_run, bonn_dir: Path, vocab
 
 @pytest.mark.slow
 @pytest.mark.parametrize("run", [1, pytest.param(2, marks=pytest.mark.soak), pytest.param(3, marks=pytest.mark.soak)])
-def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path, run: int):
+def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root: Path, run: int, tmp_path: Path):
     """The three ORB-SLAM3 runs of the Bonn window (1.21-1.35 m ATE: it mapped the people) fed as `file:`, each of
     their steps checked by semmap's people-masked registration: every one comes out under 15 cm. CI repairs run 1
     (about a minute each, 3.2 min for the three); `pytest -m soak` the other two, and
-    `benchmarks/bench_real_slam.py` all three (docs/RESULTS.md)."""
+    `benchmarks/bench_real_slam.py` all three (docs/RESULTS.md). The in-process run writes what the services write:
+    the SLAM's own poses and the repair's report."""
+    from semmap.datasets.trajectory_io import read_tum
     from semmap.runtime.pipeline.inprocess import closed_loop
 
     path = data_root / "orbslam3" / f"bonn_crowd_orbslam3_run{run}.tum"
     res, _ = closed_loop(str(bonn_dir), f"file:{path}")
     assert res.ate_odometry < 0.15, (run, res.summary())
     assert res.frontend_counters["repair_overruled"] > 100
+    res.write_outputs(tmp_path)
+    report = json.loads((tmp_path / "odometry_repair.json").read_text())
+    assert report["mode"] == f"file:{path}" and report["counters"] == res.frontend_counters
+    assert report["overruled_spans"] and {j["winner"] for j in report["judged"]} >= {"slam", "semmap"}
+    assert len(read_tum(tmp_path / "trajectory_slam.tum")) == len(res.slam_trajectory) > 400

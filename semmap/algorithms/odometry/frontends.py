@@ -255,6 +255,12 @@ class CheckedSlamFrontEnd(FrontEnd):
     def judged(self) -> list[dict]:
         return list(self.check.repair.report.judged)
 
+    def repair_report(self, mode: str) -> dict:
+        """Where semmap overruled the SLAM and why, as `odometry_repair.json` holds it (the summary reads it):
+        counters, frame spans and, per disagreement, the evidence and who won."""
+        return {"schema": "semmap.repair/2", "mode": mode, "counters": dict(self.counters),
+                "overruled_spans": [list(span) for span in self.overruled()], "judged": self.judged()}
+
     def state(self) -> dict:
         return self.check.state()
 

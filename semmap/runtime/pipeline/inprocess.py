@@ -48,12 +48,13 @@ import numpy as np
 
 from semmap.algorithms.associator.mapper import LandmarkMapper, MapperParams, MapperStep
 from semmap.algorithms.detector.onnx_detector import DetectedBox
-from semmap.algorithms.evaluation import ate_rmse
+from semmap.algorithms.evaluation import ate_rmse, write_json_atomic
 from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, make_frontend
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core import dataflow
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
+from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
 from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
@@ -276,6 +277,7 @@ class LoopResult:
     frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
     slam_trajectory: list = field(default_factory=list)  # a checked SLAM's own poses, (stamp, 4x4)
     ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
+    repair_report: dict | None = None  # where semmap overruled a checked SLAM and why (odometry_repair.json)
     associator: AssociatorStage | None = None  # the map with its prior landmarks' statuses, its saved state
 
     @property
@@ -307,8 +309,8 @@ class LoopResult:
         }
 
     def write_outputs(self, out: Path) -> None:
-        """map.json, map.sqlite, relocalization.json (after a prior map's relocalisation) and
-        trajectory_optimized.tum, as the associator and backend services write them."""
+        """map.json, map.sqlite, relocalization.json (after a prior map's relocalisation), the trajectories, and
+        with a checked SLAM its own poses and odometry_repair.json, as the services write them."""
         out.mkdir(parents=True, exist_ok=True)
         assert self.mapper is not None
         landmarks = self.associator.landmarks() if self.associator is not None else self.mapper.landmarks()
@@ -321,7 +323,9 @@ class LoopResult:
         write_tum(out / "trajectory_optimized.tum", self.optimized)
         write_tum(out / "trajectory_odometry.tum", self.odometry)
         if self.slam_trajectory:  # (a checked SLAM's own poses, as the odometry service writes them)
-            write_tum(out / "trajectory_slam.tum", self.slam_trajectory)
+            write_tum(out / SLAM_TRAJECTORY, self.slam_trajectory)
+        if self.repair_report is not None:
+            write_json_atomic(out / REPAIR_REPORT, self.repair_report)
 
 
 def prior_stages(config: Config, prior_map: Path | None) -> tuple[AssociatorStage, BackendStage]:
@@ -464,6 +468,7 @@ class LockstepDriver:
         gt = [(s, g) for s, g in zip(self.rec.stamps, self.rec.gt, strict=True) if g is not None]
         landmarks = associator.mapper.landmarks()
         slam = getattr(front, "slam_trajectory", None)
+        report = getattr(front, "repair_report", None)
         if (close := getattr(front, "close", None)) is not None:
             close()
         return LoopResult(
@@ -474,6 +479,7 @@ class LockstepDriver:
             mapper=associator.mapper, optimized=optimized, odometry=self.odo_traj,
             frontend_counters=dict(getattr(front, "counters", {})),
             ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None, slam_trajectory=list(slam or []),
+            repair_report=None if report is None else report(self.odometry_mode),
             mapper_ms_p50=float(np.median(self.mapper_ms)) if self.mapper_ms else 0.0,
             loop_closures=dict(self.backend_stage.closer.counters),
             graph_counters={**graph.counters, **associator.revisits.counters()},

@@ -201,15 +201,9 @@ class OdometryService(StageService):
         slam = getattr(self.frontend, "slam_trajectory", None)
         if self.out_dir is not None and slam:
             write_tum(self.out_dir / SLAM_TRAJECTORY, [(t, self.to_session @ pose) for t, pose in slam])
-        spans = getattr(self.frontend, "overruled", None)
-        if self.out_dir is not None and spans is not None:
-            # where semmap overruled the SLAM and why (the summary reads it): counters, frame spans and, per
-            # disagreement, the evidence and who won
-            judged = getattr(self.frontend, "judged", list)
-            counters = dict(getattr(self.frontend, "counters", {}))
-            write_json_atomic(self.out_dir / REPAIR_REPORT, {
-                "schema": "semmap.repair/2", "mode": self.mode, "counters": counters,
-                "overruled_spans": [list(span) for span in spans()], "judged": judged()})
+        report = getattr(self.frontend, "repair_report", None)
+        if self.out_dir is not None and report is not None:
+            write_json_atomic(self.out_dir / REPAIR_REPORT, report(self.mode))
 
 
 def _decode(frame: Frame) -> None:
