@@ -111,12 +111,17 @@ class CheckedSlam:
         return pose
 
     def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
-        """semmap's step to this frame: the dense registration, or where too few pixels are left to trust it, the
-        step fitted to the static scene's ORB matches (`StepArbiter.sparse_step`) if enough of them agree on it
-        (it then counts as a registration at the bar: `min_fitness`)."""
+        """semmap's step to this frame: the dense registration, or where too few pixels are left to trust it (or
+        with the `sparse` witness: always), the step fitted to the static scene's ORB matches
+        (`StepArbiter.sparse_step`) if enough of them agree on it (it then counts as a registration at the bar:
+        `min_fitness`)."""
         assert self.registration is not None and self.arbiter is not None
         self.registrations += 1
-        step, fitness = self.registration.register(frame)
+        if self.params.witness == "sparse":
+            self.registration.remember(frame)
+            step, fitness = None, 0.0
+        else:
+            step, fitness = self.registration.register(frame)
         if step is not None and fitness >= self.params.min_fitness:
             return step, fitness
         sparse, inliers = self.arbiter.sparse_step()

@@ -56,6 +56,11 @@ class RepairParams:
     # outside the scope a frame is registered only to measure the SLAM's precision (StepAgreement), every n-th
     witness_every: int = 5
     registration_scale: int = 1  # semmap's registration on images downscaled by this (real time: 2)
+    # what measures a checked step: "dense" (the RGB-D registration; the static ORB matches' fit where it has too
+    # few pixels) or "sparse" (that fit alone). Real time takes sparse: at the cost of a half-size registration it
+    # repairs a SLAM that people drag, which a half-size registration does not (Bonn crowd in lockstep, ORB-SLAM3
+    # 0.15-0.18 m alone: sparse 0.08-0.11 m, half-size registration 0.15-0.17 m, full-size 0.05-0.10 m)
+    witness: str = "dense"
     # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
     # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)
     gate_rate_hz: float = 30.0
