@@ -336,15 +336,12 @@ def _start(plan: RunPlan, args: argparse.Namespace, config: Config, dataset: Dat
 
 def realtime_front_end(config: Config, realtime: bool) -> list[str]:
     """The front end's settings for the run's mode, decided once for every process: in real time it must pose every
-    frame on its share of two cores, so semmap measures a checked step by the static ORB matches alone (its dense
-    registration, where asked for, on half-size images) and ORB-SLAM3 extracts `orbslam3_realtime_features` (where
-    the user left `orbslam3_features` at its default)."""
+    frame on its share of two cores, so semmap's registration works on half-size images and ORB-SLAM3 extracts
+    `orbslam3_realtime_features` (where the user left `orbslam3_features` at its default)."""
     section = config.odometry
     out = []
     if section.registration_resolution == "auto":
         out.append(f"odometry.registration_resolution={'half' if realtime else 'full'}")
-    if section.repair_witness == "auto":
-        out.append(f"odometry.repair_witness={'sparse' if realtime else 'dense'}")
     default_features = type(section).model_fields["orbslam3_features"].default
     if realtime and section.orbslam3_features == default_features:
         out.append(f"odometry.orbslam3_features={section.orbslam3_realtime_features}")

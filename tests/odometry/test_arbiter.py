@@ -127,8 +127,8 @@ def test_a_step_fitted_to_the_static_matches_recovers_the_motion_the_boxes_leave
 
 
 def test_the_sparse_witness_alone_repairs_a_dragged_slam():
-    """`repair_witness: sparse` (real time's choice): no dense registration, each checked step is the fit to the
-    static ORB matches, and it still overrules a SLAM that something drags 2 cm a frame sideways."""
+    """`repair_witness: sparse`: no dense registration, each checked step is the fit to the static ORB matches, and
+    it still overrules a SLAM that something drags 2 cm a frame sideways."""
     from semmap.algorithms.odometry.base import OdometryInput
     from semmap.algorithms.odometry.checked import CheckedSlam
     from semmap.algorithms.odometry.repair import RepairParams

@@ -113,14 +113,12 @@ def test_an_external_run_posed_by_semmap_refuses_a_slam_check_and_needs_a_vocabu
 
 
 def test_real_time_chooses_the_cheaper_front_end_settings_a_user_left_at_auto() -> None:
-    """Real time measures a checked step by the static matches alone and extracts fewer ORB features; lockstep
-    registers full images; what a user set is kept."""
+    """Real time registers half-size images and extracts fewer ORB features; lockstep registers full images; what a
+    user set is kept."""
     from semmap.cli.run import realtime_front_end
 
     assert realtime_front_end(load_config(None, []), True) == [
-        "odometry.registration_resolution=half", "odometry.repair_witness=sparse", "odometry.orbslam3_features=800"]
-    assert realtime_front_end(load_config(None, []), False) == [
-        "odometry.registration_resolution=full", "odometry.repair_witness=dense"]
-    chosen = load_config(None, ["odometry.repair_witness=dense", "odometry.registration_resolution=full",
-                                "odometry.orbslam3_features=1200"])
+        "odometry.registration_resolution=half", "odometry.orbslam3_features=800"]
+    assert realtime_front_end(load_config(None, []), False) == ["odometry.registration_resolution=full"]
+    chosen = load_config(None, ["odometry.registration_resolution=full", "odometry.orbslam3_features=1200"])
     assert realtime_front_end(chosen, True) == []

@@ -57,9 +57,10 @@ class RepairParams:
     witness_every: int = 5
     registration_scale: int = 1  # semmap's registration on images downscaled by this (real time: 2)
     # what measures a checked step: "dense" (the RGB-D registration; the static ORB matches' fit where it has too
-    # few pixels) or "sparse" (that fit alone). Real time takes sparse: at the cost of a half-size registration it
-    # repairs a SLAM that people drag, which a half-size registration does not (Bonn crowd in lockstep, ORB-SLAM3
-    # 0.15-0.18 m alone: sparse 0.08-0.11 m, half-size registration 0.15-0.17 m, full-size 0.05-0.10 m)
+    # few pixels) or "sparse" (that fit alone: 12 ms a frame pair where a full-size registration takes 38-43; Bonn
+    # crowd in lockstep, ORB-SLAM3 0.15-0.26 m alone: sparse 0.07-0.11 m, dense 0.05-0.10 m, a half-size registration
+    # 0.15-0.20 m; benchmarks/bench_witness.py). Real time keeps dense at half size: its checks there, few and far
+    # between, were no better sparse.
     witness: str = "dense"
     # the gates above are for a camera at `gate_rate_hz`; a step of a slower stream may change by more under the
     # same acceleration (the change grows with the frame interval squared: a car at 10 Hz, not a hand at 30)

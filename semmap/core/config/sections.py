@@ -269,12 +269,12 @@ class OdometryConfig(Section):
         "of the pixels, ~4x cheaper) | auto: half in real time (the front end must keep up with the video), full "
         "in lockstep",
     )
-    repair_witness: Literal["auto", "dense", "sparse"] = Field(
-        "auto",
-        description="repair: what measures a checked step: dense (the RGB-D registration above, the step fitted to "
-        "the static ORB matches where it has too few pixels) or sparse (that fit alone: as cheap as a half-size "
-        "registration, and where people walk it repairs what one cannot) | auto: sparse in real time, dense in "
-        "lockstep",
+    repair_witness: Literal["dense", "sparse"] = Field(
+        "dense",
+        description="repair: what measures a checked step: dense (the RGB-D registration above; the step fitted to "
+        "the static ORB matches where it has too few pixels) or sparse (that fit alone: a third of a full-size "
+        "registration's cost; Bonn crowd in lockstep 0.07-0.11 m where dense gives 0.05-0.10 m: "
+        "benchmarks/bench_witness.py)",
     )
     file_sigma_translation_m: Positive = Field(
         0.01, description="what `file:PATH` (and `external`) declares for a trajectory of unknown quality"
