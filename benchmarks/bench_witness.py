@@ -34,10 +34,10 @@ from semmap.algorithms.odometry.registration import PairRegistration  # noqa: E4
 from semmap.datasets import find_data_root, open_dataset  # noqa: E402
 from semmap.runtime.models.model_store import default_vocabulary  # noqa: E402
 
-WITNESSES = {  # name -> the settings a run takes
-    "dense, full size": ["odometry.registration_resolution=full", "odometry.repair_witness=dense"],
-    "dense, half size": ["odometry.registration_resolution=half", "odometry.repair_witness=dense"],
-    "sparse": ["odometry.repair_witness=sparse"],
+WITNESSES = {  # name -> (the registration's downscale, None: the static matches alone; the settings a run takes)
+    "dense, full size": (1, ["odometry.registration_resolution=full", "odometry.repair_witness=dense"]),
+    "dense, half size": (2, ["odometry.registration_resolution=half", "odometry.repair_witness=dense"]),
+    "sparse": (None, ["odometry.repair_witness=sparse"]),
 }
 
 
@@ -46,8 +46,8 @@ def cost_ms(data: Path, first: int, last: int) -> dict[str, float]:
     ds = open_dataset(str(data))
     frames = [ds[i] for i in range(first, min(last, len(ds)))]
     times: dict[str, list[float]] = {name: [] for name in WITNESSES}
-    for name in WITNESSES:
-        registration = PairRegistration("range", 2 if "half" in name else 1) if name != "sparse" else None
+    for name, (scale, _) in WITNESSES.items():
+        registration = PairRegistration("range", scale) if scale is not None else None
         arbiter = StepArbiter()
         for i, f in enumerate(frames):
             k = np.asarray(f.intrinsics.matrix, float)
@@ -65,7 +65,7 @@ def cost_ms(data: Path, first: int, last: int) -> dict[str, float]:
 def ate_runs(data: Path, runs: int, vocabulary: Path) -> dict[str, list[tuple[float, float]]]:
     """Per witness, (SLAM alone, final) ATE of `runs` lockstep runs of the recording."""
     out: dict[str, list[tuple[float, float]]] = {}
-    for name, sets in WITNESSES.items():
+    for name, (_, sets) in WITNESSES.items():
         for _ in range(runs):
             with tempfile.TemporaryDirectory(prefix="semmap-witness-") as tmp:
                 summary = Path(tmp) / "summary.json"

@@ -117,23 +117,15 @@ class StepArbiter:
         if len(ids) < steps + 1:
             return Verdict(0.0, 0, math.nan, math.nan)
         ref, cur = self._frames[ids[-steps - 1]], self._frames[ids[-1]]
-        ref_id = ids[-steps - 1]
-        boxes = ref.boxes + cur.boxes  # static in both frames
-        pa, da = _outside(*self._static_features(ref_id, ref), boxes)
-        pb, db = _outside(*self._static_features(ids[-1], cur), boxes)
-        if da is None or db is None or len(pa) < 2 or len(pb) < 2:
-            return Verdict(0.0, 0, math.nan, math.nan)
-        matches = self._matcher.match(da, db)
-        if len(matches) < self.params.min_matches:
-            return Verdict(0.0, len(matches), math.nan, math.nan)
-        ia = np.fromiter((m.queryIdx for m in matches), np.int64, len(matches))
-        ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
+        ua, ub = self._static_matches(ids[-steps - 1], ids[-1])
+        if len(ua) < self.params.min_matches:
+            return Verdict(0.0, len(ua), math.nan, math.nan)
         K = cur.intrinsics
-        xa, za = _backproject(pa[ia], ref.depth, ref.depth_scale, K)
-        xb, zb = _backproject(pb[ib], cur.depth, cur.depth_scale, K)
+        xa, za = _backproject(ua, ref.depth, ref.depth_scale, K)
+        xb, zb = _backproject(ub, cur.depth, cur.depth_scale, K)
         costs, pixels = [], []
         for motion in (slam_motion, semmap_motion):
-            cost, px = _match_costs(np.asarray(motion, float), xa, za, xb, zb, pa[ia], pb[ib], K)
+            cost, px = _match_costs(np.asarray(motion, float), xa, za, xb, zb, ua, ub, K)
             costs.append(cost)
             pixels.append(px)
         valid = (np.isfinite(costs[0]) & np.isfinite(costs[1])
@@ -156,22 +148,15 @@ class StepArbiter:
         if len(ids) < 2:
             return None, 0
         ref, cur = self._frames[ids[-2]], self._frames[ids[-1]]
-        boxes = ref.boxes + cur.boxes
-        pa, da = _outside(*self._static_features(ids[-2], ref), boxes)
-        pb, db = _outside(*self._static_features(ids[-1], cur), boxes)
-        if da is None or db is None or len(pa) < 6 or len(pb) < 6:
+        ua, ub = self._static_matches(ids[-2], ids[-1])
+        if len(ua) < 6:
             return None, 0
-        matches = self._matcher.match(da, db)
-        if len(matches) < 6:
-            return None, 0
-        ia = np.fromiter((m.queryIdx for m in matches), np.int64, len(matches))
-        ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
-        xa, za = _backproject(pa[ia], ref.depth, ref.depth_scale, ref.intrinsics)
+        xa, za = _backproject(ua, ref.depth, ref.depth_scale, ref.intrinsics)
         has_depth = np.isfinite(za)
         if int(has_depth.sum()) < 6:
             return None, 0
         found, rvec, tvec, inliers = cv2.solvePnPRansac(
-            np.ascontiguousarray(xa[has_depth]), np.ascontiguousarray(pb[ib][has_depth]), cur.intrinsics, None,
+            np.ascontiguousarray(xa[has_depth]), np.ascontiguousarray(ub[has_depth]), cur.intrinsics, None,
             iterationsCount=200, reprojectionError=self.params.sparse_reprojection_px, confidence=0.999)
         if not found or inliers is None:
             return None, 0
@@ -180,6 +165,20 @@ class StepArbiter:
         world_to_cur[:3, 3] = np.asarray(tvec, float).ravel()
         step = np.linalg.inv(world_to_cur)
         return (step, len(inliers)) if np.all(np.isfinite(step)) else (None, 0)
+
+    def _static_matches(self, ref_id: int, cur_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels of the two frames' ORB matches outside every dynamic box of either (static in both), as two
+        (n, 2) arrays in match order; empty where either frame has fewer than 2 such features."""
+        ref, cur = self._frames[ref_id], self._frames[cur_id]
+        boxes = ref.boxes + cur.boxes
+        pa, da = _outside(*self._static_features(ref_id, ref), boxes)
+        pb, db = _outside(*self._static_features(cur_id, cur), boxes)
+        if da is None or db is None or len(pa) < 2 or len(pb) < 2:
+            return np.empty((0, 2)), np.empty((0, 2))
+        matches = self._matcher.match(da, db)
+        ia = np.fromiter((m.queryIdx for m in matches), np.int64, len(matches))
+        ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
+        return pa[ia], pb[ib]
 
     def _static_features(self, frame_id: int, frame: _Frame) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's keypoints and descriptors outside its own dynamic boxes, computed once per frame."""
