@@ -111,6 +111,24 @@ def test_a_window_longer_than_the_frames_held_is_no_judgement():
     assert verdict.matches == 0 and verdict.t == 0.0
 
 
+def test_a_pinned_frame_is_judged_from_after_the_window_has_moved_on():
+    """A SLAM back after a gap is judged from the last frame the output took its step (repair.py `_rejoin`): that
+    frame stays held, one at a time, however far the window has moved."""
+    truth = [_pose(0.004 * i, 0.2 * i) for i in range(8)]
+    arbiter = StepArbiter(ArbiterParams(window_frames=2))
+    for i, pose in enumerate(truth):
+        rgb, depth = _render(pose)
+        arbiter.push(i, rgb, depth, 0.001, K, [])
+        if i in (1, 2):
+            arbiter.pin(i)
+    assert arbiter.frames_held == 3 and arbiter.holds(2) and not arbiter.holds(1)
+    true_motion = np.linalg.inv(truth[2]) @ truth[-1]
+    dragged = true_motion @ _pose(0.03, np.degrees(0.03 / 3.0))
+    verdict = arbiter.judge(dragged, true_motion, 0, from_frame=2)
+    assert verdict.favours_semmap(ArbiterParams()) and verdict.semmap_px < verdict.slam_px
+    assert arbiter.judge(dragged, true_motion, 0, from_frame=1).matches == 0  # (no longer held: no judgement)
+
+
 def test_a_step_fitted_to_the_static_matches_recovers_the_motion_the_boxes_leave_visible():
     """Where people cover most of the view (a box over the left two thirds), the background's corners that are
     left still fix the step: the fitted step is within millimetres of the truth; a box over everything leaves

@@ -10,17 +10,19 @@ from semmap.algorithms.odometry.arbiter import Verdict
 from semmap.algorithms.odometry.repair import RepairParams, SlamRepair, step_difference
 
 
-def favours_semmap(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+def favours_semmap(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+                   from_frame: int | None = None) -> Verdict:
     """The static scene's verdict where semmap's registration is right (a person drags the SLAM)."""
     return Verdict(10.0, 200, 3.0, 0.8)
 
 
-def favours_slam(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+def favours_slam(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+                 from_frame: int | None = None) -> Verdict:
     """... and where the SLAM is (motion blur fooled the registration)."""
     return Verdict(-10.0, 200, 0.8, 3.0)
 
 
-def weak(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+def weak(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int, from_frame: int | None = None) -> Verdict:
     """Too few static matches to say anything."""
     return Verdict(0.0, 5, float("nan"), float("nan"))
 
@@ -184,6 +186,42 @@ def test_a_slam_back_in_the_same_map_continues_from_its_own_motion_over_the_gap(
     assert repair.report.gaps_rejoined == 1 and repair.report.slam_missing == 10
     assert _error(out[30:], truth[30:]) < 1e-9  # back on the SLAM exactly
     assert _error(out[20:30], truth[20:30]) > 0.02  # (the stand-in drifted meanwhile)
+
+
+def _dragged_then_relocalised() -> tuple[list[np.ndarray], list[np.ndarray | None], list[np.ndarray]]:
+    """A walker drags the SLAM 8 mm a frame (frames 20-25), it loses track (26-28) and relocalises in its map (29
+    on: its poses true again); the registrations are right."""
+    truth = _truth(60)
+    slam: list[np.ndarray | None] = [p if i < 20 or i >= 29 else None if i >= 26 else _pose(0.008 * (i - 19)) @ p
+                                     for i, p in enumerate(truth)]
+    return truth, slam, _steps(truth)
+
+
+def test_a_slam_relocalised_after_a_drag_rejoins_from_where_it_was_last_believed():
+    """Its motion over the gap contains the drag's undoing (5 cm back in one step); its motion from the last frame
+    whose step the output took (19) does not. The static scene between that frame and the newest decides."""
+    truth, slam, checks = _dragged_then_relocalised()
+
+    def scene(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+              from_frame: int | None = None) -> Verdict:
+        if from_frame is None:
+            return favours_semmap(slam_motion, semmap_motion, steps)
+        assert from_frame == 19
+        true = np.linalg.inv(truth[from_frame]) @ truth[29]
+        closer = step_difference(semmap_motion, true)[0] < step_difference(slam_motion, true)[0]
+        return Verdict(10.0 if closer else -10.0, 200, 1.0, 1.0)
+
+    repair = SlamRepair()
+    out = _run(repair, slam, checks, judge=scene)
+    assert repair.report.overruled == 6 and repair.report.gaps_rejoined == 1
+    assert repair.report.rejoined_from_anchor == 1 and repair.anchor_frame == 59
+    assert _error(out[29:], truth[29:]) < 1e-6
+    # without evidence (too few static matches between the two frames) its motion over the gap stands
+    weak_anchor = SlamRepair()
+    out = _run(weak_anchor, slam, checks,
+               judge=lambda a, b, steps, from_frame=None: weak(a, b, steps) if from_frame else favours_semmap(a, b, 1))
+    assert weak_anchor.report.rejoined_from_anchor == 0 and weak_anchor.report.gaps_rejoined == 1
+    assert _error(out[29:], truth[29:]) == pytest.approx(0.048, abs=0.002)
 
 
 def test_without_a_trustworthy_witness_a_jump_breaks_the_recent_motion():

@@ -91,6 +91,7 @@ class StepArbiter:
         self._features: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # frame id -> static features
         self._orb = cv2.ORB_create(self.params.features)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        self._pinned: tuple[int, _Frame] | None = None  # one frame kept beyond the window (`pin`)
         self.judged = 0
 
     def push(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, depth_scale: float,
@@ -100,24 +101,48 @@ class StepArbiter:
                                              list(boxes))
         while len(self._frames) > max(self.params.window_frames, self.params.long_window_frames) + 1:
             old, _ = self._frames.popitem(last=False)
-            self._features.pop(old, None)
+            if self._pinned is None or self._pinned[0] != old:
+                self._features.pop(old, None)
+
+    def pin(self, frame_id: int) -> None:
+        """Keep this held frame (and its features) after the window has moved on, until another is pinned: the
+        reference of a judgement `from_frame` it (a SLAM back after a gap, judged from where it was last believed).
+        One frame's images: no cost unless judged."""
+        frame = self._frames.get(int(frame_id))
+        if frame is None:
+            return
+        if self._pinned is not None and self._pinned[0] not in self._frames:
+            self._features.pop(self._pinned[0], None)
+        self._pinned = (int(frame_id), frame)
 
     @property
     def frames_held(self) -> int:
         return len(self._frames)
 
+    def holds(self, frame_id: int) -> bool:
+        return int(frame_id) in self._frames or (self._pinned is not None and self._pinned[0] == int(frame_id))
+
     def reset(self) -> None:
         self._frames.clear()
         self._features.clear()
+        self._pinned = None
 
-    def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
-        """Both motions from the frame `steps` back to the newest (T_ref^-1 T_cur, camera-to-world convention)."""
+    def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+              from_frame: int | None = None) -> Verdict:
+        """Both motions from the frame `steps` back (or from the held frame `from_frame`) to the newest
+        (T_ref^-1 T_cur, camera-to-world convention)."""
         self.judged += 1
         ids = list(self._frames)
-        if len(ids) < steps + 1:
+        if from_frame is not None:
+            if not ids or not self.holds(from_frame) or int(from_frame) == ids[-1]:
+                return Verdict(0.0, 0, math.nan, math.nan)
+            ref_id = int(from_frame)
+        elif len(ids) < steps + 1:
             return Verdict(0.0, 0, math.nan, math.nan)
-        ref, cur = self._frames[ids[-steps - 1]], self._frames[ids[-1]]
-        ua, ub = self._static_matches(ids[-steps - 1], ids[-1])
+        else:
+            ref_id = ids[-steps - 1]
+        ref, cur = self._frame(ref_id), self._frames[ids[-1]]
+        ua, ub = self._static_matches(ref_id, ids[-1])
         if len(ua) < self.params.min_matches:
             return Verdict(0.0, len(ua), math.nan, math.nan)
         K = cur.intrinsics
@@ -169,7 +194,7 @@ class StepArbiter:
     def _static_matches(self, ref_id: int, cur_id: int) -> tuple[np.ndarray, np.ndarray]:
         """The pixels of the two frames' ORB matches outside every dynamic box of either (static in both), as two
         (n, 2) arrays in match order; empty where either frame has fewer than 2 such features."""
-        ref, cur = self._frames[ref_id], self._frames[cur_id]
+        ref, cur = self._frame(ref_id), self._frames[cur_id]
         boxes = ref.boxes + cur.boxes
         pa, da = _outside(*self._static_features(ref_id, ref), boxes)
         pb, db = _outside(*self._static_features(cur_id, cur), boxes)
@@ -179,6 +204,14 @@ class StepArbiter:
         ia = np.fromiter((m.queryIdx for m in matches), np.int64, len(matches))
         ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
         return pa[ia], pb[ib]
+
+    def _frame(self, frame_id: int) -> _Frame:
+        frame = self._frames.get(frame_id)
+        if frame is None and self._pinned is not None and self._pinned[0] == frame_id:
+            return self._pinned[1]
+        if frame is None:
+            raise KeyError(frame_id)
+        return frame
 
     def _static_features(self, frame_id: int, frame: _Frame) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's keypoints and descriptors outside its own dynamic boxes, computed once per frame."""

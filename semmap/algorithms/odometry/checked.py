@@ -96,6 +96,8 @@ class CheckedSlam:
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
                                   judge=None if skipped else self._judge, slam_weak=slam_weak, undecided=undecided,
                                   same_map=same_map)
+        if self.repair.anchor_frame == frame.frame_id:  # (where the output last took the SLAM's step: kept)
+            self.arbiter.pin(frame.frame_id)
         self._poses[frame.frame_id] = pose
         while len(self._poses) > POSES_KEPT:
             self._poses.popitem(last=False)
@@ -135,11 +137,12 @@ class CheckedSlam:
             self._tracker.shutdown(wait=True)
             self._tracker = None
 
-    def _judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int) -> Verdict:
+    def _judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+               from_frame: int | None = None) -> Verdict:
         assert self.arbiter is not None
-        if self.arbiter.frames_held < steps + 1:  # (a window that a restart cut short)
+        if from_frame is None and self.arbiter.frames_held < steps + 1:  # (a window that a restart cut short)
             return Verdict(0.0, 0, math.nan, math.nan)
-        return self.arbiter.judge(slam_motion, semmap_motion, steps)
+        return self.arbiter.judge(slam_motion, semmap_motion, steps, from_frame)
 
     def counters(self) -> dict[str, int]:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,

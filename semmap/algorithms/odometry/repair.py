@@ -29,16 +29,21 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .arbiter import ArbiterParams, Verdict
 
-# judge(slam_motion, semmap_motion, steps): the static scene's verdict on two motions over the last `steps` frames
-Judge = Callable[[np.ndarray, np.ndarray, int], Verdict]
+
+class Judge(Protocol):
+    """The static scene's verdict on two motions over the last `steps` frames, or from frame `from_frame` (one the
+    caller was told to hold, see `SlamRepair.anchor_frame`) to the newest; `t` > 0 favours `semmap_motion`."""
+
+    def __call__(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+                 from_frame: int | None = None) -> Verdict: ...
 
 
 @dataclass(frozen=True)
@@ -99,6 +104,7 @@ class RepairReport:
     kept: int = 0  # the registration disagreed, but the static scene did not clearly favour it: the SLAM's step
     slam_weak: int = 0  # the registration disagreed and the SLAM itself said its tracking was weak: overruled
     gaps_rejoined: int = 0  # the SLAM came back after frames without a pose, in the same map: re-anchored
+    rejoined_from_anchor: int = 0  # ... measured from its last step the output took, not its last pose (see update)
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
     # per judged step (the first `max_judged`): what disagreed, the evidence and who won (odometry_repair.json)
@@ -107,7 +113,7 @@ class RepairReport:
 
     # the counted fields; older saved states listed the first eight as a plain list, in this order
     COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted",
-               "kept", "slam_weak", "gaps_rejoined")
+               "kept", "slam_weak", "gaps_rejoined", "rejoined_from_anchor")
 
     def counters(self) -> dict[str, int]:
         return {f"repair_{name}": getattr(self, name) for name in self.COUNTED}
@@ -262,6 +268,11 @@ class SlamRepair:
         # continues from there
         self._slam_last: np.ndarray | None = None
         self._out_at_slam_last: np.ndarray | None = None
+        # the last frame whose step the output took from the SLAM, its SLAM pose and output pose: where the two last
+        # agreed. A SLAM dragged before a gap and relocalised after it is measured from there (`_rejoin`)
+        self.anchor_frame: int | None = None
+        self._slam_at_anchor: np.ndarray | None = None
+        self._out_at_anchor: np.ndarray | None = None
         # the last steps taken: their mean is the camera's recent motion (the motion model), not the last step
         # alone, which is often the glitch that precedes a SLAM losing track (TUM fr1_rpy: a 2 cm step carried
         # on over 5 lost frames put them 10-18 cm off)
@@ -381,6 +392,8 @@ class SlamRepair:
                 self._pose = np.eye(4)
             self._remember_slam(slam_pose, stamp)
             self._slam_window.append(self._slam_prev)
+            if slam_pose is not None:
+                self._set_anchor(frame_id, slam_pose)
             return self._pose.copy()
         r.steps += 1
         scale = self._gate_scale(stamp)
@@ -390,9 +403,10 @@ class SlamRepair:
             # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
             # bridged it (a gap is never one step, and what carried it was a stand-in)
             r.gaps_rejoined += 1
-            self._pose = self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose
+            self._pose = self._rejoin(slam_pose, judge)
             self._remember_slam(slam_pose, stamp)
             self.took_slam_step, self.last_winner = True, "slam"
+            self._set_anchor(frame_id, slam_pose)
             self._slam_window.append(self._slam_prev)
             self._semmap_window.append(self._velocity())
             return self._pose.copy()
@@ -423,7 +437,33 @@ class SlamRepair:
         self._recent.append(np.asarray(step, float).copy())
         self._pose = self._pose @ step
         self._remember_slam(slam_pose, stamp)
+        if self.took_slam_step and slam_pose is not None:
+            self._set_anchor(frame_id, slam_pose)
         return self._pose.copy()
+
+    def _set_anchor(self, frame_id: int, slam_pose: np.ndarray) -> None:
+        self.anchor_frame = int(frame_id)
+        self._slam_at_anchor, self._out_at_anchor = slam_pose.copy(), self._pose.copy()
+
+    def _rejoin(self, slam_pose: np.ndarray, judge: Judge | None) -> np.ndarray:
+        """The output pose of a SLAM back in its map after a gap: its motion over the gap continues the output from
+        its last pose before the gap. Unless the output had stopped taking its steps before the gap (a walker
+        dragged it) and the static scene says its motion since the anchor, the last frame whose step the output
+        took from it, is the better one: a SLAM that relocalised in its map has left the drag behind, and its
+        motion over the gap then contains the drag's undoing (Bonn crowd, ORB-SLAM3 lost 3-4 frames among
+        people: its motion over the gap 10-25 cm off, its motion from the anchor 1.6 cm)."""
+        assert self._slam_last is not None and self._out_at_slam_last is not None
+        over_gap = self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose
+        if (judge is None or self._out_at_anchor is None or self._slam_at_anchor is None or self.anchor_frame is None
+                or np.array_equal(self._slam_at_anchor, self._slam_last)):
+            return over_gap
+        from_anchor = self._out_at_anchor @ np.linalg.inv(self._slam_at_anchor) @ slam_pose
+        start = np.linalg.inv(self._out_at_anchor)
+        verdict = judge(start @ over_gap, start @ from_anchor, 0, from_frame=self.anchor_frame)
+        if not verdict.favours_semmap(self.params.arbiter):
+            return over_gap
+        self.report.rejoined_from_anchor += 1
+        return from_anchor
 
     def _rejoins(self, slam_pose: np.ndarray, same_map: bool | None) -> bool:
         """Whether the SLAM, back after a gap, is back in the map it left: where it says so (`same_map`, ORB-SLAM3
@@ -611,6 +651,7 @@ class SlamRepair:
     def break_chain(self) -> None:
         """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
         self._slam_prev = self._slam_last = self._out_at_slam_last = None
+        self.anchor_frame = self._slam_at_anchor = self._out_at_anchor = None
         self._slam_window.clear()
         self._semmap_window.clear()
 
