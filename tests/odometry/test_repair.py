@@ -152,6 +152,30 @@ def test_the_evidence_of_a_few_consecutive_judgements_adds_up():
     assert winners[-1] == "slam"
 
 
+def test_a_long_record_of_verdicts_for_the_slam_does_not_keep_its_jump():
+    """Twenty strong verdicts for the SLAM's steps, then it jumps 26 cm and the scene says so twice (t = 26): its
+    record counts as one strong verdict, so the second verdict overrules the jump (with no walker in view)."""
+    truth = _truth(30)
+    slam = [p @ _pose(0.01 * i) for i, p in enumerate(truth)]  # 1 cm off the registration a frame ...
+    for i in range(23, 30):
+        slam[i] = slam[i] @ _pose(0.26)  # ... then a jump
+    checks = _steps(truth)
+    verdicts = [-26.0] * 21 + [26.0] * 8
+
+    def judge(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+              from_frame: int | None = None) -> Verdict:
+        return Verdict(verdicts[min(repair.report.steps - 1, len(verdicts) - 1)], 200, 1.0, 1.0)
+
+    repair = SlamRepair()
+    repair.update(0, slam[0], None)
+    winners = []
+    for i in range(1, len(slam)):
+        repair.update(i, slam[i], checks[i - 1], 1.0, moving_in_view=False, undecided=True, judge=judge)
+        winners.append(repair.last_winner)
+    assert set(winners[2:21]) == {"slam"} and winners[21] == "slam" and winners[22] == "semmap"
+    assert repair.evidence > 0
+
+
 def test_lost_slam_is_carried_by_the_registration_then_by_constant_velocity():
     truth = _truth(60)
     slam: list[np.ndarray | None] = list(truth)
@@ -370,6 +394,22 @@ def test_a_car_at_10_hz_keeps_its_slams_steps():
                                  judge=favours_semmap))
     assert _error(out, slam) < 1e-9
     assert repair.report.overruled == 0 and repair.report.implausible == 0
+
+
+def test_a_step_fitted_to_the_scene_witnesses_at_a_cameras_rate_not_at_a_cars():
+    """A step fitted to the static matches 6 cm off the true step (PnP on a far scene, frames far apart) overrules
+    nothing on a car at 10 Hz, even where the scene's verdict favours it; on a hand-held camera at 30 Hz it
+    witnesses (and there the scene decides)."""
+    for rate, overruled in ((10.0, False), (30.0, True)):
+        # (a car changing its speed by 0.6 m/s a frame: its SLAM's steps break the recent motion, so the scene judges)
+        truth = _car(30, [2.0 + 0.6 * (i % 2) for i in range(30)])[0] if rate == 10.0 else _truth(30)
+        checks = [_pose(0.06) @ s for s in _steps(truth)]
+        repair = SlamRepair()
+        repair.update(0, truth[0], None, stamp=0.0)
+        for i in range(1, 30):
+            repair.update(i, truth[i], checks[i - 1], 0.15, moving_in_view=True, stamp=i / rate,
+                          judge=favours_semmap, fitted_to_scene=True)
+        assert (repair.report.overruled > 0) == overruled, rate
 
 
 def test_the_motion_model_carries_no_longer_than_max_coast_s():

@@ -47,7 +47,7 @@ class ArbiterParams:
     max_reprojection_px: float = 6.0  # a match this far off under both motions is a wrong match, not evidence
     walker_prior: float = 6.0
     evidence_memory: float = 0.9  # each judgement adds its t to the sum of the earlier ones, faded by this
-    evidence_clip: float = 10.0  # ... at most this much: no single frame pair decides alone
+    evidence_clip: float = 10.0  # ... at most this much: no single frame pair outweighs a few others
     sparse_min_inliers: int = 80  # a step fitted to the static matches (`sparse_step`) witnesses with this many
     sparse_reprojection_px: float = 2.0  # ... matches within this of the fitted motion
 

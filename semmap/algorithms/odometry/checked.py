@@ -83,19 +83,19 @@ class CheckedSlam:
                 self._tracker = ThreadPoolExecutor(1, thread_name_prefix="slam-track")
             tracking = self._tracker.submit(track)
         self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
-        step, fitness = self._measure(frame) if wanted else (None, 0.0)
+        step, fitness, fitted = self._measure(frame) if wanted else (None, 0.0, False)
         if tracking is not None:
             slam_pose, slam_weak, same_map = tracking.result()
         if not wanted:
             if slam_pose is None and not frame.behind:  # (no SLAM pose: semmap's registration carries the frame)
-                step, fitness = self._measure(frame)
+                step, fitness, fitted = self._measure(frame)
             else:
                 self.registration.remember(frame)
         # behind: nothing judged either (the static scene's ORB matches cost a frame's time: Bonn crowd in real
         # time judged 270 of 377 frames it had no time to check, and dropped 99 frames)
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
                                   judge=None if skipped else self._judge, slam_weak=slam_weak, undecided=undecided,
-                                  same_map=same_map)
+                                  same_map=same_map, fitted_to_scene=fitted)
         if self.repair.anchor_frame == frame.frame_id:  # (where the output last took the SLAM's step: kept)
             self.arbiter.pin(frame.frame_id)
         self._poses[frame.frame_id] = pose
@@ -112,11 +112,11 @@ class CheckedSlam:
                                 frame.depth.shape[1], frame.depth.shape[0])
         return pose
 
-    def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float]:
-        """semmap's step to this frame: the dense registration, or where too few pixels are left to trust it (or
-        with the `sparse` witness: always), the step fitted to the static scene's ORB matches
-        (`StepArbiter.sparse_step`) if enough of them agree on it (it then counts as a registration at the bar:
-        `min_fitness`)."""
+    def _measure(self, frame: OdometryInput) -> tuple[np.ndarray | None, float, bool]:
+        """semmap's step to this frame, its fitness and whether it was fitted to the static scene's matches: the
+        dense registration, or where too few pixels are left to trust it (or with the `sparse` witness: always),
+        the step fitted to the static scene's ORB matches (`StepArbiter.sparse_step`) if enough of them agree on it
+        (it then counts as a registration at the bar: `min_fitness`)."""
         assert self.registration is not None and self.arbiter is not None
         self.registrations += 1
         if self.params.witness == "sparse":
@@ -125,12 +125,12 @@ class CheckedSlam:
         else:
             step, fitness = self.registration.register(frame)
         if step is not None and fitness >= self.params.min_fitness:
-            return step, fitness
+            return step, fitness, False
         sparse, inliers = self.arbiter.sparse_step()
         if sparse is None or inliers < self.params.arbiter.sparse_min_inliers:
-            return step, fitness
+            return step, fitness, False
         self.sparse_steps += 1
-        return sparse, self.params.min_fitness
+        return sparse, self.params.min_fitness, True
 
     def close(self) -> None:
         if self._tracker is not None:
