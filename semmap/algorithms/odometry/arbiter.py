@@ -120,7 +120,7 @@ class StepArbiter:
         return len(self._frames)
 
     def holds(self, frame_id: int) -> bool:
-        return int(frame_id) in self._frames or (self._pinned is not None and self._pinned[0] == int(frame_id))
+        return self._frame(int(frame_id)) is not None
 
     def reset(self) -> None:
         self._frames.clear()
@@ -142,6 +142,7 @@ class StepArbiter:
         else:
             ref_id = ids[-steps - 1]
         ref, cur = self._frame(ref_id), self._frames[ids[-1]]
+        assert ref is not None
         ua, ub = self._static_matches(ref_id, ids[-1])
         if len(ua) < self.params.min_matches:
             return Verdict(0.0, len(ua), math.nan, math.nan)
@@ -195,6 +196,7 @@ class StepArbiter:
         """The pixels of the two frames' ORB matches outside every dynamic box of either (static in both), as two
         (n, 2) arrays in match order; empty where either frame has fewer than 2 such features."""
         ref, cur = self._frame(ref_id), self._frames[cur_id]
+        assert ref is not None
         boxes = ref.boxes + cur.boxes
         pa, da = _outside(*self._static_features(ref_id, ref), boxes)
         pb, db = _outside(*self._static_features(cur_id, cur), boxes)
@@ -205,13 +207,11 @@ class StepArbiter:
         ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
         return pa[ia], pb[ib]
 
-    def _frame(self, frame_id: int) -> _Frame:
-        frame = self._frames.get(frame_id)
-        if frame is None and self._pinned is not None and self._pinned[0] == frame_id:
-            return self._pinned[1]
-        if frame is None:
-            raise KeyError(frame_id)
-        return frame
+    def _frame(self, frame_id: int) -> _Frame | None:
+        """A frame of the window, or the pinned one; None if neither."""
+        if frame_id in self._frames:
+            return self._frames[frame_id]
+        return self._pinned[1] if self._pinned is not None and self._pinned[0] == frame_id else None
 
     def _static_features(self, frame_id: int, frame: _Frame) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's keypoints and descriptors outside its own dynamic boxes, computed once per frame."""

@@ -395,7 +395,7 @@ class SlamRepair:
             self._remember_slam(slam_pose, stamp)
             self._slam_window.append(self._slam_prev)
             if slam_pose is not None:
-                self._set_anchor(frame_id, slam_pose)
+                self._set_anchor(frame_id)
             return self._pose.copy()
         r.steps += 1
         scale = self._gate_scale(stamp)
@@ -411,7 +411,7 @@ class SlamRepair:
             self._pose = self._rejoin(slam_pose, judge)
             self._remember_slam(slam_pose, stamp)
             self.took_slam_step, self.last_winner = True, "slam"
-            self._set_anchor(frame_id, slam_pose)
+            self._set_anchor(frame_id)
             self._slam_window.append(self._slam_prev)
             self._semmap_window.append(self._velocity())
             return self._pose.copy()
@@ -443,12 +443,14 @@ class SlamRepair:
         self._pose = self._pose @ step
         self._remember_slam(slam_pose, stamp)
         if self.took_slam_step and slam_pose is not None:
-            self._set_anchor(frame_id, slam_pose)
+            self._set_anchor(frame_id)
         return self._pose.copy()
 
-    def _set_anchor(self, frame_id: int, slam_pose: np.ndarray) -> None:
+    def _set_anchor(self, frame_id: int) -> None:
+        """After `_remember_slam`: this frame's SLAM pose (its copy there) and output pose are the anchor (no
+        further copies: both are replaced each frame, never changed in place)."""
         self.anchor_frame = int(frame_id)
-        self._slam_at_anchor, self._out_at_anchor = slam_pose.copy(), self._pose.copy()
+        self._slam_at_anchor, self._out_at_anchor = self._slam_prev, self._pose
 
     def _rejoin(self, slam_pose: np.ndarray, judge: Judge | None) -> np.ndarray:
         """The output pose of a SLAM back in its map after a gap: its motion over the gap continues the output from
