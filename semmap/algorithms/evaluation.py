@@ -16,13 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from semmap.core.outputs import SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets.base import DatasetError
 from semmap.datasets.trajectory_io import read_tum
 
 GROUNDTRUTH = "groundtruth.tum"
 ODOMETRY = "trajectory_odometry.tum"
 OPTIMIZED = "trajectory_optimized.tum"
-SLAM = "trajectory_slam.tum"  # an external SLAM's own poses, before semmap's repair (where there was one)
+SLAM = SLAM_TRAJECTORY  # an external SLAM's own poses, before semmap's repair (where there was one)
+SLAM_REFINED = SLAM_REFINED_TRAJECTORY  # ...and refined by the SLAM itself at its end (ORB-SLAM3)
 RESULT = "eval.json"
 MAX_STAMP_DIFF_S = 0.01
 
@@ -125,5 +127,7 @@ def evaluate_run(out_dir: Path, groundtruth: Path | None = None) -> dict:
               "groundtruth": str(groundtruth) if groundtruth is not None else GROUNDTRUTH}
     if (out_dir / SLAM).is_file():  # the SLAM alone, to hold semmap's repair against
         result["ate_slam_m"] = ate_details(gt, _read(out_dir / SLAM))[0]
+    if (out_dir / SLAM_REFINED).is_file():  # ...and what the SLAM alone saves at its end
+        result["ate_slam_refined_m"] = ate_details(gt, _read(out_dir / SLAM_REFINED))[0]
     write_json_atomic(out_dir / RESULT, result)
     return result

@@ -34,4 +34,8 @@ def run_eval(args: argparse.Namespace) -> int:
         return 2
     print(f"ATE odometry {result['ate_odometry_m']:.4f} m, optimised {result['ate_optimized_m']:.4f} m, "
           f"improvement {_pct(result['improvement_pct'])} over {result['poses']} poses")
+    if result.get("ate_slam_m") is not None:  # (a checked SLAM: what it gave alone, as tracked and as it saves it)
+        refined = result.get("ate_slam_refined_m")
+        print(f"SLAM alone {result['ate_slam_m']:.4f} m (trajectory_slam.tum)"
+              + (f", refined at its end {refined:.4f} m (trajectory_slam_refined.tum)" if refined is not None else ""))
     return 0

@@ -23,6 +23,9 @@ from pathlib import Path
 LOCK_NAME = ".semmap.lock"
 # what marks a directory as a semmap run's (only such a directory is wiped by --overwrite)
 SLAM_TRAJECTORY = "trajectory_slam.tum"  # an external SLAM's own poses before semmap repaired them
+# ...and as the SLAM itself saves them at its end, where it does that (ORB-SLAM3, after its last bundle adjustments):
+# what it alone gives a user, held against semmap's result
+SLAM_REFINED_TRAJECTORY = "trajectory_slam_refined.tum"
 REPAIR_REPORT = "odometry_repair.json"  # where semmap overruled the SLAM (the odometry service writes it)
 RUN_MARKERS = ("stats.json", "logs", "map.json")
 # errors of the disk itself: no retry or restart helps, the operator must act (named as they are)

@@ -159,6 +159,9 @@ def repair_line(out_dir: Path) -> str | None:
         if result.get("ate_slam_m") is not None:
             lines.append(f"  SLAM alone  ATE {result['ate_slam_m']:.3f} m (its own poses, trajectory_slam.tum) -> "
                          f"repaired {result['ate_odometry_m']:.3f} m -> optimised {result['ate_optimized_m']:.3f} m")
+        if result.get("ate_slam_refined_m") is not None:
+            lines.append(f"              {result['ate_slam_refined_m']:.3f} m as the SLAM refined its own poses at its "
+                         "end (trajectory_slam_refined.tum: what it alone would save)")
     except (ValueError, OSError):
         pass
     return "\n".join(lines)

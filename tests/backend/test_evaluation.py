@@ -64,6 +64,28 @@ def test_evaluate_run_writes_eval_json(tmp_path: Path) -> None:
         "eval.json", "groundtruth.tum", "trajectory_odometry.tum", "trajectory_optimized.tum"]
 
 
+def test_a_slams_own_trajectories_are_scored_beside_semmaps(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A checked SLAM's own poses (`trajectory_slam.tum`) and those it refined at its end
+    (`trajectory_slam_refined.tum`, ORB-SLAM3's saved trajectory) are scored against the same ground truth: the
+    SLAM alone as it tracked, and as it alone would save it."""
+    stamped_gt, odometry = write_run(tmp_path)
+    write_tum(tmp_path / "trajectory_slam.tum", odometry)
+    refined = []
+    for i, (t, p) in enumerate(stamped_gt):
+        q = p.copy()
+        q[1, 3] += 0.02 * (-1) ** i
+        refined.append((t, q))
+    write_tum(tmp_path / "trajectory_slam_refined.tum", refined)
+    result = evaluate_run(tmp_path)
+    assert result["ate_slam_m"] == pytest.approx(result["ate_odometry_m"])
+    assert result["ate_slam_refined_m"] == pytest.approx(0.02, abs=0.001)  # alternating +-2 cm
+    assert run_cli(["eval", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == (
+        f"SLAM alone {result['ate_slam_m']:.4f} m (trajectory_slam.tum), refined at its end "
+        f"{result['ate_slam_refined_m']:.4f} m (trajectory_slam_refined.tum)")
+
+
 def test_evaluation_errors(tmp_path: Path) -> None:
     with pytest.raises(EvaluationError, match="does not exist"):
         evaluate_run(tmp_path / "nope")

@@ -89,6 +89,14 @@ def test_orbslam3_tracks_real_frames_with_the_real_wheel(kitchen_dir: Path, voca
     assert front.counters["orb_lost"] + front.counters["orb_not_initialized"] <= 5, front.counters
     assert front.counters["repair_steps"] == 59
     assert ate_rmse(gt, est) < 0.03
+    # after close, ORB-SLAM3's own trajectory refined at its end, for every frame it posed itself, in the same world
+    if front.counters["orb_lost"] == 0:
+        refined = front.refined_trajectory
+        assert [t for t, _ in refined] == [t for t, _ in front.slam_trajectory]
+        assert ate_rmse(gt, refined) < 0.03
+        assert ate_rmse(front.slam_trajectory, refined) < 0.02  # (the same trajectory, refined: no other frame)
+    else:  # (its poses in more than one map: one anchor cannot place them, so none)
+        assert front.refined_trajectory == []
 
 
 @pytest.mark.slow

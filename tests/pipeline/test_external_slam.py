@@ -208,3 +208,7 @@ def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, rou
     odometry = read_tum(out / "trajectory_odometry.tum")
     assert len(odometry) >= 0.9 * frames
     assert ate_rmse(read_tum(rpy / "groundtruth.txt"), odometry) < 0.06
+    # beside it, ORB-SLAM3's own poses, and as it refined them at its end (what it alone would save)
+    slam, refined = read_tum(out / "trajectory_slam.tum"), read_tum(out / "trajectory_slam_refined.tum")
+    assert [t for t, _ in refined] == pytest.approx([t for t, _ in slam])
+    assert ate_rmse(read_tum(rpy / "groundtruth.txt"), refined) < 0.06

@@ -115,6 +115,7 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
         self.needs_images = self.uses_dynamic = True  # (ORB-SLAM3 tracks the images, its masks need the boxes)
         self.weak_points = config.orbslam3_weak_points
         self._slam = None
+        self.refined_trajectory: list[tuple[float, np.ndarray]] = []  # after `close`: see `_refined`
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._anchor: np.ndarray | None = None  # world <- ORB-SLAM3's map of the first frame
         self._restored = False
@@ -178,6 +179,35 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
             self.check.repair.break_chain()
         return slam_pose, weak, True
 
+    def _refined(self) -> list[tuple[float, np.ndarray]]:
+        """After `shutdown`: ORB-SLAM3's own trajectory as it saves it, after its last bundle adjustments, for the
+        frames it posed itself, in semmap's world (`SLAM_REFINED_TRAJECTORY`). Why keep it: it is what ORB-SLAM3
+        alone gives a user, so semmap's result is held against it too. It is not always the better one (7-Scenes
+        0.048 against 0.051 m as tracked; the fr1_rpy window 0.023-0.050 against 0.025-0.029 m). Empty where its
+        poses are in more than one map (it lost track for good and started anew, or restarted): one anchor cannot
+        place them."""
+        if not self.slam_trajectory or self._anchor is None or self._restored or self.counters["orb_lost"]:
+            return []
+        from semmap.datasets.trajectory_io import read_tum
+
+        if self._tmp is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="semmap-orbslam3-")
+        path = Path(self._tmp.name) / "refined.tum"
+        try:  # (after every other output of the run is written: see the odometry service's `write_outputs`)
+            self._slam.save_trajectory_tum(str(path))
+            saved = read_tum(path)
+        except Exception:  # (the wheel raises plain exceptions; a missing refinement loses nothing of the run)
+            return []
+        if not saved:
+            return []
+        stamps = np.array([t for t, _ in saved])
+        refined = []
+        for stamp, _ in self.slam_trajectory:  # (ORB-SLAM3 writes its stamps to the microsecond)
+            i = int(np.argmin(np.abs(stamps - stamp)))
+            if abs(stamps[i] - stamp) < 1e-3:
+                refined.append((stamp, self._anchor @ saved[i][1]))
+        return refined
+
     def state(self) -> dict:
         return {**self.check.state(), "anchor": flat(self._anchor)}
 
@@ -191,6 +221,7 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
         if self._slam is not None:
             try:
                 self._slam.shutdown()
+                self.refined_trajectory = self._refined()
             finally:
                 self._slam = None
         if self._tmp is not None:

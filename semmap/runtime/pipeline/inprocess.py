@@ -54,7 +54,7 @@ from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core import dataflow
 from semmap.core.config import Config, load_config
 from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
-from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
+from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
 from semmap.datasets.trajectory_io import write_tum
@@ -276,7 +276,9 @@ class LoopResult:
     odometry: list[tuple[float, np.ndarray]] = field(default_factory=list)
     frontend_counters: dict[str, int] = field(default_factory=dict)  # e.g. the repair's overruled steps
     slam_trajectory: list = field(default_factory=list)  # a checked SLAM's own poses, (stamp, 4x4)
+    slam_refined: list = field(default_factory=list)  # ...as the SLAM refined them at its end (ORB-SLAM3)
     ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
+    ate_slam_refined: float | None = None  # ...refined by the SLAM at its end (orbslam3: what it alone saves)
     repair_report: dict | None = None  # where semmap overruled a checked SLAM and why (odometry_repair.json)
     associator: AssociatorStage | None = None  # the map with its prior landmarks' statuses, its saved state
 
@@ -293,6 +295,7 @@ class LoopResult:
             "ate_odometry_m": self.ate_odometry,
             "ate_optimized_m": self.ate_optimized,
             "ate_slam_m": self.ate_slam,
+            "ate_slam_refined_m": self.ate_slam_refined,
             "improvement_pct": self.improvement_pct,
             "landmarks": self.landmarks,
             "observations": self.observations,
@@ -324,6 +327,8 @@ class LoopResult:
         write_tum(out / "trajectory_odometry.tum", self.odometry)
         if self.slam_trajectory:  # (a checked SLAM's own poses, as the odometry service writes them)
             write_tum(out / SLAM_TRAJECTORY, self.slam_trajectory)
+        if self.slam_refined:  # (...and refined by it at its end)
+            write_tum(out / SLAM_REFINED_TRAJECTORY, self.slam_refined)
         if self.repair_report is not None:
             write_json_atomic(out / REPAIR_REPORT, self.repair_report)
 
@@ -471,6 +476,7 @@ class LockstepDriver:
         report = getattr(front, "repair_report", None)
         if (close := getattr(front, "close", None)) is not None:
             close()
+        refined = getattr(front, "refined_trajectory", None) or []  # (after close: the SLAM refines at its end)
         return LoopResult(
             ate_odometry=ate_rmse(gt, self.odo_traj), ate_optimized=ate_rmse(gt, optimized), landmarks=len(landmarks),
             observations=self.n_obs, observation_factors=graph.counters["observation_factors"],
@@ -479,6 +485,7 @@ class LockstepDriver:
             mapper=associator.mapper, optimized=optimized, odometry=self.odo_traj,
             frontend_counters=dict(getattr(front, "counters", {})),
             ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None, slam_trajectory=list(slam or []),
+            slam_refined=list(refined), ate_slam_refined=ate_rmse(gt, refined) if len(refined) >= 3 else None,
             repair_report=None if report is None else report(self.odometry_mode),
             mapper_ms_p50=float(np.median(self.mapper_ms)) if self.mapper_ms else 0.0,
             loop_closures=dict(self.backend_stage.closer.counters),
@@ -694,7 +701,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"  recall {row['recall']:.2f} dup {row['duplicates']} false {row['false_landmarks']} "
                 f"on_moving {row['on_moving']}"
             )
-        slam = "" if res.ate_slam is None else f"SLAM alone {res.ate_slam:.4f} m, "
+        slam = "" if res.ate_slam is None else f"SLAM alone {res.ate_slam:.4f} m, " + (
+            "" if res.ate_slam_refined is None else f"refined at its end {res.ate_slam_refined:.4f} m, ")
         print(
             f"{args.odometry:9s} seed {seed}: {slam}ATE odometry {res.ate_odometry:.4f} m, optimised "
             f"{res.ate_optimized:.4f} m ({res.improvement_pct:+.1f} %), landmarks {res.landmarks}, observations "

@@ -23,7 +23,7 @@ import numpy as np
 from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
 from semmap.core.messages import DynamicObjects, Frame, OdometryPose
-from semmap.core.outputs import REPAIR_REPORT, SLAM_TRAJECTORY
+from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.transport.service import service_main
 from semmap.runtime.transport.stage_service import StageService
@@ -193,17 +193,21 @@ class OdometryService(StageService):
             self.log.info("resumed after frame %d (%d poses)", self.last_frame_id, len(self.trajectory))
 
     def write_outputs(self) -> None:
-        close = getattr(self.frontend, "close", None)
-        if close is not None:  # (ORB-SLAM3 stops its threads)
-            close()
         if self.out_dir is not None and self.trajectory:
             write_tum(self.out_dir / "trajectory_odometry.tum", self.trajectory)
-        slam = getattr(self.frontend, "slam_trajectory", None)
-        if self.out_dir is not None and slam:
-            write_tum(self.out_dir / SLAM_TRAJECTORY, [(t, self.to_session @ pose) for t, pose in slam])
+        self._write_slam(SLAM_TRAJECTORY, getattr(self.frontend, "slam_trajectory", None))
         report = getattr(self.frontend, "repair_report", None)
         if self.out_dir is not None and report is not None:
             write_json_atomic(self.out_dir / REPAIR_REPORT, report(self.mode))
+        close = getattr(self.frontend, "close", None)
+        if close is not None:  # (ORB-SLAM3 stops its threads, then refines its own trajectory: after the rest)
+            close()
+        self._write_slam(SLAM_REFINED_TRAJECTORY, getattr(self.frontend, "refined_trajectory", None))
+
+    def _write_slam(self, name: str, poses: list | None) -> None:
+        """A checked SLAM's own poses, in the session's world."""
+        if self.out_dir is not None and poses:
+            write_tum(self.out_dir / name, [(t, self.to_session @ pose) for t, pose in poses])
 
 
 def _decode(frame: Frame) -> None:
