@@ -58,6 +58,45 @@ def test_auto_takes_a_real_front_end(tmp_path: Path):
     assert resolve_mode("file:x.tum", with_vocab) == "file:x.tum"
 
 
+class _StoppedSlam:
+    """What `OrbSlam3Odometry.close` asks of ORB-SLAM3 at its end: stop, then save its trajectory (TUM)."""
+
+    def __init__(self, lines: list[str]) -> None:
+        self.lines, self.saved = lines, 0
+
+    def shutdown(self) -> None:
+        pass
+
+    def save_trajectory_tum(self, path: str) -> None:
+        self.saved += 1
+        Path(path).write_text("\n".join(self.lines) + "\n")
+
+
+@needs_wheel
+def test_its_saved_trajectory_is_taken_for_its_own_frames_in_semmaps_world(tmp_path: Path):
+    """At close, the trajectory ORB-SLAM3 saves (stamps to the microsecond, frames it did not pose itself among them)
+    is matched to the frames it posed and placed by the anchor of its map; with a second map (LOST) none is taken."""
+    vocab = tmp_path / "voc.txt"
+    vocab.write_text("10 5 0 0\n")
+    cfg = load_config(None, [f"odometry.orbslam3_vocabulary={vocab}"]).odometry
+    anchor = np.eye(4)
+    anchor[:3, 3] = (1.0, 2.0, 3.0)
+    saved = ["0.000000 0 0 0 0 0 0 1", "0.033334 0.01 0 0 0 0 0 1", "0.066666 0.02 0 0 0 0 0 1",
+             "0.100000 0.03 0 0 0 0 0 1"]  # (the last: a frame it was lost in)
+    front = make_frontend("orbslam3", cfg)
+    front.slam_trajectory = [(t, np.eye(4)) for t in (0.0, 1 / 30, 2 / 30)]
+    front._anchor, front._slam = anchor, _StoppedSlam(saved)
+    front.close()
+    assert [t for t, _ in front.refined_trajectory] == [0.0, 1 / 30, 2 / 30]
+    np.testing.assert_allclose(front.refined_trajectory[2][1][:3, 3], (1.02, 2.0, 3.0))
+    two_maps = make_frontend("orbslam3", cfg)
+    two_maps.slam_trajectory = [(t, np.eye(4)) for t in (0.0, 1 / 30, 2 / 30)]
+    two_maps._anchor, two_maps._slam = anchor, (slam := _StoppedSlam(saved))
+    two_maps.counters["orb_lost"] = 1
+    two_maps.close()
+    assert two_maps.refined_trajectory == [] and slam.saved == 0
+
+
 @needs_wheel
 def test_a_missing_vocabulary_is_a_clear_error(tmp_path: Path):
     with pytest.raises(OdometryError, match="needs a vocabulary file"):
