@@ -200,13 +200,16 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
             return []
         if not saved:
             return []
+        saved.sort(key=lambda row: row[0])
         stamps = np.array([t for t, _ in saved])
-        refined = []
-        for stamp, _ in self.slam_trajectory:  # (ORB-SLAM3 writes its stamps to the microsecond)
-            i = int(np.argmin(np.abs(stamps - stamp)))
-            if abs(stamps[i] - stamp) < 1e-3:
-                refined.append((stamp, self._anchor @ saved[i][1]))
-        return refined
+        wanted = np.array([t for t, _ in self.slam_trajectory])
+        # each frame's nearest saved stamp (ORB-SLAM3 writes them to the microsecond), by bisection: a run of hours
+        # has a hundred thousand frames
+        after = np.searchsorted(stamps, wanted)
+        lo, hi = np.clip(after - 1, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
+        nearest = np.where(np.abs(stamps[lo] - wanted) <= np.abs(stamps[hi] - wanted), lo, hi)
+        return [(float(t), self._anchor @ saved[i][1]) for t, i in zip(wanted, nearest, strict=True)
+                if abs(stamps[i] - t) < 1e-3]
 
     def state(self) -> dict:
         return {**self.check.state(), "anchor": flat(self._anchor)}
