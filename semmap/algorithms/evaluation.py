@@ -23,8 +23,6 @@ from semmap.datasets.trajectory_io import read_tum
 GROUNDTRUTH = "groundtruth.tum"
 ODOMETRY = "trajectory_odometry.tum"
 OPTIMIZED = "trajectory_optimized.tum"
-SLAM = SLAM_TRAJECTORY  # an external SLAM's own poses, before semmap's repair (where there was one)
-SLAM_REFINED = SLAM_REFINED_TRAJECTORY  # ...and refined by the SLAM itself at its end (ORB-SLAM3)
 RESULT = "eval.json"
 MAX_STAMP_DIFF_S = 0.01
 
@@ -125,9 +123,9 @@ def evaluate_run(out_dir: Path, groundtruth: Path | None = None) -> dict:
     result = {"ate_odometry_m": ate_odometry, "ate_optimized_m": ate_optimized,
               "improvement_pct": improvement, "poses": matched,
               "groundtruth": str(groundtruth) if groundtruth is not None else GROUNDTRUTH}
-    if (out_dir / SLAM).is_file():  # the SLAM alone, to hold semmap's repair against
-        result["ate_slam_m"] = ate_details(gt, _read(out_dir / SLAM))[0]
-    if (out_dir / SLAM_REFINED).is_file():  # ...and what the SLAM alone saves at its end
-        result["ate_slam_refined_m"] = ate_details(gt, _read(out_dir / SLAM_REFINED))[0]
+    # the SLAM alone, to hold semmap's repair against: as it tracked, and as it saved itself at its end (ORB-SLAM3)
+    for key, name in (("ate_slam_m", SLAM_TRAJECTORY), ("ate_slam_refined_m", SLAM_REFINED_TRAJECTORY)):
+        if (out_dir / name).is_file():
+            result[key] = ate_details(gt, _read(out_dir / name))[0]
     write_json_atomic(out_dir / RESULT, result)
     return result

@@ -334,10 +334,15 @@ class SlamRepair:
         if len(self.report.overruled_frames) < self.report.max_listed:
             self.report.overruled_frames.append(int(frame_id))
 
-    def _trusted(self, step: np.ndarray | None, fitness: float, scale: float) -> bool:
+    def _trusted(self, step: np.ndarray | None, fitness: float, scale: float, fitted_to_scene: bool = False) -> bool:
         p = self.params
         if not (step is not None and bool(np.all(np.isfinite(step))) and fitness >= p.min_fitness
                 and float(np.linalg.norm(step[:3, 3])) <= p.max_step_m and _rotation_deg(step) <= p.max_step_deg):
+            return False
+        if fitted_to_scene and scale > 1.0:
+            # (at a slower stream a step fitted to the static matches is no witness: frames a metre apart on a car,
+            # its PnP on a far scene was 5-12 cm off where the SLAM's steps were 0.3-2 cm, and the street along
+            # KITTI 00 went from 1.26 to 4.08 m)
             return False
         if self.report.steps <= 1 or scale <= 1.0:  # (at the gates' own rate the registration is the witness)
             return True
@@ -399,10 +404,7 @@ class SlamRepair:
             return self._pose.copy()
         r.steps += 1
         scale = self._gate_scale(stamp)
-        # (at a slower stream a step fitted to the static matches is no witness: frames a metre apart on a car, its
-        # PnP on a far scene was 5-12 cm off where the SLAM's steps were 0.3-2 cm, and the street along KITTI 00
-        # went from 1.26 to 4.08 m)
-        trusted = self._trusted(check_step, fitness, scale) and not (fitted_to_scene and scale > 1.0)
+        trusted = self._trusted(check_step, fitness, scale, fitted_to_scene)
         slam_step = None
         if slam_pose is not None and self._slam_prev is None and self._rejoins(slam_pose, same_map):
             # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
