@@ -28,6 +28,8 @@ EXTERNAL_SENDER = "external"  # the role an external SLAM's messages carry (an u
 # front ends an external run may pose its frames with (`semmap run external --odometry orbslam3`: a robot's camera
 # through `semmap ros2`, posed by semmap's ORB-SLAM3 instead of the robot's own odometry)
 OWN_FRONT_ENDS = ("orbslam3", "rgbd")
+# front ends that refine their trajectory at their end: the backend waits for their `odometry/refined`
+REFINING_FRONT_ENDS = ("orbslam3",)
 
 # every service reads the run's control key (stop, end of stream, unreadable frames) through the base class
 SERVICE_INPUTS: tuple[str, ...] = ("control",)
@@ -109,6 +111,8 @@ class Node:
 TOPICS: tuple[Topic, ...] = (
     Topic("frames", "Frame", "colour, depth, intrinsics (and ground truth, from a dataset) of one frame"),
     Topic("odometry", "OdometryPose", "the front end's camera pose of a frame"),
+    Topic("odometry/refined", "OdometryRefinement", "the odometry of earlier frames again, as the SLAM refined its "
+          "own trajectory at its end (once, after the last pose)"),
     Topic("slam", "OdometryPose", "an external SLAM's own pose, checked before it becomes odometry"),
     Topic("detections", "Detections", "a frame's boxes with depth (or `skipped`)"),
     Topic("tracks", "Tracks", "a frame's tracklets and the ones that ended"),
@@ -133,7 +137,7 @@ NODES: tuple[Node, ...] = (
     Node("odometry", "service", "a camera pose per frame (or an external SLAM's, checked)",
          ports=(Port("frames", "receive"), Port("dynamic", "on_dynamic", when="uses_dynamic"),
                 Port("slam", "on_slam", when="needs_slam")),
-         outputs=("odometry",), lockstep=True,
+         outputs=("odometry", "odometry/refined"), lockstep=True,
          flags=(WiringFlag("--await-dynamic", ("detector", "tracker"),
                            "lockstep: a front end that leaves out dynamic objects waits for each frame's boxes"),),
          algorithm="semmap.algorithms.odometry", config=("odometry",)),
@@ -154,7 +158,8 @@ NODES: tuple[Node, ...] = (
                            "lockstep: hold each frame until the backend's corrected poses for it come"),),
          algorithm="semmap.algorithms.associator", stage="AssociatorStage", config=("associator",)),
     Node("backend", "service", "pose graph of odometry and landmark observations; loop closures",
-         ports=(Port("odometry", "receive"), Port("observations", "on_observations"),
+         ports=(Port("odometry", "receive"), Port("odometry/refined", "on_refinement", when="awaits_refinement"),
+                Port("observations", "on_observations"),
                 Port("frames", "on_frame", when="takes_keyframes"),
                 Port("dynamic", "on_dynamic", when="masks_keyframes")),
          outputs=("poses/corrected",), lockstep=True,

@@ -97,7 +97,7 @@ def run_summary(out_dir: Path, stats: dict) -> str:
                 notes.append(f"{loops} loop closure{'s' * (loops != 1)}")
         gain = f" ({', '.join(notes)})" if notes else ""
         lines.append(f"  ATE         odometry {odo:.3f} m -> optimised {opt:.3f} m{gain} (RMSE vs ground truth)")
-    repair = repair_line(out_dir)
+    repair = repair_line(out_dir, refinement_note(stats))
     if repair:
         lines.append(repair)
     lines.append("  outputs")
@@ -125,8 +125,23 @@ def run_summary(out_dir: Path, stats: dict) -> str:
     return "\n".join(lines)
 
 
-def repair_line(out_dir: Path) -> str | None:
-    """How often and where semmap overruled the SLAM's steps (odometry_repair.json), one line."""
+def refinement_note(stats: dict) -> str:
+    """Whether the backend took the SLAM's refinement at its end into semmap's result (its counters)."""
+    services = stats.get("services") if isinstance(stats.get("services"), dict) else {}
+    backend = next((s for s in services.values() if isinstance(s, dict) and s.get("service") == "backend"), {})
+    counters = backend.get("counters") if isinstance(backend.get("counters"), dict) else {}
+    if counters.get("odometry_refined_frames"):
+        return f"taken into semmap's result ({counters['odometry_refined_frames']} frames)"
+    if counters.get("odometry_refinement_withheld"):
+        return "not taken into semmap's result (why: logs/backend.log)"
+    if counters.get("odometry_refinement_timeouts"):
+        return "not taken: it did not come in time"
+    return ""
+
+
+def repair_line(out_dir: Path, refinement: str = "") -> str | None:
+    """How often and where semmap overruled the SLAM's steps (odometry_repair.json), one line; `refinement`:
+    what became of the SLAM's refinement at its end (`refinement_note`)."""
     import json
 
     from semmap.core.outputs import REPAIR_REPORT
@@ -161,7 +176,8 @@ def repair_line(out_dir: Path) -> str | None:
                          f"repaired {result['ate_odometry_m']:.3f} m -> optimised {result['ate_optimized_m']:.3f} m")
         if result.get("ate_slam_refined_m") is not None:
             lines.append(f"              {result['ate_slam_refined_m']:.3f} m as the SLAM refined its own poses at its "
-                         "end (trajectory_slam_refined.tum: what it alone would save)")
+                         "end (trajectory_slam_refined.tum: what it alone would save)"
+                         + (f"; {refinement}" if refinement else ""))
     except (ValueError, OSError):
         pass
     return "\n".join(lines)

@@ -378,3 +378,58 @@ def test_bridged_frames_are_placed_between_measured_ones_and_left_out_of_the_mea
     assert graph.num_unmeasured == 3
     graph.add_odometry(9, 9 / FPS, scene.odometry[9], *scene.sigmas)  # measured after all
     assert graph.num_unmeasured == 2 and 9 in graph.measured_poses()[0].tolist()
+
+
+def test_a_slams_refinement_at_its_end_replaces_the_odometry_it_sent() -> None:
+    """OdometryRefinement: the refined poses replace the odometry of the frames the graph holds as measured (a
+    stand-in and a frame it never had are passed over), and the optimised trajectory follows them (no landmarks:
+    it is the odometry)."""
+    scene = square_scene(0, n=40)
+    graph = PoseGraph()
+    for i, pose in enumerate(scene.odometry):
+        graph.add_odometry(i, i / FPS, pose, *scene.sigmas, keyframe=i % 5 == 0, bridged=i == 7)
+        graph.update()
+    assert max_position_error(list(graph.measured_poses()[2]), scene.odometry[:7] + scene.odometry[8:]) < 1e-6
+    taken = graph.refine_odometry([*range(40), 99], [*scene.gt, np.eye(4)])
+    for _ in range(3):
+        graph.update()
+    assert taken == 39 and graph.counters["odometry_refined"] == 39
+    ids, _, poses = graph.measured_poses()
+    assert 7 not in ids.tolist()
+    assert max_position_error(list(poses), scene.gt[:7] + scene.gt[8:]) < 1e-6
+
+
+def test_a_refinement_is_taken_only_where_the_loop_closures_agree_with_it() -> None:
+    """BackendStage.refine: semmap's loop closures judge a SLAM's refinement at its end against its odometry as
+    tracked; it is taken unless they say it is worse (or there are too few of them), else the tracked odometry
+    stays and the reason is given."""
+    from semmap.core.messages import OdometryRefinement
+    from semmap.runtime.pipeline.stages import REFINEMENT_MIN_CLOSURES, BackendStage
+
+    scene = square_scene(0, n=40)
+
+    def stage_with_closures(count: int) -> BackendStage:
+        stage = BackendStage()
+        for i, pose in enumerate(scene.odometry):
+            stage.graph.add_odometry(i, i / FPS, pose, *scene.sigmas, keyframe=i % 5 == 0)
+        for k in range(count):  # (true relative motions, as a good registration measures them)
+            a, b = 5 * k, 5 * k + 15
+            stage.graph.add_relative_pose_constraint(a, b, np.linalg.inv(scene.gt[a]) @ scene.gt[b], 0.01, 0.01)
+        stage.graph.update()
+        return stage
+
+    ids = np.arange(1, 40)
+    truth = OdometryRefinement("robot1", "orbslam3", ids, np.stack(scene.gt[1:]))
+    worse = [p.copy() for p in scene.odometry[1:]]
+    for p in worse[10:]:
+        p[:3, 3] += (0.3, 0.0, 0.0)  # (a jump the closures across it do not show)
+    stage = stage_with_closures(REFINEMENT_MIN_CLOSURES)
+    taken, why = stage.refine(truth)
+    assert taken == 39 and why == ""
+    stage = stage_with_closures(REFINEMENT_MIN_CLOSURES)
+    taken, why = stage.refine(OdometryRefinement("robot1", "orbslam3", ids, np.stack(worse)))
+    assert taken == 0 and "say it is worse" in why and stage.graph.counters.get("odometry_refined", 0) == 0
+    taken, why = stage_with_closures(REFINEMENT_MIN_CLOSURES - 1).refine(truth)
+    assert taken == 0 and "at least 3 are needed" in why
+    withheld = OdometryRefinement("robot1", "orbslam3", ids[:0], np.zeros((0, 4, 4)), "2 object(s) were seen moving")
+    assert stage_with_closures(5).refine(withheld) == (0, "2 object(s) were seen moving")

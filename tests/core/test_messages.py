@@ -29,6 +29,7 @@ from semmap.core.messages import (
     Observation,
     Observations,
     OdometryPose,
+    OdometryRefinement,
     Progress,
     ServiceStatus,
     TagDetection,
@@ -81,6 +82,8 @@ def _samples() -> list:
                       {"update_ms": {"p50": 0.05, "p95": 0.09}}, 80.0, 1.5),
         DynamicObjects("robot1", 7, 0.25, [DynamicBox(2, "person", (4.0, 6.0, 14.0, 40.0), 1.2, 2.1, "class"),
                                            DynamicBox(3, "chair", (20.0, 6.0, 30.0, 20.0), 0.0, 0.0, "moving")]),
+        OdometryRefinement("robot1", "orbslam3", np.array([1, 2]), np.stack([_pose(), _pose(0.1)])),
+        OdometryRefinement("robot1", "orbslam3", np.zeros(0, np.int64), np.zeros((0, 4, 4)), "objects seen moving"),
     ]
 
 

@@ -134,6 +134,13 @@ def test_orbslam3_tracks_real_frames_with_the_real_wheel(kitchen_dir: Path, voca
         assert [t for t, _ in refined] == [t for t, _ in front.slam_trajectory]
         assert ate_rmse(gt, refined) < 0.03
         assert ate_rmse(front.slam_trajectory, refined) < 0.02  # (the same trajectory, refined: no other frame)
+        # ...and the odometry chained again with its refined steps (every step its own here), offered to the backend
+        refinement = front.refinement()
+        assert refinement is not None and refinement.withheld == ""
+        assert len(refinement.frame_ids) == len(refined) - 1  # (the first pose stays)
+        stamps = {i: t for i, (t, _) in enumerate(gt)}
+        chained = [(stamps[f], pose) for f, pose in zip(refinement.frame_ids, refinement.poses, strict=True)]
+        assert ate_rmse(refined[1:], chained) < 1e-6  # (the refined trajectory itself, placed by the first pose)
     else:  # (its poses in more than one map: one anchor cannot place them, so none)
         assert front.refined_trajectory == []
 

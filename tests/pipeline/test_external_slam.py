@@ -212,3 +212,10 @@ def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, rou
     slam, refined = read_tum(out / "trajectory_slam.tum"), read_tum(out / "trajectory_slam_refined.tum")
     assert [t for t, _ in refined] == pytest.approx([t for t, _ in slam])
     assert ate_rmse(read_tum(rpy / "groundtruth.txt"), refined) < 0.06
+    # ...which the odometry service offered the backend at the end (`odometry/refined`), and the backend decided on
+    # it (taken, or withheld with its reason) before it wrote the trajectory: the run did not wait it out
+    counters = {name: s["counters"] for name, s in stats["services"].items()}
+    assert "refinement_frames" in counters["odometry"]  # (0 where it was withheld: ORB-SLAM3 lost its map)
+    backend = counters["backend"]
+    assert backend.get("odometry_refined_frames", 0) + backend.get("odometry_refinement_withheld", 0) > 0, backend
+    assert "odometry_refinement_timeouts" not in backend

@@ -60,6 +60,13 @@ def _checked_pose(pose: np.ndarray, sigma_translation: float, sigma_rotation: fl
     return pose
 
 
+def _whitened(expected: np.ndarray, actual: np.ndarray, sigma_t: float, sigma_r: float) -> float:
+    """The squared difference of two relative poses in units of their sigmas (translation m, rotation rad)."""
+    error = inv_rigid(expected) @ actual
+    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(error[:3, :3])) - 1.0) / 2.0)))
+    return (float(np.linalg.norm(error[:3, 3])) / sigma_t) ** 2 + (angle / sigma_r) ** 2
+
+
 @dataclass(slots=True)  # one per frame for the whole run: no per-instance dict
 class _Odometry:
     stamp: float
@@ -246,6 +253,48 @@ class PoseGraph:
         waiting = self._unposed.pop(frame_id, None)
         if waiting:
             self.add_observations(frame_id, waiting)
+
+    def closure_agreement(self, frame_ids: Iterable[int], poses: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """How well each relative-pose constraint the graph holds (loop closures: semmap's registrations of
+        keyframes, evidence neither odometry was fitted to) agrees with the odometry now, and with `poses` in
+        place of the frames' odometry: their squared whitened errors, one pair per constraint."""
+        replaced = {int(f): np.asarray(p, dtype=np.float64) for f, p in zip(frame_ids, poses, strict=True)}
+        now, then = [], []
+        for a, b, T_ab, sigma_t, sigma_r, _ in self._rel_records.values():
+            odometry_a, odometry_b = self._odom.get(a), self._odom.get(b)
+            if odometry_a is None or odometry_b is None:
+                continue
+            now.append(_whitened(T_ab, inv_rigid(odometry_a.pose) @ odometry_b.pose, sigma_t, sigma_r))
+            then.append(_whitened(T_ab, inv_rigid(replaced.get(a, odometry_a.pose)) @ replaced.get(b, odometry_b.pose),
+                                  sigma_t, sigma_r))
+        return np.array(now), np.array(then)
+
+    def refine_odometry(self, frame_ids: Iterable[int], poses: Iterable[np.ndarray]) -> int:
+        """The front end's odometry of earlier frames again, refined by its SLAM at its end (OdometryRefinement):
+        each replaces the frame's odometry pose (its sigmas and keyframe flag stay), the chains of the nodes among
+        them are rebuilt, and the next `update` optimises with them. A frame the graph does not hold, or holds as a
+        stand-in, is passed over. Settled nodes keep their estimate (`active_window_nodes`): only the frames around
+        them follow. Returns how many frames took their refined pose."""
+        taken = 0
+        nodes: set[int] = set()
+        for frame_id, pose in zip(frame_ids, poses, strict=True):
+            frame_id = int(frame_id)
+            odometry = self._odom.get(frame_id)
+            pose = np.asarray(pose, dtype=np.float64)
+            usable = pose.shape == (4, 4) and bool(np.all(np.isfinite(pose)))
+            if odometry is None or frame_id in self._unmeasured or not usable:
+                continue
+            odometry.pose = factors.pose3(pose).matrix()
+            self._table.put(frame_id, odometry.stamp, odometry.pose, appended=False)
+            taken += 1
+            if frame_id in self._node_set:
+                nodes.add(frame_id)
+        for a, b in zip(self._nodes, self._nodes[1:], strict=False):  # (each chain once, not once per end)
+            if (a in nodes or b in nodes) and b > self._settled_horizon:
+                self._drop(("odo", a, b))
+                self._add_chain(a, b)
+        self.counters["odometry_refined"] = self.counters.get("odometry_refined", 0) + taken
+        return taken
 
     def _place_bridged(self, frame_id: int) -> None:
         """The frames bridged since the last measured one, placed between it and `frame_id` by time (linear in

@@ -27,6 +27,7 @@ from .base import flat as _flat
 from .base import unflat as _unflat
 from .checked import CheckedSlam, SlamReading
 from .motion import MotionParams
+from .refinement import OutputStep, Refinement, refine_outputs
 from .registration import PairRegistration
 from .repair import RepairParams
 
@@ -220,6 +221,11 @@ class CheckedSlamFrontEnd(FrontEnd):
         self.needs_images = self.uses_dynamic = check.checks
         self.counters: dict[str, int] = {}
         self.slam_trajectory: list[tuple[float, np.ndarray]] = []  # the SLAM's own poses, before the repair
+        # a SLAM that refines its trajectory at its end (ORB-SLAM3): every measured frame's output and whose step it
+        # took, for `refinement`
+        self.refines_at_end = False
+        self.refined_trajectory: list[tuple[float, np.ndarray]] = []  # ...its refined poses, once it has closed
+        self._outputs: list[OutputStep] = []
 
     def checked_pose(self, frame: OdometryInput, slam_pose: np.ndarray | None = None, slam_weak: bool = False,
                      same_map: bool | None = None, track: Callable[[], SlamReading] | None = None) -> np.ndarray:
@@ -235,6 +241,9 @@ class CheckedSlamFrontEnd(FrontEnd):
         elif slam_pose is not None:
             self.slam_trajectory.append((float(frame.stamp), slam_pose.copy()))
         pose = self.check.pose(frame, slam_pose, slam_weak, same_map, track)
+        if self.refines_at_end and not self.bridged:
+            self._outputs.append(OutputStep(int(frame.frame_id), float(frame.stamp), pose.copy(),
+                                            self.check.repair.took_slam_step))
         self.sigmas = self.check.repair.declared_sigmas(self.fixed_sigmas)
         self.counters.update({**self.check.counters(), **_declared_counters(self.sigmas)})
         return pose
@@ -251,6 +260,13 @@ class CheckedSlamFrontEnd(FrontEnd):
 
     def overruled(self) -> list[tuple[int, int]]:
         return self.check.repair.report.spans()
+
+    def refinement(self) -> Refinement | None:
+        """After `close`: the output with the SLAM's own steps as it refined them at its end (refinement.py), or
+        None where the SLAM does not refine at its end (or that is turned off)."""
+        if not self.refines_at_end:
+            return None
+        return refine_outputs(self._outputs, self.refined_trajectory, len(self.check.moving.seen_moving))
 
     def judged(self) -> list[dict]:
         return list(self.check.repair.report.judged)

@@ -114,8 +114,8 @@ class OrbSlam3Odometry(CheckedSlamFrontEnd):
                          CheckedSlam(repair_params(config), config.dynamic_mask, config.repair, motion_params(config)))
         self.needs_images = self.uses_dynamic = True  # (ORB-SLAM3 tracks the images, its masks need the boxes)
         self.weak_points = config.orbslam3_weak_points
+        self.refines_at_end = config.orbslam3_refinement  # (its steps as refined: `refinement`, refinement.py)
         self._slam = None
-        self.refined_trajectory: list[tuple[float, np.ndarray]] = []  # after `close`: see `_refined`
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._anchor: np.ndarray | None = None  # world <- ORB-SLAM3's map of the first frame
         self._restored = False

@@ -309,6 +309,7 @@ class SlamRepair:
         if slam_pose is not None and not np.all(np.isfinite(slam_pose)):
             slam_pose = None
         self.bridged = slam_pose is None
+        self.took_slam_step = slam_pose is not None and (self._slam_prev is not None or self._slam_last is not None)
         if slam_pose is not None and self._slam_prev is None and self._slam_last is not None:
             r.gaps_rejoined += 1  # (back after a gap in the same map: its motion over the gap, see `update`)
             self._pose = self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose

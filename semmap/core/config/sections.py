@@ -387,6 +387,11 @@ class OdometryConfig(Section):
         description="orbslam3: a frame ORB-SLAM3 tracked on fewer map points than this is a weak pose of its own "
         "account; semmap's registration replaces its step where the two disagree",
     )
+    orbslam3_refinement: bool = Field(
+        True,
+        description="orbslam3: at the end of a run where nothing was seen moving, its own steps as it refined them "
+        "(the trajectory it saves) replace its steps as tracked in semmap's result (docs/ORBSLAM3.md)",
+    )
     orbslam3_sigma_translation_m: Positive = Field(0.005, description="what orbslam3 declares per frame")
     orbslam3_sigma_rotation_deg: Positive = 0.3
 

@@ -50,19 +50,20 @@ from .map import (
     TagDetection,
     TagDetections,
 )
-from .poses import CorrectedPoses, OdometryPose
+from .poses import CorrectedPoses, OdometryPose, OdometryRefinement
 from .tracks import CandidateUpdate, DynamicBox, DynamicObjects, Measurement, TrackedBox, Tracks
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Frame, OdometryPose, Detections, Tracks, Observations, TagDetections, MapUpdate, CorrectedPoses, Control, Progress,
-    ServiceStatus, DynamicObjects,
+    ServiceStatus, DynamicObjects, OdometryRefinement,
 )
 
 __all__ = [
     "ALL_MESSAGES", "DEFAULT_IMAGE_CODEC", "DEPTH_NO_READING", "LANDMARK_STATUSES", "MAX_MESSAGE_BYTES", "ROBOT_NAME",
     "CandidateUpdate", "Control", "CorrectedPoses", "DepthPatch", "Detection", "Detections", "DynamicBox",
     "DynamicObjects", "Frame", "GroundTruthInstance", "ImageCodec", "Intrinsics", "Landmark", "MapAlignment",
-    "MapUpdate", "Measurement", "Message", "MessageError", "Observation", "Observations", "OdometryPose", "Part",
+    "MapUpdate", "Measurement", "Message", "MessageError", "Observation", "Observations", "OdometryPose",
+    "OdometryRefinement", "Part",
     "PngImage", "Progress", "ServiceStatus", "TagDetection", "TagDetections", "TrackedBox", "Tracks",
     "decode_array", "encode_array", "image_codec", "peek_frame_id", "pose_to_wire", "use_image_codec", "validate_pose",
 ]

@@ -1,5 +1,5 @@
-"""Poses: the front end's `OdometryPose` (key `odometry`) and the backend's `CorrectedPoses` (key
-`poses/corrected`)."""
+"""Poses: the front end's `OdometryPose` (key `odometry`), its `OdometryRefinement` at the end of a run (key
+`odometry/refined`) and the backend's `CorrectedPoses` (key `poses/corrected`)."""
 
 from __future__ import annotations
 
@@ -48,6 +48,38 @@ class OdometryPose(Message, tag="semmap.odometry/1"):
 
     def __post_init__(self) -> None:
         self.pose = validate_pose(self.pose) if decoding() else as_matrix(self.pose, 4, "pose")
+
+
+class OdometryRefinement(Message, tag="semmap.odometry_refinement/1"):
+    """The front end's odometry poses of earlier frames again, after its SLAM refined its own trajectory at its end
+    (ORB-SLAM3: semmap/algorithms/odometry/refinement.py), sent once, after the stream's last pose. They replace
+    the poses of the `odometry` messages of the same frames in the backend's graph, which is optimised again before
+    the run's trajectory is written. No poses and `withheld`: why the refinement was not taken (the backend waits
+    for this message from such a front end either way, so a run ends when it knows)."""
+
+    robot: RobotName
+    source: str
+    frame_ids: array_map("int64", 1, "frame ids, strictly ascending")
+    poses: array_map("float64", 3, "the frames' refined odometry poses, Nx4x4")
+    withheld: str = ""
+    sent_at: Finite = 0.0
+
+    def __post_init__(self) -> None:
+        if decoding():
+            ids = expect_array(self.frame_ids, "frame_ids", 1, "int64")
+            poses = expect_array(self.poses, "poses", 3, "float64")
+            if len(ids) != len(poses) or poses.shape[1:] != (4, 4):
+                raise MessageError("frame_ids and poses must have the same length and poses be Nx4x4")
+            if len(ids) > 1 and not np.all(np.diff(ids) > 0):
+                raise MessageError("frame_ids must be strictly ascending")
+            bad = non_rigid(poses) if len(poses) else np.zeros(0)
+            if bad.size:
+                raise MessageError(f"poses[{int(bad[0])}] is not a rigid transform")
+
+    def encode(self) -> bytes:
+        wire = msgspec.structs.replace(self, frame_ids=np.asarray(self.frame_ids, np.int64),
+                                       poses=np.asarray(self.poses, np.float64).reshape(-1, 4, 4))
+        return super(OdometryRefinement, wire).encode()
 
 
 class CorrectedPoses(Message, tag="semmap.corrected_poses/2"):

@@ -42,6 +42,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import msgpack
 import numpy as np
@@ -53,7 +54,7 @@ from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, ma
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core import dataflow
 from semmap.core.config import Config, load_config
-from semmap.core.messages import Detection, Detections, Frame, MessageError, OdometryPose
+from semmap.core.messages import Detection, Detections, Message, MessageError, OdometryPose, OdometryRefinement
 from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
@@ -119,9 +120,12 @@ def make_detections(
     return depth_detections(boxes, frame.depth, frame.depth_scale, stride, depth_min_m, depth_max_m)
 
 
-def on_the_wire(frame: Frame) -> Frame:
-    """The frame as a subscriber decodes it."""
-    return Frame.decode(frame.encode())
+WireMessage = TypeVar("WireMessage", bound=Message)
+
+
+def on_the_wire(message: WireMessage) -> WireMessage:
+    """The message as a subscriber decodes it."""
+    return type(message).decode(message.encode())
 
 
 def detect_recording(
@@ -280,6 +284,7 @@ class LoopResult:
     ate_slam: float | None = None  # an external SLAM's own poses, before semmap's repair (orbslam3, file:)
     ate_slam_refined: float | None = None  # ...refined by the SLAM at its end (orbslam3: what it alone saves)
     repair_report: dict | None = None  # where semmap overruled a checked SLAM and why (odometry_repair.json)
+    refinement_withheld: str | None = None  # why the SLAM's refinement was not taken ("": taken; None: none)
     associator: AssociatorStage | None = None  # the map with its prior landmarks' statuses, its saved state
 
     @property
@@ -296,6 +301,7 @@ class LoopResult:
             "ate_optimized_m": self.ate_optimized,
             "ate_slam_m": self.ate_slam,
             "ate_slam_refined_m": self.ate_slam_refined,
+            "refinement_withheld": self.refinement_withheld,
             "improvement_pct": self.improvement_pct,
             "landmarks": self.landmarks,
             "observations": self.observations,
@@ -466,17 +472,33 @@ class LockstepDriver:
         """The frame's map update: the tracklets the associator saw moving."""
         self.tracker_stage.saw_moving(self.completed.moving_tracks)
 
+    def _take_refinement(self) -> str | None:
+        """After the front end closed: its SLAM's refinement at its end into the graph, as the backend service
+        takes it (the same message, through the wire). Returns why it was withheld ("" where it was taken; None:
+        the front end does not refine at its end)."""
+        refine = getattr(self.front, "refinement", None)
+        refinement = refine() if refine is not None and self.odometry_poses is None else None
+        if refinement is None:
+            return None
+        poses = [p if self.to_session is None else self.to_session @ p for p in refinement.poses]
+        message = on_the_wire(OdometryRefinement(ROBOT, self.odometry_mode, np.asarray(refinement.frame_ids, np.int64),
+                                                 np.array(poses, dtype=np.float64).reshape(-1, 4, 4),
+                                                 withheld=refinement.withheld))
+        return self.backend_stage.refine(message)[1]
+
     def result(self, t_start: float) -> LoopResult:
-        graph, associator, front = self.backend_stage.graph, self.associator_stage, self.front
-        _, stamps, corrected = graph.measured_poses()  # (not the stand-ins of frames no front end measured)
-        optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
-        gt = [(s, g) for s, g in zip(self.rec.stamps, self.rec.gt, strict=True) if g is not None]
-        landmarks = associator.mapper.landmarks()
+        associator, front = self.associator_stage, self.front
         slam = getattr(front, "slam_trajectory", None)
         report = getattr(front, "repair_report", None)
         if (close := getattr(front, "close", None)) is not None:
             close()
         refined = getattr(front, "refined_trajectory", None) or []  # (after close: the SLAM refines at its end)
+        withheld = self._take_refinement()
+        graph = self.backend_stage.graph
+        _, stamps, corrected = graph.measured_poses()  # (not the stand-ins of frames no front end measured)
+        optimized = [(float(t), p) for t, p in zip(stamps, corrected, strict=True)]
+        gt = [(s, g) for s, g in zip(self.rec.stamps, self.rec.gt, strict=True) if g is not None]
+        landmarks = associator.mapper.landmarks()
         return LoopResult(
             ate_odometry=ate_rmse(gt, self.odo_traj), ate_optimized=ate_rmse(gt, optimized), landmarks=len(landmarks),
             observations=self.n_obs, observation_factors=graph.counters["observation_factors"],
@@ -486,7 +508,7 @@ class LockstepDriver:
             frontend_counters=dict(getattr(front, "counters", {})),
             ate_slam=ate_rmse(gt, slam) if slam and len(slam) >= 3 else None, slam_trajectory=list(slam or []),
             slam_refined=list(refined), ate_slam_refined=ate_rmse(gt, refined) if len(refined) >= 3 else None,
-            repair_report=None if report is None else report(self.odometry_mode),
+            repair_report=None if report is None else report(self.odometry_mode), refinement_withheld=withheld,
             mapper_ms_p50=float(np.median(self.mapper_ms)) if self.mapper_ms else 0.0,
             loop_closures=dict(self.backend_stage.closer.counters),
             graph_counters={**graph.counters, **associator.revisits.counters()},
@@ -702,7 +724,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"on_moving {row['on_moving']}"
             )
         slam = "" if res.ate_slam is None else f"SLAM alone {res.ate_slam:.4f} m, " + (
-            "" if res.ate_slam_refined is None else f"refined at its end {res.ate_slam_refined:.4f} m, ")
+            "" if res.ate_slam_refined is None else f"refined at its end {res.ate_slam_refined:.4f} m "
+            f"({'taken' if not res.refinement_withheld else 'not taken: ' + res.refinement_withheld}), ")
         print(
             f"{args.odometry:9s} seed {seed}: {slam}ATE odometry {res.ate_odometry:.4f} m, optimised "
             f"{res.ate_optimized:.4f} m ({res.improvement_pct:+.1f} %), landmarks {res.landmarks}, observations "

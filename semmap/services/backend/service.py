@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -30,7 +31,16 @@ from semmap.algorithms.backend.loop_closure import (
 )
 from semmap.algorithms.backend.pose_graph import PoseGraph
 from semmap.algorithms.backend.prior_alignment import FinalAlignment
-from semmap.core.messages import DynamicObjects, Frame, MessageError, Observations, OdometryPose
+from semmap.core.dataflow import REFINING_FRONT_ENDS
+from semmap.core.messages import (
+    Control,
+    DynamicObjects,
+    Frame,
+    MessageError,
+    Observations,
+    OdometryPose,
+    OdometryRefinement,
+)
 from semmap.core.outputs import atomic_write_text
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.pipeline.stages import BackendStage
@@ -40,6 +50,9 @@ from semmap.runtime.transport.stage_service import StageService
 REALTIME_MAX_PENDING = 8
 REALTIME_FRAME_QUEUE = 8  # frames waiting for the backend in real time (only keyframes are looked at)
 MAX_PENDING_CLOUDS = 64  # keyframe clouds waiting for their odometry and observations (~80 KB each)
+# how long the run's end waits for a refining front end's refinement: ORB-SLAM3 stops its threads and saves its
+# trajectory first (about a second on the recordings here; its last loop closure's bundle adjustment may be longer)
+REFINEMENT_WAIT_S = 60.0
 
 
 class BackendService(StageService):
@@ -79,11 +92,23 @@ class BackendService(StageService):
         # `semmap run external`: no odometry service writes the SLAM's input, so the backend does
         self.write_odometry = bool(getattr(self.args, "write_odometry", False))
         self.input_trajectory: list[tuple[float, object]] = []  # only then: it grows with every frame
+        # a front end that refines its trajectory at its end (ORB-SLAM3) sends it once after its last pose: the run
+        # ends with it (`on_refinement`), or without it after REFINEMENT_WAIT_S (counted)
+        self.refinement: OdometryRefinement | None = None
+        self.refinement_done = False
+        self.refinement_waiting_since: float | None = None
 
     @property
     def takes_keyframes(self) -> bool:
         """Loop closures register keyframes' depth: the frames port (semmap/core/dataflow.py) is wired."""
         return bool(self.closer.params.enabled)
+
+    @property
+    def awaits_refinement(self) -> bool:
+        """The front end refines its trajectory at its end (dataflow.REFINING_FRONT_ENDS, unless turned off):
+        the `odometry/refined` port is wired, and the run's trajectory waits for it."""
+        odometry = self.config.odometry
+        return odometry.mode in REFINING_FRONT_ENDS and odometry.orbslam3_refinement
 
     @property
     def masks_keyframes(self) -> bool:
@@ -328,6 +353,20 @@ class BackendService(StageService):
             self.log.info("restored the pose graph from %d journalled frames (last %d)", n, self.last_frame_id)
 
     def tick(self) -> None:
+        self._refinement_overdue()
+        self._give_up_missing()
+
+    def _refinement_overdue(self) -> None:
+        since = self.refinement_waiting_since
+        if since is None or self.refinement_done or self.finished or time.monotonic() - since < REFINEMENT_WAIT_S:
+            return
+        self.refinement_done = True
+        self.metrics.count("odometry_refinement_timeouts")
+        self.log.warning("no refinement from the front end %.0f s after the stream's end: the trajectory is written "
+                         "as tracked", REFINEMENT_WAIT_S)
+        self.finish()
+
+    def _give_up_missing(self) -> None:
         """Real time, once the odometry of the stream's last frame is here: a frame still missing before it was
         dropped upstream (the odometry keeps only the newest frames under load; poses come in order) and never
         comes. Give it up, counted, so that the last frames go through: otherwise fewer than
@@ -337,6 +376,40 @@ class BackendService(StageService):
         if self.lockstep or eos is None or self.finished or eos.last_frame_id not in self.inputs.pending:
             return
         self.release(self.inputs.give_up_before(eos.last_frame_id))
+
+    def on_refinement(self, message: OdometryRefinement) -> None:
+        if self.refinement is not None or self.refinement_done:
+            self.metrics.count("odometry_refinements_repeated")
+            return
+        self.refinement = message
+        if self.end_of_stream is not None and not self.finished:
+            self.on_end_of_stream(self.end_of_stream)
+
+    def on_end_of_stream(self, control: Control) -> None:
+        """Finish once the last frame is handled and, from a refining front end, its refinement is in the graph
+        (or did not come within REFINEMENT_WAIT_S: `tick`)."""
+        self.count_frames_before_the_first(control)
+        if self.last_frame_id < control.last_frame_id:
+            return
+        if self.awaits_refinement and not self.refinement_done:
+            if self.refinement is None:
+                if self.refinement_waiting_since is None:
+                    self.refinement_waiting_since = time.monotonic()
+                return
+            self._take_refinement(self.refinement)
+        self.finish()
+
+    def _take_refinement(self, message: OdometryRefinement) -> None:
+        self.refinement_done = True
+        with self.metrics.timer("refinement_ms"):
+            taken, withheld = self.stage.refine(message)
+        if withheld:
+            self.metrics.counters["odometry_refinement_withheld"] = 1
+            self.log.info("the front end's refinement at its end is not taken: %s", withheld)
+            return
+        self.metrics.counters["odometry_refined_frames"] = taken
+        self.log.info("took %s's refinement at its end: %d of %d frames' odometry, optimised again", message.source,
+                      taken, len(message.frame_ids))
 
     def write_outputs(self) -> None:
         if self.out_dir is None or self.graph.num_frames == 0:

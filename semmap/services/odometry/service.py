@@ -22,7 +22,7 @@ import numpy as np
 
 from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
-from semmap.core.messages import DynamicObjects, Frame, OdometryPose
+from semmap.core.messages import DynamicObjects, Frame, OdometryPose, OdometryRefinement
 from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.transport.service import service_main
@@ -203,6 +203,33 @@ class OdometryService(StageService):
         if close is not None:  # (ORB-SLAM3 stops its threads, then refines its own trajectory: after the rest)
             close()
         self._write_slam(SLAM_REFINED_TRAJECTORY, getattr(self.frontend, "refined_trajectory", None))
+
+    def finish(self) -> None:
+        """Finish as every service does (outputs written, which stops a SLAM front end), then hand the backend
+        the SLAM's refinement at its end, once (even without an output folder: the backend waits for it)."""
+        finishing = not self.finished
+        super().finish()
+        if finishing:
+            self._send_refinement()
+
+    def _send_refinement(self) -> None:
+        refine = getattr(self.frontend, "refinement", None)
+        if refine is None:
+            return
+        close = getattr(self.frontend, "close", None)
+        if close is not None:  # (already closed where the outputs were written: a second close does nothing)
+            close()
+        refinement = refine()
+        if refinement is None:
+            return
+        poses = np.array([self.to_session @ pose for pose in refinement.poses]).reshape(-1, 4, 4)
+        self.out["odometry/refined"].put(OdometryRefinement(self.robot, self.mode,
+                                                            np.asarray(refinement.frame_ids, np.int64), poses,
+                                                            withheld=refinement.withheld))
+        self.metrics.counters["refinement_frames"] = len(refinement.frame_ids)
+        if refinement.withheld:
+            self.log.info("the SLAM's refinement at its end is not offered: %s", refinement.withheld)
+        self.publish_status()  # (its counter in the run's stats)
 
     def _write_slam(self, name: str, poses: list | None) -> None:
         """A checked SLAM's own poses, in the session's world."""
