@@ -192,3 +192,25 @@ def test_the_shared_orbslam3_trajectories_are_repaired(bonn_dir: Path, data_root
     assert report["mode"] == f"file:{path}" and report["counters"] == res.frontend_counters
     assert report["overruled_spans"] and {j["winner"] for j in report["judged"]} >= {"slam", "semmap"}
     assert len(read_tum(tmp_path / "trajectory_slam.tum")) == len(res.slam_trajectory) > 400
+
+
+@pytest.mark.slow
+@needs_wheel
+def test_its_refinement_at_its_end_enters_the_in_process_result(kitchen_dir: Path, vocabulary: Path, tmp_path: Path):
+    """The in-process driver, as the backend service does: after ORB-SLAM3 has closed, its refinement (nothing moves
+    in the kitchen) is judged by the loop closures and, taken, moves the optimised trajectory to it; withheld, the
+    reason names the closures and the graph keeps the odometry as tracked."""
+    from semmap.runtime.pipeline.inprocess import closed_loop
+
+    result, _ = closed_loop(str(kitchen_dir), odometry="orbslam3", frames=1000, cache_dir=tmp_path,
+                            overrides=[f"odometry.orbslam3_vocabulary={vocabulary}"])
+    if result.frontend_counters["orb_lost"]:
+        assert result.refinement_withheld and "saved no refinement" in result.refinement_withheld
+        return
+    assert result.ate_slam_refined is not None and result.refinement_withheld is not None
+    if result.refinement_withheld == "":
+        assert result.graph_counters["odometry_refined"] >= 900
+        assert abs(result.ate_optimized - result.ate_slam_refined) < 0.005, result.summary()
+    else:
+        assert "loop closure" in result.refinement_withheld
+        assert result.graph_counters.get("odometry_refined", 0) == 0
