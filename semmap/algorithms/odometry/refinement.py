@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from semmap.core.messages import OdometryRefinement
+
 
 @dataclass
 class Refinement:
@@ -28,6 +30,12 @@ class Refinement:
     frame_ids: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     withheld: str = ""
+
+    def message(self, robot: str, source: str, to_session: np.ndarray | None = None) -> OdometryRefinement:
+        """As the odometry sends it (`odometry/refined`), its poses in the session's world (`to_session`)."""
+        poses = [pose if to_session is None else to_session @ pose for pose in self.poses]
+        return OdometryRefinement(robot, source, np.asarray(self.frame_ids, np.int64),
+                                  np.array(poses, dtype=np.float64).reshape(-1, 4, 4), withheld=self.withheld)
 
 
 @dataclass(frozen=True)

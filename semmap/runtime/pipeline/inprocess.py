@@ -54,7 +54,7 @@ from semmap.algorithms.odometry.frontends import OdometryInput, frame_offset, ma
 from semmap.algorithms.tracker.iou_tracker import IouTracker, TrackerParams
 from semmap.core import dataflow
 from semmap.core.config import Config, load_config
-from semmap.core.messages import Detection, Detections, Message, MessageError, OdometryPose, OdometryRefinement
+from semmap.core.messages import Detection, Detections, Message, MessageError, OdometryPose
 from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets import open_dataset, platform_of
 from semmap.datasets.base import FrameData, ObjectTruth, WindowDataset
@@ -480,10 +480,7 @@ class LockstepDriver:
         refinement = refine() if refine is not None and self.odometry_poses is None else None
         if refinement is None:
             return None
-        poses = [p if self.to_session is None else self.to_session @ p for p in refinement.poses]
-        message = on_the_wire(OdometryRefinement(ROBOT, self.odometry_mode, np.asarray(refinement.frame_ids, np.int64),
-                                                 np.array(poses, dtype=np.float64).reshape(-1, 4, 4),
-                                                 withheld=refinement.withheld))
+        message = on_the_wire(refinement.message(ROBOT, self.odometry_mode, self.to_session))
         return self.backend_stage.refine(message)[1]
 
     def result(self, t_start: float) -> LoopResult:

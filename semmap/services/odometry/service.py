@@ -22,7 +22,7 @@ import numpy as np
 
 from semmap.algorithms.evaluation import write_json_atomic
 from semmap.algorithms.odometry.frontends import FrontEnd, OdometryInput, frame_offset, make_frontend
-from semmap.core.messages import DynamicObjects, Frame, OdometryPose, OdometryRefinement
+from semmap.core.messages import DynamicObjects, Frame, OdometryPose
 from semmap.core.outputs import REPAIR_REPORT, SLAM_REFINED_TRAJECTORY, SLAM_TRAJECTORY
 from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.transport.service import service_main
@@ -222,10 +222,7 @@ class OdometryService(StageService):
         refinement = refine()
         if refinement is None:
             return
-        poses = np.array([self.to_session @ pose for pose in refinement.poses]).reshape(-1, 4, 4)
-        self.out["odometry/refined"].put(OdometryRefinement(self.robot, self.mode,
-                                                            np.asarray(refinement.frame_ids, np.int64), poses,
-                                                            withheld=refinement.withheld))
+        self.out["odometry/refined"].put(refinement.message(self.robot, self.mode, self.to_session))
         self.metrics.counters["refinement_frames"] = len(refinement.frame_ids)
         if refinement.withheld:
             self.log.info("the SLAM's refinement at its end is not offered: %s", refinement.withheld)
