@@ -21,7 +21,7 @@ def test_the_slams_own_steps_take_their_refined_motion_and_semmaps_keep_theirs()
     outputs = [OutputStep(0, 0.0, _at(0.0), False), OutputStep(1, 0.1, _at(0.01), True),
                OutputStep(2, 0.2, _at(0.06), False), OutputStep(3, 0.3, _at(0.07, 1.0), True)]
     refined = [(0.0, _at(0.5)), (0.1, _at(0.52)), (0.2, _at(0.54)), (0.3, _at(0.56, 2.0))]
-    result = refine_outputs(outputs, refined, moving_seen=0)
+    result = refine_outputs(outputs, refined, moving_seen=0, overruled=0)
     assert not result.withheld and result.frame_ids == [1, 2, 3]
     x = [float(p[0, 3]) for p in result.poses]
     np.testing.assert_allclose(x, [0.02, 0.07, 0.09], atol=1e-9)  # (the first pose stays where the output put it)
@@ -33,14 +33,19 @@ def test_a_step_whose_ends_it_did_not_save_keeps_the_output():
     outputs = [OutputStep(0, 0.0, _at(0.0), False), OutputStep(1, 0.1, _at(0.01), True),
                OutputStep(2, 0.2, _at(0.02), True)]
     refined = [(0.0, _at(0.0)), (0.2, _at(0.1))]  # (frame 1: it did not save one)
-    result = refine_outputs(outputs, refined, moving_seen=0)
+    result = refine_outputs(outputs, refined, moving_seen=0, overruled=0)
     np.testing.assert_allclose([p[0, 3] for p in result.poses], [0.01, 0.02], atol=1e-9)
 
 
-def test_nothing_is_taken_where_objects_were_seen_moving_or_there_is_no_refinement():
+def test_nothing_is_taken_where_people_dragged_the_slam_or_there_is_no_refinement():
+    """Objects seen moving and steps overruled: none of it. Objects seen moving that made semmap overrule nothing
+    (a false box flickering on a static scene), or steps overruled with nothing seen moving: it is taken."""
     outputs = [OutputStep(0, 0.0, _at(0.0), False), OutputStep(1, 0.1, _at(0.01), True)]
     refined = [(0.0, _at(0.0)), (0.1, _at(0.05))]
-    moving = refine_outputs(outputs, refined, moving_seen=2)
-    assert moving.frame_ids == [] and "2 object(s) were seen moving" in moving.withheld
-    none = refine_outputs(outputs, [], moving_seen=0)
+    dragged = refine_outputs(outputs, refined, moving_seen=2, overruled=30)
+    assert dragged.frame_ids == [] and "2 object(s) were seen moving and semmap overruled 30" in dragged.withheld
+    for moving, overruled in ((2, 0), (0, 3)):
+        taken = refine_outputs(outputs, refined, moving_seen=moving, overruled=overruled)
+        assert taken.frame_ids == [1] and taken.withheld == ""
+    none = refine_outputs(outputs, [], moving_seen=0, overruled=0)
     assert none.frame_ids == [] and "saved no refinement" in none.withheld

@@ -266,7 +266,9 @@ class CheckedSlamFrontEnd(FrontEnd):
         None where the SLAM does not refine at its end (or that is turned off)."""
         if not self.refines_at_end:
             return None
-        return refine_outputs(self._outputs, self.refined_trajectory, len(self.check.moving.seen_moving))
+        report = self.check.repair.report
+        return refine_outputs(self._outputs, self.refined_trajectory, len(self.check.moving.seen_moving),
+                              report.overruled + report.implausible)
 
     def judged(self) -> list[dict]:
         return list(self.check.repair.report.judged)

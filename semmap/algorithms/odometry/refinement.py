@@ -7,10 +7,12 @@ be no worse than the SLAM alone. Pure computation on poses.
 
 - **Which steps.** Only the steps the output took from the SLAM itself: a step semmap's registration or the motion
   model decided stays as it was (the SLAM's refinement of a step it got wrong is no better than the step).
-- **Which runs.** Only where no object was seen moving. The bundle adjustment fits the SLAM's whole map; where
-  people walked, its map held points on them wherever the masks missed some, and its refinement spreads their pull
-  over the trajectory (Bonn crowd: taking its refined steps turned 0.048 m into 0.071 m). Spliced in only between
-  the walkers, its steps do not fit the repaired ones around them either. So it is the whole run or none of it.
+- **Which runs.** Not where objects were seen moving and semmap overruled the SLAM: people dragged it, so its map
+  held points on them wherever the masks missed some, and the bundle adjustment, which fits the whole map, spreads
+  their pull over the trajectory (Bonn crowd: taking its refined steps turned 0.048 m into 0.071 m). Spliced in
+  only between the walkers, its steps do not fit the repaired ones around them either: the whole run or none of it.
+  An object seen moving that never made semmap overrule a step (a false box flickering on a static scene) is no
+  sign of a dragged map, and does not withhold it.
 """
 
 from __future__ import annotations
@@ -48,16 +50,17 @@ class OutputStep:
     slam_own: bool
 
 
-def refine_outputs(outputs: list[OutputStep], refined: list[tuple[float, np.ndarray]],
-                   moving_seen: int) -> Refinement:
+def refine_outputs(outputs: list[OutputStep], refined: list[tuple[float, np.ndarray]], moving_seen: int,
+                   overruled: int) -> Refinement:
     """The output chained again with each of the SLAM's own steps replaced by its refined step (both ends in the
     refined trajectory `refined`: (stamp, pose) in the output's world), the others kept; the first pose stays.
-    Withheld where `moving_seen` objects were seen moving, or where there is no refinement (module docstring)."""
+    Withheld where `moving_seen` objects were seen moving and semmap `overruled` some of the SLAM's steps, or
+    where there is no refinement (module docstring)."""
     if not refined:
         return Refinement(withheld="the SLAM saved no refinement (it lost its map, restarted, or could not save)")
-    if moving_seen:
-        return Refinement(withheld=f"{moving_seen} object(s) were seen moving: the SLAM's map may hold points on "
-                                   "them, and its refinement with it")
+    if moving_seen and overruled:
+        return Refinement(withheld=f"{moving_seen} object(s) were seen moving and semmap overruled {overruled} of "
+                                   "the SLAM's steps: its map may hold points on them, and its refinement with it")
     by_stamp = {round(t, 6): pose for t, pose in refined}
     result = Refinement()
     previous: OutputStep | None = None

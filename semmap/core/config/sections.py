@@ -389,7 +389,7 @@ class OdometryConfig(Section):
     )
     orbslam3_refinement: bool = Field(
         True,
-        description="orbslam3: at the end of a run where nothing was seen moving, its own steps as it refined them "
+        description="orbslam3: at the end of a run where no walker dragged it, its own steps as it refined them "
         "(the trajectory it saves) replace its steps as tracked in semmap's result (docs/ORBSLAM3.md)",
     )
     orbslam3_sigma_translation_m: Positive = Field(0.005, description="what orbslam3 declares per frame")
