@@ -399,7 +399,7 @@ def test_a_slams_refinement_at_its_end_replaces_the_odometry_it_sent() -> None:
     assert max_position_error(list(poses), scene.gt[:7] + scene.gt[8:]) < 1e-6
 
 
-def test_a_refinement_is_taken_only_where_the_loop_closures_agree_with_it() -> None:
+def test_a_refinement_is_taken_unless_the_loop_closures_say_it_is_worse() -> None:
     """BackendStage.refine: semmap's loop closures judge a SLAM's refinement at its end against its odometry as
     tracked; it is taken unless they say it is worse (or there are too few of them), else the tracked odometry
     stays and the reason is given."""
