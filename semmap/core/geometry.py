@@ -15,6 +15,12 @@ def inv_rigid(t: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_angle(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
+    """The angle between (..., 3, 3) rotations, radians (the loop closer's gates, the backend's closure errors)."""
+    cos = (np.einsum("...ij,...ij->...", rot_a, rot_b) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
 def correction(corrected: np.ndarray, odometry: np.ndarray) -> np.ndarray:
     """The correction of (..., 4, 4) frames: what takes their odometry pose to their corrected pose
     (`corrected @ inv(odometry)`, in the world frame)."""

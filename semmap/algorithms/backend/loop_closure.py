@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 from semmap.algorithms.associator.geometry import voxel_downsample  # (one voxel grid: the mean point per voxel)
 from semmap.algorithms.dynamic_mask import mask_dynamic
 from semmap.core.config import LoopClosureParams
+from semmap.core.geometry import rotation_angle
 from semmap.core.stamps import reaches
 
 if TYPE_CHECKING:
@@ -175,8 +176,7 @@ class LoopClosure:
 
 def _angle_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
     """Rotation angle between batches of rotations (..., 3, 3), degrees."""
-    cos = (np.einsum("...ij,...ij->...", rot_a, rot_b) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return np.degrees(rotation_angle(rot_a, rot_b))
 
 
 class LoopCloser:

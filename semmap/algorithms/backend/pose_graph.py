@@ -31,7 +31,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from semmap.core.config import BackendParams
-from semmap.core.geometry import carry_correction, correction, interpolate_pose, inv_rigid
+from semmap.core.geometry import carry_correction, correction, interpolate_pose, inv_rigid, rotation_angle
 from semmap.core.messages import Observation, Observations, OdometryPose
 
 from . import factors
@@ -62,9 +62,8 @@ def _checked_pose(pose: np.ndarray, sigma_translation: float, sigma_rotation: fl
 
 def _whitened(expected: np.ndarray, actual: np.ndarray, sigma_t: float, sigma_r: float) -> float:
     """The squared difference of two relative poses in units of their sigmas (translation m, rotation rad)."""
-    error = inv_rigid(expected) @ actual
-    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(error[:3, :3])) - 1.0) / 2.0)))
-    return (float(np.linalg.norm(error[:3, 3])) / sigma_t) ** 2 + (angle / sigma_r) ** 2
+    offset = float(np.linalg.norm((inv_rigid(expected) @ actual)[:3, 3]))
+    return (offset / sigma_t) ** 2 + (float(rotation_angle(expected[:3, :3], actual[:3, :3])) / sigma_r) ** 2
 
 
 @dataclass(slots=True)  # one per frame for the whole run: no per-instance dict

@@ -18,6 +18,7 @@ be no worse than the SLAM alone. Pure computation on poses.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -63,19 +64,13 @@ def refine_outputs(outputs: list[OutputStep], refined: list[tuple[float, np.ndar
                                    "the SLAM's steps: its map may hold points on them, and its refinement with it")
     by_stamp = {round(t, 6): pose for t, pose in refined}
     result = Refinement()
-    previous: OutputStep | None = None
-    chained: np.ndarray | None = None
-    for step in outputs:
-        if previous is None or chained is None:
-            chained = step.pose
-        else:
-            a, b = by_stamp.get(round(previous.stamp, 6)), by_stamp.get(round(step.stamp, 6))
-            if step.slam_own and a is not None and b is not None:
-                motion = np.linalg.inv(a) @ b
-            else:
-                motion = np.linalg.inv(previous.pose) @ step.pose
-            chained = chained @ motion
-            result.frame_ids.append(step.frame_id)
-            result.poses.append(chained)
-        previous = step
+    if not outputs:
+        return result
+    chained = outputs[0].pose
+    for previous, step in pairwise(outputs):
+        a, b = by_stamp.get(round(previous.stamp, 6)), by_stamp.get(round(step.stamp, 6))
+        own = step.slam_own and a is not None and b is not None
+        chained = chained @ (np.linalg.inv(a) @ b if own else np.linalg.inv(previous.pose) @ step.pose)
+        result.frame_ids.append(step.frame_id)
+        result.poses.append(chained)
     return result
