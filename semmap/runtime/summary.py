@@ -126,17 +126,28 @@ def run_summary(out_dir: Path, stats: dict) -> str:
 
 
 def refinement_note(stats: dict) -> str:
-    """Whether the backend took the SLAM's refinement at its end into semmap's result (its counters)."""
-    services = stats.get("services") if isinstance(stats.get("services"), dict) else {}
-    backend = next((s for s in services.values() if isinstance(s, dict) and s.get("service") == "backend"), {})
-    counters = backend.get("counters") if isinstance(backend.get("counters"), dict) else {}
+    """Whether the backend took the SLAM's refinement at its end into semmap's result (its counters; the odometry
+    service's where the backend never heard of one: it was not set to wait for a refining front end)."""
+    counters, sent = _counters(stats, "backend"), _counters(stats, "odometry").get("refinement_frames")
     if counters.get("odometry_refined_frames"):
-        return f"taken into semmap's result ({counters['odometry_refined_frames']} frames)"
+        passed_over = counters.get("odometry_refinement_passed_over")
+        return (f"taken into semmap's result ({counters['odometry_refined_frames']} frames"
+                + (f"; {passed_over} passed over: not in the graph as measured)" if passed_over else ")"))
     if counters.get("odometry_refinement_withheld"):
         return "not taken into semmap's result (why: logs/backend.log)"
     if counters.get("odometry_refinement_timeouts"):
         return "not taken: it did not come in time"
+    if sent:
+        return (f"not taken: sent ({sent} frames), but the backend was not waiting for it (its odometry.mode is "
+                "not the front end's)")
     return ""
+
+
+def _counters(stats: dict, service: str) -> dict:
+    """One service's counters from a run's stats.json ({} where it has none)."""
+    services = stats.get("services") if isinstance(stats.get("services"), dict) else {}
+    found = next((s for s in services.values() if isinstance(s, dict) and s.get("service") == service), {})
+    return found.get("counters") if isinstance(found.get("counters"), dict) else {}
 
 
 def repair_line(out_dir: Path, refinement: str = "") -> str | None:

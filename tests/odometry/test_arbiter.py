@@ -165,3 +165,37 @@ def test_the_sparse_witness_alone_repairs_a_dragged_slam():
     # the first two steps, before the judged window (3 frames) is full, stay the SLAM's: 4 cm of its 10 cm drag
     assert counters["repair_overruled"] == 3
     assert np.linalg.norm(pose[:3, 3] - truth[-1][:3, 3]) < 0.045
+
+
+def test_a_front_end_behind_the_video_has_every_nth_step_checked_over_the_frames_since():
+    """Real time, the front end behind the video (frames queued): no step gets a check of its own, but every 3rd is
+    checked over the 3 frames since the last, fitted to the static scene's matches with the people left out by
+    their depth band (here a box over the whole view, its band nearer than any wall: by box nothing would be left).
+    A SLAM that something drags 1 cm a frame sideways is pulled back at each such check; with
+    `behind_check_every` 0 nothing is checked while behind and the output is the SLAM's."""
+    from semmap.algorithms.odometry.base import OdometryInput
+    from semmap.algorithms.odometry.checked import CheckedSlam
+    from semmap.algorithms.odometry.repair import RepairParams
+
+    truth = [_pose(0.005 * i, 0.2 * i) for i in range(11)]
+    renders = [_render(pose) for pose in truth]
+    near_person = DynamicBox(1, "person", (0.0, 0.0, float(W), float(H)), 0.3, 0.8, "moving")
+
+    def run(every: int) -> tuple[np.ndarray, dict[str, int]]:
+        check = CheckedSlam(RepairParams(scope="always", behind_check_every=every), dynamic_mask="range")
+        for i, true_pose in enumerate(truth):
+            dragged = true_pose.copy()
+            dragged[:3, 3] += (0.01 * i, 0.0, 0.0)
+            frame = OdometryInput(i, i / 30.0, None, *renders[i], 0.001, K, [near_person], behind=True)
+            pose = check.pose(frame, dragged)
+        return pose, check.counters()
+
+    pose, counters = run(3)
+    # frame 2 is too early (3 frames back are not held yet), frames 5 and 8 are checked and overruled
+    assert counters["repair_checked_behind"] == 2 and counters["repair_overruled"] == 2
+    assert counters["repair_skipped_behind"] == 11 - 2
+    # the drag before the first check and after the last stays: 2 + 2 cm of the SLAM's 10
+    assert np.linalg.norm(pose[:3, 3] - truth[-1][:3, 3]) < 0.05
+    unchecked, counters = run(0)
+    assert counters["repair_checked_behind"] == 0 and counters["repair_overruled"] == 0
+    assert np.linalg.norm(unchecked[:3, 3] - truth[-1][:3, 3]) > 0.095

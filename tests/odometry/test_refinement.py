@@ -49,3 +49,23 @@ def test_nothing_is_taken_where_people_dragged_the_slam_or_there_is_no_refinemen
         assert taken.frame_ids == [1] and taken.withheld == ""
     none = refine_outputs(outputs, [], moving_seen=0, overruled=0)
     assert none.frame_ids == [] and "saved no refinement" in none.withheld
+
+
+def _stats(backend: dict, odometry: dict) -> dict:
+    return {"services": {"backend": {"service": "backend", "counters": backend},
+                         "odometry": {"service": "odometry", "counters": odometry}}}
+
+
+def test_the_summary_says_what_became_of_the_refinement_and_counts_what_was_passed_over():
+    """Every end of a refinement is said where a user reads the run: taken (with the frames the graph did not hold
+    as measured), withheld, late, or sent to a backend that was not waiting for it (its odometry.mode differs)."""
+    from semmap.runtime.summary import refinement_note
+
+    sent = {"refinement_frames": 999}
+    assert refinement_note(_stats({"odometry_refined_frames": 999}, sent)) == "taken into semmap's result (999 frames)"
+    note = refinement_note(_stats({"odometry_refined_frames": 996, "odometry_refinement_passed_over": 3}, sent))
+    assert "996 frames; 3 passed over" in note
+    assert "not taken" in refinement_note(_stats({"odometry_refinement_withheld": 1}, sent))
+    assert "in time" in refinement_note(_stats({"odometry_refinement_timeouts": 1}, sent))
+    assert "not waiting" in refinement_note(_stats({}, sent))
+    assert refinement_note(_stats({}, {})) == refinement_note({}) == ""

@@ -248,6 +248,44 @@ def test_a_slam_relocalised_after_a_drag_rejoins_from_where_it_was_last_believed
     assert _error(out[29:], truth[29:]) == pytest.approx(0.048, abs=0.002)
 
 
+def test_behind_the_video_only_checked_steps_move_the_anchor_a_relocalised_slam_rejoins_from():
+    """Real time, the front end behind: the dragged steps go unchecked (`unchecked`, no judge) but one, at frame 23,
+    which a check over frames 20-23 overrules (`CheckedSlam._measure_over`). So the output no longer follows the
+    SLAM, and when the SLAM relocalises (29) its motion over the gap would undo a drag the output partly did not
+    take. The unchecked steps left the anchor at 19, where the two last agreed, and the rejoin is judged there even
+    though nothing else is judged while behind (`judge_rejoin`): back on the truth. Had the unchecked steps moved
+    the anchor, the output would keep the drag's undoing."""
+    truth, slam, _ = _dragged_then_relocalised()
+
+    def scene(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+              from_frame: int | None = None) -> Verdict:
+        true = np.linalg.inv(truth[from_frame if from_frame is not None else 20]) @ truth[29 if from_frame else 23]
+        closer = step_difference(semmap_motion, true)[0] < step_difference(slam_motion, true)[0]
+        return Verdict(10.0 if closer else -10.0, 200, 1.0, 1.0)
+
+    def run(anchor_stays: bool) -> tuple[SlamRepair, list[np.ndarray]]:
+        repair = SlamRepair()
+        out = [repair.update(0, slam[0], None)]
+        for i in range(1, len(slam)):
+            behind = 20 <= i <= 29 and i != 23
+            check = None
+            if i == 23:  # (the motion over 20-23 measured, as the step from frame 22's output: see `_measure_over`)
+                check = np.linalg.inv(out[22]) @ out[20] @ np.linalg.inv(truth[20]) @ truth[23]
+            elif not behind:
+                check = np.linalg.inv(truth[i - 1]) @ truth[i]
+            out.append(repair.update(i, slam[i], check, fitted_to_scene=i == 23, judge=None if behind else scene,
+                                     unchecked=behind and anchor_stays, judge_rejoin=scene))
+        return repair, out
+
+    repair, out = run(anchor_stays=True)
+    assert repair.report.overruled == 1 and repair.report.gaps_rejoined == 1
+    assert repair.report.rejoined_from_anchor == 1
+    assert _error(out[29:], truth[29:]) < 1e-6
+    moved, out = run(anchor_stays=False)
+    assert moved.report.rejoined_from_anchor == 0
+    assert _error(out[29:], truth[29:]) > 0.01
+
+
 def test_without_a_trustworthy_witness_a_jump_breaks_the_recent_motion():
     """Low-fitness registrations witness nothing; a SLAM step that jumps away from the camera's recent motion is
     refused where the static scene favours the motion model (counted as implausible), one that continues it stands

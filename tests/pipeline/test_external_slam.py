@@ -219,3 +219,6 @@ def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, rou
     backend = counters["backend"]
     assert backend.get("odometry_refined_frames", 0) + backend.get("odometry_refinement_withheld", 0) > 0, backend
     assert "odometry_refinement_timeouts" not in backend
+    if backend.get("odometry_refined_frames"):  # (every frame it sent is taken or counted as passed over)
+        assert (backend["odometry_refined_frames"] + backend["odometry_refinement_passed_over"]
+                == counters["odometry"]["refinement_frames"]), backend

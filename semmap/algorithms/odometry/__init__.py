@@ -136,7 +136,7 @@ def repair_params(c: OdometryConfig):  # noqa: ANN201 - RepairParams (imported o
     return RepairParams(c.repair_translation_m, c.repair_rotation_deg, c.repair_min_fitness, scope=c.repair_scope,
                         hold_s=c.repair_hold_s, arbiter=arbiter, witness_every=c.repair_witness_every,
                         registration_scale=2 if c.registration_resolution == "half" else 1,
-                        witness=c.repair_witness,
+                        witness=c.repair_witness, behind_check_every=c.repair_behind_check_every,
                         gap_half_life_s=c.repair_gap_half_life_s)
 
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from semmap.algorithms.dynamic_mask import dynamic_pixels
 from semmap.core.messages import DynamicBox
 
 
@@ -73,6 +74,7 @@ class _Frame:
     depth_scale: float
     intrinsics: np.ndarray  # 3x3
     boxes: list[DynamicBox]
+    dynamic: np.ndarray | None = None  # its dynamic objects' pixels by their depth band (`by_depth`), once needed
 
 
 # the depth noise of a structured-light / time-of-flight RGB-D sensor grows with the square of the range (m)
@@ -85,24 +87,30 @@ class StepArbiter:
     `steps` back to the newest (`judge`). Features are computed only when a judgement needs them (most frames need
     none), once per frame."""
 
-    def __init__(self, params: ArbiterParams | None = None) -> None:
+    def __init__(self, params: ArbiterParams | None = None, hold_frames: int = 0) -> None:
         self.params = params or ArbiterParams()
+        # frames held: as many as the longer window needs, or `hold_frames` back if more (`sparse_step` over them)
+        self._hold = max(self.params.window_frames, self.params.long_window_frames, hold_frames) + 1
         self._frames: OrderedDict[int, _Frame] = OrderedDict()
-        self._features: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # frame id -> static features
+        # (frame id, by_depth) -> the frame's static features
+        self._features: dict[tuple[int, bool], tuple[np.ndarray, np.ndarray | None]] = {}
         self._orb = cv2.ORB_create(self.params.features)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self._pinned: tuple[int, _Frame] | None = None  # one frame kept beyond the window (`pin`)
+        # the pair last matched since the newest frame came, (ref id, newest id, by_depth), and its matches
+        self._matched: tuple[tuple[int, int, bool], tuple[np.ndarray, np.ndarray]] | None = None
         self.judged = 0
 
     def push(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, depth_scale: float,
              intrinsics: np.ndarray, boxes: list[DynamicBox]) -> None:
+        self._matched = None
         gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
         self._frames[int(frame_id)] = _Frame(gray, depth, float(depth_scale), np.asarray(intrinsics, float),
                                              list(boxes))
-        while len(self._frames) > max(self.params.window_frames, self.params.long_window_frames) + 1:
+        while len(self._frames) > self._hold:
             old, _ = self._frames.popitem(last=False)
             if self._pinned is None or self._pinned[0] != old:
-                self._features.pop(old, None)
+                self._forget(old)
 
     def pin(self, frame_id: int) -> None:
         """Keep this held frame (and its features) after the window has moved on, until another is pinned: the
@@ -112,12 +120,21 @@ class StepArbiter:
         if frame is None:
             return
         if self._pinned is not None and self._pinned[0] not in self._frames:
-            self._features.pop(self._pinned[0], None)
+            self._forget(self._pinned[0])
         self._pinned = (int(frame_id), frame)
 
     @property
     def frames_held(self) -> int:
         return len(self._frames)
+
+    def _forget(self, frame_id: int) -> None:
+        for by_depth in (False, True):
+            self._features.pop((frame_id, by_depth), None)
+
+    def held_back(self, steps: int) -> int | None:
+        """The id of the held frame `steps` before the newest (None: fewer are held)."""
+        ids = list(self._frames)
+        return ids[-steps - 1] if len(ids) > steps else None
 
     def holds(self, frame_id: int) -> bool:
         return self._frame(int(frame_id)) is not None
@@ -125,12 +142,13 @@ class StepArbiter:
     def reset(self) -> None:
         self._frames.clear()
         self._features.clear()
+        self._matched = None
         self._pinned = None
 
     def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
-              from_frame: int | None = None) -> Verdict:
+              from_frame: int | None = None, by_depth: bool = False) -> Verdict:
         """Both motions from the frame `steps` back (or from the held frame `from_frame`) to the newest
-        (T_ref^-1 T_cur, camera-to-world convention)."""
+        (T_ref^-1 T_cur, camera-to-world convention); `by_depth`: see `_static_matches`."""
         self.judged += 1
         ids = list(self._frames)
         if from_frame is not None:
@@ -143,7 +161,7 @@ class StepArbiter:
             ref_id = ids[-steps - 1]
         ref, cur = self._frame(ref_id), self._frames[ids[-1]]
         assert ref is not None
-        ua, ub = self._static_matches(ref_id, ids[-1])
+        ua, ub = self._static_matches(ref_id, ids[-1], by_depth)
         if len(ua) < self.params.min_matches:
             return Verdict(0.0, len(ua), math.nan, math.nan)
         K = cur.intrinsics
@@ -164,17 +182,18 @@ class StepArbiter:
         t = float(np.mean(diff) / (sd / math.sqrt(n))) if sd > 0 else 0.0
         return Verdict(t, n, float(np.median(pixels[0][valid])), float(np.median(pixels[1][valid])))
 
-    def sparse_step(self) -> tuple[np.ndarray | None, int]:
-        """The camera's step from the previous frame to the newest, fitted to their static ORB matches (the
-        previous frame's points by their depth, the newest's pixels: PnP in RANSAC), and its inlier count; (None, 0)
-        where it cannot be fitted. Why: where people fill most of the view, semmap's dense registration has too few
-        pixels left to be trusted, yet the background's corners still fix the step (Bonn crowd, frames 125-140:
-        100-230 inliers, 3-20 mm off the ground truth a step where ORB-SLAM3, dragged, was 20-67 mm off)."""
+    def sparse_step(self, steps: int = 1, by_depth: bool = False) -> tuple[np.ndarray | None, int]:
+        """The camera's motion from the held frame `steps` back (the previous one by default) to the newest, fitted
+        to their static ORB matches (the earlier frame's points by their depth, the newest's pixels: PnP in RANSAC),
+        and its inlier count; (None, 0) where it cannot be fitted; `by_depth`: see `_static_matches`. Why: where
+        people fill most of the view, semmap's dense registration has too few pixels left to be trusted, yet the
+        background's corners still fix the step (Bonn crowd, frames 125-140: 100-230 inliers, 3-20 mm off the
+        ground truth a step where ORB-SLAM3, dragged, was 20-67 mm off)."""
         ids = list(self._frames)
-        if len(ids) < 2:
+        if len(ids) < steps + 1:
             return None, 0
-        ref, cur = self._frames[ids[-2]], self._frames[ids[-1]]
-        ua, ub = self._static_matches(ids[-2], ids[-1])
+        ref, cur = self._frames[ids[-steps - 1]], self._frames[ids[-1]]
+        ua, ub = self._static_matches(ids[-steps - 1], ids[-1], by_depth)
         if len(ua) < 6:
             return None, 0
         xa, za = _backproject(ua, ref.depth, ref.depth_scale, ref.intrinsics)
@@ -192,20 +211,32 @@ class StepArbiter:
         step = np.linalg.inv(world_to_cur)
         return (step, len(inliers)) if np.all(np.isfinite(step)) else (None, 0)
 
-    def _static_matches(self, ref_id: int, cur_id: int) -> tuple[np.ndarray, np.ndarray]:
+    def _static_matches(self, ref_id: int, cur_id: int, by_depth: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The pixels of the two frames' ORB matches outside every dynamic box of either (static in both), as two
-        (n, 2) arrays in match order; empty where either frame has fewer than 2 such features."""
+        (n, 2) arrays in match order; empty where either frame has fewer than 2 such features. `by_depth`: outside
+        the dynamic objects' pixels by their depth band instead (the wall behind a person stays; where people fill
+        the view, whole boxes leave no match: Bonn crowd frames 119-167 over three frames, 0-35), either frame's
+        at the keypoint's pixel in both."""
+        key = (ref_id, cur_id, by_depth)
+        if self._matched is not None and self._matched[0] == key:  # (a fit and its judgement of one frame)
+            return self._matched[1]
         ref, cur = self._frame(ref_id), self._frames[cur_id]
         assert ref is not None
-        boxes = ref.boxes + cur.boxes
-        pa, da = _outside(*self._static_features(ref_id, ref), boxes)
-        pb, db = _outside(*self._static_features(cur_id, cur), boxes)
+        if by_depth:
+            a_mask, b_mask = _dynamic(ref), _dynamic(cur)
+            pa, da = _off_mask(*self._static_features(ref_id, ref, by_depth), a_mask, b_mask)
+            pb, db = _off_mask(*self._static_features(cur_id, cur, by_depth), b_mask, a_mask)
+        else:
+            boxes = ref.boxes + cur.boxes
+            pa, da = _outside(*self._static_features(ref_id, ref), boxes)
+            pb, db = _outside(*self._static_features(cur_id, cur), boxes)
         if da is None or db is None or len(pa) < 2 or len(pb) < 2:
             return np.empty((0, 2)), np.empty((0, 2))
         matches = self._matcher.match(da, db)
         ia = np.fromiter((m.queryIdx for m in matches), np.int64, len(matches))
         ib = np.fromiter((m.trainIdx for m in matches), np.int64, len(matches))
-        return pa[ia], pb[ib]
+        self._matched = (key, (pa[ia], pb[ib]))
+        return self._matched[1]
 
     def _frame(self, frame_id: int) -> _Frame | None:
         """A frame of the window, or the pinned one; None if neither."""
@@ -213,20 +244,46 @@ class StepArbiter:
             return self._frames[frame_id]
         return self._pinned[1] if self._pinned is not None and self._pinned[0] == frame_id else None
 
-    def _static_features(self, frame_id: int, frame: _Frame) -> tuple[np.ndarray, np.ndarray | None]:
-        """The frame's keypoints and descriptors outside its own dynamic boxes, computed once per frame."""
-        cached = self._features.get(frame_id)
+    def _static_features(self, frame_id: int, frame: _Frame,
+                         by_depth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """The frame's keypoints and descriptors outside its own dynamic boxes (`by_depth`: their depth bands),
+        computed once per frame."""
+        cached = self._features.get((frame_id, by_depth))
         if cached is not None:
             return cached
         mask = np.full(frame.gray.shape, 255, np.uint8)
         h, w = mask.shape
-        for b in frame.boxes:
-            x0, y0, x1, y1 = (int(round(v)) for v in b.box)
-            mask[max(0, y0):min(h, y1), max(0, x0):min(w, x1)] = 0
+        if by_depth:
+            mask[_dynamic(frame)] = 0
+        else:
+            for b in frame.boxes:
+                x0, y0, x1, y1 = (int(round(v)) for v in b.box)
+                mask[max(0, y0):min(h, y1), max(0, x0):min(w, x1)] = 0
         keypoints, descriptors = self._orb.detectAndCompute(frame.gray, mask)
         points = np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2)
-        self._features[frame_id] = (points, descriptors)
+        self._features[(frame_id, by_depth)] = (points, descriptors)
         return points, descriptors
+
+
+def _dynamic(frame: _Frame) -> np.ndarray:
+    """The frame's dynamic pixels by depth band, and its boxes' pixels without depth (a person's edges and hair read
+    none: as ORB-SLAM3's `range` mask), computed once per frame."""
+    if frame.dynamic is None:
+        frame.dynamic = dynamic_pixels(frame.depth, frame.boxes, frame.depth_scale, "range")
+        if frame.boxes:
+            frame.dynamic |= dynamic_pixels(frame.depth, frame.boxes, frame.depth_scale, "box") & (frame.depth == 0)
+    return frame.dynamic
+
+
+def _off_mask(points: np.ndarray, descriptors: np.ndarray | None, own: np.ndarray,
+              other: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The keypoints on neither frame's dynamic pixels (`_dynamic`, at the keypoint's pixel in each)."""
+    if descriptors is None or len(points) == 0:
+        return points, descriptors
+    u = np.clip(np.round(points[:, 0]).astype(np.int64), 0, own.shape[1] - 1)
+    v = np.clip(np.round(points[:, 1]).astype(np.int64), 0, own.shape[0] - 1)
+    keep = ~(own[v, u] | other[v, u])
+    return points[keep], descriptors[keep]
 
 
 def _outside(points: np.ndarray, descriptors: np.ndarray | None,

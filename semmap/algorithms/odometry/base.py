@@ -26,7 +26,8 @@ class OdometryInput:
     dynamic: list[DynamicBox] | None = None  # the frame's dynamic objects, for front ends that leave them out
     slam_pose: np.ndarray | None = None  # an external SLAM's own pose of this frame (the `external` front end)
     # real time: the front end is behind the video (frames queue up); a check of the SLAM's step waits for a frame
-    # with time for it, the SLAM's own tracking does not (a SLAM that misses frames loses track)
+    # with time for it (every n-th is made: checked.py), the SLAM's own tracking does not (a SLAM that misses frames
+    # loses track)
     behind: bool = False
     # real time: the tracker's dynamic objects that came since the previous frame, as (frame id, stamp, boxes),
     # oldest first: each is seen at its own frame's pose (motion.py), not at this one's. None: `dynamic` are this

@@ -5,7 +5,8 @@
 - registration.py measures the step itself, with the dynamic objects left out, only where that is asked: inside
   the scope, where the SLAM has no pose, and on every `witness_every`-th frame where the SLAM's precision is being
   measured (a registration costs 40-100 ms; a static scene needs none);
-- arbiter.py judges a disagreement on the static scene's evidence over the last few frames;
+- arbiter.py judges a disagreement on the static scene's evidence over the last few frames (and, in real time
+  while the front end is behind the video, where asked, measures every n-th step over the n frames since the last);
 - repair.py decides the step and chains the output.
 
 The `file:`, `external` and `orbslam3` front ends each hand it their SLAM's pose of every frame.
@@ -41,10 +42,13 @@ class CheckedSlam:
         self.params = params or RepairParams()
         self.repair = SlamRepair(self.params, measured_sigmas_after=measured_sigmas_after if check else 0)
         self.registration = PairRegistration(dynamic_mask, self.params.registration_scale) if check else None
-        self.arbiter = StepArbiter(self.params.arbiter) if check else None
+        self.arbiter = StepArbiter(self.params.arbiter, self.params.behind_check_every) if check else None
         self.moving = MovingObjects(motion)
         self.registrations = 0  # pairs registered (the rest were only remembered)
         self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
+        self.checked_behind = 0  # ... and the steps checked meanwhile, each over the frames since the last (`_behind`)
+        self._behind_run = 0  # frames in a row that wanted a check while the front end was behind
+        self._by_depth = False  # this frame's judgement leaves people out by their depth band (`_measure_over`)
         self.sparse_steps = 0  # steps measured on the static matches where the dense registration was not trusted
         self.dynamic_unplaced = 0  # real time: frames' dynamic objects the motion test could not place (no pose kept)
         self._frames = 0
@@ -74,9 +78,17 @@ class CheckedSlam:
         wanted = (self.repair.in_scope(moving, frame.stamp, undecided)
                   or (self.repair.measured_sigmas and self._frames % max(1, self.params.witness_every) == 0))
         skipped = wanted and frame.behind
-        if skipped:  # (real time, frames queued up: the SLAM's step, unchecked, and counted)
+        over = 0  # real time, behind: this frame's check spans this many frames (`_measure_over`)
+        if skipped:  # (real time, frames queued up: the SLAM's step, unchecked, and counted; every n-th checked)
             wanted = False
-            self.skipped_behind += 1
+            self._behind_run += 1
+            every = self.params.behind_check_every
+            if every > 0 and self._behind_run >= every:
+                over, skipped, self._behind_run = every, False, 0
+            else:
+                self.skipped_behind += 1
+        else:
+            self._behind_run = 0
         tracking = None
         if track is not None:
             if self._tracker is None:
@@ -84,6 +96,10 @@ class CheckedSlam:
             tracking = self._tracker.submit(track)
         self.arbiter.push(frame.frame_id, frame.rgb, frame.depth, frame.depth_scale, frame.intrinsics, boxes)
         step, fitness, fitted = self._measure(frame) if wanted else (None, 0.0, False)
+        self._by_depth = frame.behind  # (real time: the boxes lag their frames; the wall behind a person stays)
+        if over:
+            step, fitness, fitted = self._measure_over(over)
+            skipped = step is None  # (no fit: unchecked, as any step while behind; not the motion model's to judge)
         if tracking is not None:
             slam_pose, slam_weak, same_map = tracking.result()
         if not wanted:
@@ -95,7 +111,8 @@ class CheckedSlam:
         # time judged 270 of 377 frames it had no time to check, and dropped 99 frames)
         pose = self.repair.update(frame.frame_id, slam_pose, step, fitness, moving, float(frame.stamp),
                                   judge=None if skipped else self._judge, slam_weak=slam_weak, undecided=undecided,
-                                  same_map=same_map, fitted_to_scene=fitted)
+                                  same_map=same_map, fitted_to_scene=fitted, unchecked=skipped,
+                                  judge_rejoin=self._judge)
         if self.repair.anchor_frame == frame.frame_id:  # (where the output last took the SLAM's step: kept)
             self.arbiter.pin(frame.frame_id)
         self._poses[frame.frame_id] = pose
@@ -132,6 +149,29 @@ class CheckedSlam:
         self.sparse_steps += 1
         return sparse, self.params.min_fitness, True
 
+    def _measure_over(self, steps: int) -> tuple[np.ndarray | None, float, bool]:
+        """Real time, the front end behind: the camera's motion over the last `steps` frames fitted to the static
+        scene's ORB matches between their ends, as the step from the previous frame's output pose that puts this
+        frame where that motion says (so the repair weighs it as one step against the SLAM's, and the arbiter
+        judges both over the same frames). Why: a check per frame costs 20-45 ms beside ORB-SLAM3 on two cores,
+        so without this a front end behind the video checks none, and walkers drag the SLAM unopposed (Bonn crowd
+        in real time: 417 of 424 steps unchecked); the fit is ~10 ms every n-th frame, and a drag over n frames is
+        n times larger against the same matching noise. Off by default (`odometry.repair_behind_check_every`): a
+        drag the checks only half-corrected can outlive the SLAM's own relocalisation (docs/PERFORMANCE.md)."""
+        assert self.arbiter is not None
+        ref_id, prev_id = self.arbiter.held_back(steps), self.arbiter.held_back(1)
+        if ref_id is None or prev_id is None or ref_id not in self._poses or prev_id not in self._poses:
+            self.skipped_behind += 1
+            return None, 0.0, False
+        self.checked_behind += 1
+        self.registrations += 1
+        motion, inliers = self.arbiter.sparse_step(steps, by_depth=True)
+        if motion is None or inliers < self.params.arbiter.sparse_min_inliers:
+            return None, 0.0, False
+        self.sparse_steps += 1
+        step = np.linalg.inv(self._poses[prev_id]) @ self._poses[ref_id] @ motion
+        return step, self.params.min_fitness, True
+
     def close(self) -> None:
         if self._tracker is not None:
             self._tracker.shutdown(wait=True)
@@ -142,11 +182,12 @@ class CheckedSlam:
         assert self.arbiter is not None
         if from_frame is None and self.arbiter.frames_held < steps + 1:  # (a window that a restart cut short)
             return Verdict(0.0, 0, math.nan, math.nan)
-        return self.arbiter.judge(slam_motion, semmap_motion, steps, from_frame)
+        return self.arbiter.judge(slam_motion, semmap_motion, steps, from_frame, by_depth=self._by_depth)
 
     def counters(self) -> dict[str, int]:
         return {**self.repair.report.counters(), "repair_registrations": self.registrations,
-                "repair_skipped_behind": self.skipped_behind, "repair_sparse_steps": self.sparse_steps,
+                "repair_skipped_behind": self.skipped_behind,
+                "repair_checked_behind": self.checked_behind, "repair_sparse_steps": self.sparse_steps,
                 "repair_judged": 0 if self.arbiter is None else self.arbiter.judged,
                 "moving_objects": len(self.moving.seen_moving), "dynamic_unplaced": self.dynamic_unplaced}
 

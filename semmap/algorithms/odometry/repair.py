@@ -60,6 +60,9 @@ class RepairParams:
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)  # who is right where the two disagree
     # outside the scope a frame is registered only to measure the SLAM's precision (StepAgreement), every n-th
     witness_every: int = 5
+    # real time, the front end behind the video: every n-th wanted check still made, over the n frames since the
+    # last (`CheckedSlam._measure_over`); 0: none while behind (the default: see `odometry.repair_behind_check_every`)
+    behind_check_every: int = 0
     registration_scale: int = 1  # semmap's registration on images downscaled by this (real time: 2)
     # what measures a checked step: "dense" (the RGB-D registration; the static ORB matches' fit where it has too
     # few pixels) or "sparse" (that fit alone: 12 ms a frame pair where a full-size registration takes 38-43; Bonn
@@ -375,7 +378,8 @@ class SlamRepair:
     def update(self, frame_id: int, slam_pose: np.ndarray | None, check_step: np.ndarray | None,
                fitness: float = 1.0, moving_in_view: bool = True, stamp: float | None = None,
                judge: Judge | None = None, slam_weak: bool = False, undecided: bool = False,
-               same_map: bool | None = None, fitted_to_scene: bool = False) -> np.ndarray:
+               same_map: bool | None = None, fitted_to_scene: bool = False, unchecked: bool = False,
+               judge_rejoin: Judge | None = None) -> np.ndarray:
         """`moving_in_view`: an object in this frame is seen moving (motion.py); with scope `moving` a step is
         checked only then and for `hold_s` seconds (by `stamp`) after. `judge` weighs the static scene's evidence
         where the two estimates disagree (without one the evidence is weak and the SLAM keeps its step);
@@ -383,7 +387,10 @@ class SlamRepair:
         object is in view whose motion is not known yet (checked too, see `in_scope`); `same_map`: the SLAM says
         whether a pose after a gap is in the map it left (None: it does not say, see `_rejoins`);
         `fitted_to_scene`: `check_step` was fitted to the static scene's ORB matches (`StepArbiter.sparse_step`): a
-        witness at the gates' rate only."""
+        witness at the gates' rate only. `unchecked`: the step could not be checked (real time, the front end
+        behind the video): a SLAM step taken then says nothing of where the two agree, so the anchor stays where
+        they last did (`_rejoin`); `judge_rejoin`: where `judge` is None, a SLAM back after a gap is still judged by
+        this one (a rare frame, where the output's corrections meet the SLAM's relocalisation)."""
         r = self.report
         in_scope = self.in_scope(moving_in_view, stamp, undecided)
         # a walker seen in view (or within `hold_s`) is itself evidence against the SLAM's step
@@ -411,7 +418,7 @@ class SlamRepair:
             # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
             # bridged it (a gap is never one step, and what carried it was a stand-in)
             r.gaps_rejoined += 1
-            self._pose = self._rejoin(slam_pose, judge)
+            self._pose = self._rejoin(slam_pose, judge if judge is not None else judge_rejoin)
             self._remember_slam(slam_pose, stamp)
             self.took_slam_step, self.last_winner = True, "slam"
             self._set_anchor(frame_id)
@@ -445,7 +452,7 @@ class SlamRepair:
         self._recent.append(np.asarray(step, float).copy())
         self._pose = self._pose @ step
         self._remember_slam(slam_pose, stamp)
-        if self.took_slam_step and slam_pose is not None:
+        if self.took_slam_step and slam_pose is not None and not unchecked:
             self._set_anchor(frame_id)
         return self._pose.copy()
 

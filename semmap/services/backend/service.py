@@ -408,6 +408,8 @@ class BackendService(StageService):
             self.log.info("the front end's refinement at its end is not taken: %s", withheld)
             return
         self.metrics.counters["odometry_refined_frames"] = taken
+        # (frames the graph does not hold as measured: never seen, or stand-ins; counted, not silently lost)
+        self.metrics.counters["odometry_refinement_passed_over"] = len(message.frame_ids) - taken
         self.log.info("took %s's refinement at its end: %d of %d frames' odometry, optimised again", message.source,
                       taken, len(message.frame_ids))
 

@@ -28,7 +28,8 @@ from semmap.datasets.trajectory_io import write_tum
 from semmap.runtime.transport.service import service_main
 from semmap.runtime.transport.stage_service import StageService
 
-# real time: more frames than this waiting means the front end is behind the video (its checks wait, its SLAM not)
+# real time: more frames than this waiting means the front end is behind the video (its checks wait, or thin out to
+# every n-th step: odometry.repair_behind_check_every; its SLAM tracks every frame)
 BEHIND_FRAMES = 2
 DYNAMIC_KEPT = 64  # frames of dynamic objects kept (real time: boxes may run ahead of or behind the frames)
 
