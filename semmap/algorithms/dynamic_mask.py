@@ -13,10 +13,13 @@ from semmap.core.messages import DynamicBox
 DYNAMIC_MASKS = ("box", "range", "none")
 
 
-def dynamic_pixels(depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float, how: str) -> np.ndarray:
+def dynamic_pixels(depth: np.ndarray, boxes: list[DynamicBox], depth_scale: float, how: str,
+                   depthless: bool = False) -> np.ndarray:
     """Which pixels the dynamic objects cover (bool, the depth's shape): the whole box (`box`, or a box without a
     depth band), or only its pixels in the object's depth band (`range`: the background behind a person stays);
-    `none` covers nothing. The `rgbd` registration and the ORB-SLAM3 front end mask with it."""
+    `none` covers nothing. `depthless`: with `range`, a box's pixels without depth too (a person's edges and hair
+    read none on most sensors: what ORB-SLAM3's masks and the arbiter's static matches leave out). The `rgbd`
+    registration and the ORB-SLAM3 front end mask with it."""
     mask = np.zeros(depth.shape, dtype=bool)
     if how == "none":
         return mask
@@ -30,7 +33,7 @@ def dynamic_pixels(depth: np.ndarray, boxes: list[DynamicBox], depth_scale: floa
             mask[y0:y1, x0:x1] = True
         else:
             z = depth[y0:y1, x0:x1].astype(np.float64) * depth_scale
-            mask[y0:y1, x0:x1] |= (z >= b.depth_min_m) & (z <= b.depth_max_m)
+            mask[y0:y1, x0:x1] |= (z >= b.depth_min_m) & (z <= b.depth_max_m) | (depthless & (z == 0))
     return mask
 
 

@@ -266,12 +266,10 @@ class StepArbiter:
 
 
 def _dynamic(frame: _Frame) -> np.ndarray:
-    """The frame's dynamic pixels by depth band, and its boxes' pixels without depth (a person's edges and hair read
-    none: as ORB-SLAM3's `range` mask), computed once per frame."""
+    """The frame's dynamic pixels by depth band and its boxes' pixels without depth (as ORB-SLAM3's `range` mask),
+    computed once per frame."""
     if frame.dynamic is None:
-        frame.dynamic = dynamic_pixels(frame.depth, frame.boxes, frame.depth_scale, "range")
-        if frame.boxes:
-            frame.dynamic |= dynamic_pixels(frame.depth, frame.boxes, frame.depth_scale, "box") & (frame.depth == 0)
+        frame.dynamic = dynamic_pixels(frame.depth, frame.boxes, frame.depth_scale, "range", depthless=True)
     return frame.dynamic
 
 

@@ -46,7 +46,7 @@ class CheckedSlam:
         self.moving = MovingObjects(motion)
         self.registrations = 0  # pairs registered (the rest were only remembered)
         self.skipped_behind = 0  # real time: checks left out while the front end was behind the video
-        self.checked_behind = 0  # ... and the steps checked meanwhile, each over the frames since the last (`_behind`)
+        self.checked_behind = 0  # ... and the steps checked meanwhile (`_measure_over`)
         self._behind_run = 0  # frames in a row that wanted a check while the front end was behind
         self._by_depth = False  # this frame's judgement leaves people out by their depth band (`_measure_over`)
         self.sparse_steps = 0  # steps measured on the static matches where the dense registration was not trusted
@@ -163,11 +163,12 @@ class CheckedSlam:
         if ref_id is None or prev_id is None or ref_id not in self._poses or prev_id not in self._poses:
             self.skipped_behind += 1
             return None, 0.0, False
-        self.checked_behind += 1
         self.registrations += 1
         motion, inliers = self.arbiter.sparse_step(steps, by_depth=True)
-        if motion is None or inliers < self.params.arbiter.sparse_min_inliers:
+        if motion is None or inliers < self.params.arbiter.sparse_min_inliers:  # (no fit: left unchecked, counted)
+            self.skipped_behind += 1
             return None, 0.0, False
+        self.checked_behind += 1
         self.sparse_steps += 1
         step = np.linalg.inv(self._poses[prev_id]) @ self._poses[ref_id] @ motion
         return step, self.params.min_fitness, True

@@ -71,9 +71,7 @@ def blank_dynamic(rgb: np.ndarray, depth: np.ndarray, boxes: list[DynamicBox], d
     `range`, a box's pixels without depth go too (a person's edges and hair read no depth on most sensors)."""
     if how == "none" or not boxes:
         return rgb, depth, 0.0
-    mask = dynamic_pixels(depth, boxes, depth_scale, how)
-    if how == "range":
-        mask |= dynamic_pixels(depth, boxes, depth_scale, "box") & (depth == 0)
+    mask = dynamic_pixels(depth, boxes, depth_scale, how, depthless=True)
     if not mask.any():
         return rgb, depth, 0.0
     rgb_out, depth_out = rgb.copy(), depth.copy()
