@@ -454,15 +454,19 @@ def test_replicas_set_by_hand_are_planned_together_taking_turns(tmp_path: Path, 
 def test_a_run_rechooses_for_its_front_ends_measured_cost(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     """The doctor plans for `gt`'s 30 ms of the other services a frame: full-size fp32 then detects every 2nd
     frame. A front end measured at 45 ms leaves 0.6 cores: fp32 would be held to every 4th frame, and the as
-    faithful int8 at the same size detects twice as often for the same CPU, so the run takes it. Where its cost
-    was never measured, or the setup was given, nothing changes."""
+    faithful int8 at the same size detects twice as often for the same CPU, so the run takes it. ORB-SLAM3 never
+    measured here plans with its default estimate (48 ms) from the first run on; a front end with neither figure
+    (`file:`), or a setup given, keeps the doctor's choice."""
     monkeypatch.setenv("SEMMAP_MODEL_DIR", str(tmp_path))
     rows = [_row("fp32", 2, (480, 640), 35, 64, 1.0), _row("int8", 1, (480, 640), 31, 31, 0.98),
             _row("int8", 2, (384, 512), 12, 22, 0.85)]  # (the last disagrees: F1 under 0.9)
     dc.save_choice(rows, dc.hardware_key(), "test", tmp_path)
     setup = dc.resolve_setup("auto", 0, "auto", realtime=True)
     assert (setup.precision, setup.hw) == ("fp32", (480, 640))  # the doctor's choice
-    assert dc.for_front_end(setup, "orbslam3", tmp_path) is setup  # its cost not measured here yet
+    first = dc.for_front_end(setup, "orbslam3", tmp_path)  # not measured here yet: its default estimate
+    assert (first.precision, first.threads, first.hw) == ("int8", 1, (480, 640))
+    assert first.origin.endswith("(orbslam3: 48 ms a frame, default estimate)")
+    assert dc.for_front_end(setup, "file:/tmp/slam.tum", tmp_path) is setup  # no figure for an external SLAM
     assert dc.record_pipeline_cost("orbslam3", 45.0, tmp_path)
     chosen = dc.for_front_end(setup, "orbslam3", tmp_path)
     assert (chosen.precision, chosen.threads, chosen.hw) == ("int8", 1, (480, 640))

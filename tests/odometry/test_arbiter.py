@@ -112,8 +112,8 @@ def test_a_window_longer_than_the_frames_held_is_no_judgement():
 
 
 def test_a_pinned_frame_is_judged_from_after_the_window_has_moved_on():
-    """A SLAM back after a gap is judged from the last frame the output took its step (repair.py `_rejoin`): that
-    frame stays held, one at a time, however far the window has moved."""
+    """A SLAM back after a gap is judged from the last frame the output took its step, or from the gap's start
+    (repair.py `_rejoin`): each stays held, one a role, however far the window has moved."""
     truth = [_pose(0.004 * i, 0.2 * i) for i in range(8)]
     arbiter = StepArbiter(ArbiterParams(window_frames=2))
     for i, pose in enumerate(truth):
@@ -121,7 +121,10 @@ def test_a_pinned_frame_is_judged_from_after_the_window_has_moved_on():
         arbiter.push(i, rgb, depth, 0.001, K, [])
         if i in (1, 2):
             arbiter.pin(i)
+        if i in (0, 3):
+            arbiter.pin(i, "gap")
     assert arbiter.frames_held == 3 and arbiter.holds(2) and not arbiter.holds(1)
+    assert arbiter.holds(3) and not arbiter.holds(0)  # (the other role's frame, replaced in its own role only)
     true_motion = np.linalg.inv(truth[2]) @ truth[-1]
     dragged = true_motion @ _pose(0.03, np.degrees(0.03 / 3.0))
     verdict = arbiter.judge(dragged, true_motion, 0, from_frame=2)

@@ -50,11 +50,12 @@ def _noisy(step: np.ndarray, rng: np.random.Generator, sigma_m: float = 0.0005) 
 
 
 def _run(repair: SlamRepair, slam: list[np.ndarray | None], checks: list[np.ndarray | None],
-         fitness: list[float] | None = None, judge=favours_semmap) -> list[np.ndarray]:  # noqa: ANN001
+         fitness: list[float] | None = None, judge=favours_semmap,  # noqa: ANN001
+         same_map: bool | None = None) -> list[np.ndarray]:
     out = [repair.update(0, slam[0], None)]
     for i in range(1, len(slam)):
         out.append(repair.update(i, slam[i], checks[i - 1], 1.0 if fitness is None else fitness[i - 1],
-                                 judge=judge))
+                                 judge=judge, same_map=same_map))
     return out
 
 
@@ -246,6 +247,55 @@ def test_a_slam_relocalised_after_a_drag_rejoins_from_where_it_was_last_believed
                judge=lambda a, b, steps, from_frame=None: weak(a, b, steps) if from_frame else favours_semmap(a, b, 1))
     assert weak_anchor.report.rejoined_from_anchor == 0 and weak_anchor.report.gaps_rejoined == 1
     assert _error(out[29:], truth[29:]) == pytest.approx(0.048, abs=0.002)
+
+
+def test_an_anchor_too_far_back_to_judge_from_leaves_the_rejoin_to_the_gaps_start():
+    """A drag over seconds: between the anchor (19) and the SLAM's return (29) the scene says nothing (too few static
+    matches), but from the gap's start (25, the SLAM's last pose, where the output was held on the truth) it tells
+    the motion from the anchor (true) from the motion over the gap (the drag's undoing: 5 cm off)."""
+    truth, slam, checks = _dragged_then_relocalised()
+    asked: list[int | None] = []
+
+    def scene(slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
+              from_frame: int | None = None) -> Verdict:
+        if from_frame is None:
+            return favours_semmap(slam_motion, semmap_motion, steps)
+        asked.append(from_frame)
+        if from_frame == 19:
+            return weak(slam_motion, semmap_motion, steps)
+        true = np.linalg.inv(truth[from_frame]) @ truth[29]
+        closer = step_difference(semmap_motion, true)[0] < step_difference(slam_motion, true)[0]
+        return Verdict(10.0 if closer else -10.0, 200, 1.0, 1.0)
+
+    repair = SlamRepair()
+    out = _run(repair, slam, checks, judge=scene)
+    assert asked == [19, 25] and repair.report.rejoined_from_anchor == 1
+    assert _error(out[29:], truth[29:]) < 1e-6
+    # where the anchor's scene speaks for the motion over the gap, the gap's start is not asked
+    asked.clear()
+    decided = SlamRepair()
+    _run(decided, slam, checks,
+         judge=lambda a, b, steps, from_frame=None: (asked.append(from_frame), favours_slam(a, b, 0))[1]
+         if from_frame else favours_semmap(a, b, 1))
+    assert asked == [19] and decided.report.rejoined_from_anchor == 0
+
+
+def test_where_the_scene_cannot_say_the_cameras_motion_over_the_gap_tells_a_drag_from_its_undoing():
+    """A walker drags the SLAM 5 cm a frame (30 cm), it loses track for 3 frames and relocalises in its map (as
+    ORB-SLAM3 says, back from RECENTLY_LOST); the static scene
+    has too few matches to judge the rejoin from either frame. Its motion over the gap (the 30 cm undone in one
+    second's frames) breaks the camera's motion; its motion from the anchor continues it: that one is taken. A
+    drag of 5 cm (the test above) is within the motion model's gates for both: the SLAM's motion over the gap."""
+    truth = _truth(60)
+    slam: list[np.ndarray | None] = [p if i < 20 or i >= 29 else None if i >= 26 else _pose(0.05 * (i - 19)) @ p
+                                     for i, p in enumerate(truth)]
+    repair = SlamRepair()
+    out = _run(repair, slam, _steps(truth),
+               judge=lambda a, b, steps, from_frame=None: weak(a, b, steps) if from_frame else favours_semmap(a, b, 1),
+               same_map=True)
+    assert repair.report.rejoined_from_anchor == 1 and repair.report.rejoin_by_motion == 1
+    assert _error(out[29:], truth[29:]) < 0.01
+    assert [j["rejoin_from"] for j in repair.report.judged if "rejoin_from" in j] == [25]
 
 
 def test_behind_the_video_only_checked_steps_move_the_anchor_a_relocalised_slam_rejoins_from():

@@ -66,15 +66,28 @@ class Verdict:
     def favours_semmap(self, params: ArbiterParams) -> bool:
         return self.matches >= params.min_matches and self.t >= params.min_t
 
+    def favours_slam(self, params: ArbiterParams) -> bool:
+        return self.matches >= params.min_matches and self.t <= -params.min_t
+
 
 @dataclass
 class _Frame:
-    gray: np.ndarray
+    image: np.ndarray  # as pushed (colour or grey): made grey only when judged (`gray`)
     depth: np.ndarray
     depth_scale: float
     intrinsics: np.ndarray  # 3x3
     boxes: list[DynamicBox]
     dynamic: np.ndarray | None = None  # its dynamic objects' pixels by their depth band (`by_depth`), once needed
+    _gray: np.ndarray | None = None
+
+    @property
+    def gray(self) -> np.ndarray:
+        """The grey image, converted once when first needed. Why not on push: a frame is held for every step, but
+        only judged ones are matched, and in real time, behind the video, hardly any are."""
+        if self._gray is None:
+            image = self.image
+            self._gray = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        return self._gray
 
 
 # the depth noise of a structured-light / time-of-flight RGB-D sensor grows with the square of the range (m)
@@ -96,7 +109,7 @@ class StepArbiter:
         self._features: dict[tuple[int, bool], tuple[np.ndarray, np.ndarray | None]] = {}
         self._orb = cv2.ORB_create(self.params.features)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self._pinned: tuple[int, _Frame] | None = None  # one frame kept beyond the window (`pin`)
+        self._pinned: dict[str, tuple[int, _Frame]] = {}  # a frame per role kept beyond the window (`pin`)
         # the pair last matched since the newest frame came, (ref id, newest id, by_depth), and its matches
         self._matched: tuple[tuple[int, int, bool], tuple[np.ndarray, np.ndarray]] | None = None
         self.judged = 0
@@ -104,24 +117,27 @@ class StepArbiter:
     def push(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, depth_scale: float,
              intrinsics: np.ndarray, boxes: list[DynamicBox]) -> None:
         self._matched = None
-        gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
-        self._frames[int(frame_id)] = _Frame(gray, depth, float(depth_scale), np.asarray(intrinsics, float),
+        self._frames[int(frame_id)] = _Frame(rgb, depth, float(depth_scale), np.asarray(intrinsics, float),
                                              list(boxes))
         while len(self._frames) > self._hold:
             old, _ = self._frames.popitem(last=False)
-            if self._pinned is None or self._pinned[0] != old:
+            if not self._is_pinned(old):
                 self._forget(old)
 
-    def pin(self, frame_id: int) -> None:
-        """Keep this held frame (and its features) after the window has moved on, until another is pinned: the
-        reference of a judgement `from_frame` it (a SLAM back after a gap, judged from where it was last believed).
-        One frame's images: no cost unless judged."""
+    def pin(self, frame_id: int, role: str = "anchor") -> None:
+        """Keep this held frame (and its features) after the window has moved on, until another is pinned in its
+        `role`: the reference of a judgement `from_frame` it (a SLAM back after a gap, judged from where it was last
+        believed: `anchor`, or from where it left: `gap`). One frame's images a role: no cost unless judged."""
         frame = self._frames.get(int(frame_id))
         if frame is None:
             return
-        if self._pinned is not None and self._pinned[0] not in self._frames:
-            self._forget(self._pinned[0])
-        self._pinned = (int(frame_id), frame)
+        before = self._pinned.get(role)
+        self._pinned[role] = (int(frame_id), frame)
+        if before is not None and before[0] not in self._frames and not self._is_pinned(before[0]):
+            self._forget(before[0])
+
+    def _is_pinned(self, frame_id: int) -> bool:
+        return any(pinned_id == frame_id for pinned_id, _ in self._pinned.values())
 
     @property
     def frames_held(self) -> int:
@@ -143,7 +159,7 @@ class StepArbiter:
         self._frames.clear()
         self._features.clear()
         self._matched = None
-        self._pinned = None
+        self._pinned.clear()
 
     def judge(self, slam_motion: np.ndarray, semmap_motion: np.ndarray, steps: int,
               from_frame: int | None = None, by_depth: bool = False) -> Verdict:
@@ -242,7 +258,7 @@ class StepArbiter:
         """A frame of the window, or the pinned one; None if neither."""
         if frame_id in self._frames:
             return self._frames[frame_id]
-        return self._pinned[1] if self._pinned is not None and self._pinned[0] == frame_id else None
+        return next((frame for pinned_id, frame in self._pinned.values() if pinned_id == frame_id), None)
 
     def _static_features(self, frame_id: int, frame: _Frame,
                          by_depth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:

@@ -115,6 +115,8 @@ class CheckedSlam:
                                   judge_rejoin=self._judge)
         if self.repair.anchor_frame == frame.frame_id:  # (where the output last took the SLAM's step: kept)
             self.arbiter.pin(frame.frame_id)
+        if self.repair.slam_last_frame == frame.frame_id:  # (the SLAM's last pose: where a gap would start)
+            self.arbiter.pin(frame.frame_id, "gap")
         self._poses[frame.frame_id] = pose
         while len(self._poses) > POSES_KEPT:
             self._poses.popitem(last=False)
@@ -156,8 +158,8 @@ class CheckedSlam:
         judges both over the same frames). Why: a check per frame costs 20-45 ms beside ORB-SLAM3 on two cores,
         so without this a front end behind the video checks none, and walkers drag the SLAM unopposed (Bonn crowd
         in real time: 417 of 424 steps unchecked); the fit is ~10 ms every n-th frame, and a drag over n frames is
-        n times larger against the same matching noise. Off by default (`odometry.repair_behind_check_every`): a
-        drag the checks only half-corrected can outlive the SLAM's own relocalisation (docs/PERFORMANCE.md)."""
+        n times larger against the same matching noise (`odometry.repair_behind_check_every`; its cost and what it
+        gains: docs/PERFORMANCE.md)."""
         assert self.arbiter is not None
         ref_id, prev_id = self.arbiter.held_back(steps), self.arbiter.held_back(1)
         if ref_id is None or prev_id is None or ref_id not in self._poses or prev_id not in self._poses:

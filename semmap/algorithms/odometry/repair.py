@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from semmap.core.geometry import rotation_exp, rotation_log
 
 from .arbiter import ArbiterParams, Verdict
 
@@ -61,8 +62,8 @@ class RepairParams:
     # outside the scope a frame is registered only to measure the SLAM's precision (StepAgreement), every n-th
     witness_every: int = 5
     # real time, the front end behind the video: every n-th wanted check still made, over the n frames since the
-    # last (`CheckedSlam._measure_over`); 0: none while behind (the default: see `odometry.repair_behind_check_every`)
-    behind_check_every: int = 0
+    # last (`CheckedSlam._measure_over`); 0: none while behind (see `odometry.repair_behind_check_every`)
+    behind_check_every: int = 3
     registration_scale: int = 1  # semmap's registration on images downscaled by this (real time: 2)
     # what measures a checked step: "dense" (the RGB-D registration; the static ORB matches' fit where it has too
     # few pixels) or "sparse" (that fit alone: 12 ms a frame pair where a full-size registration takes 38-43; Bonn
@@ -108,6 +109,7 @@ class RepairReport:
     slam_weak: int = 0  # the registration disagreed and the SLAM itself said its tracking was weak: overruled
     gaps_rejoined: int = 0  # the SLAM came back after frames without a pose, in the same map: re-anchored
     rejoined_from_anchor: int = 0  # ... measured from its last step the output took, not its last pose (see update)
+    rejoin_by_motion: int = 0  # ... where the static scene could not say, the motion model could (`_rejoin`)
     overruled_frames: list[int] = field(default_factory=list)  # frame ids (the first `max_listed`)
     max_listed: int = 200
     # per judged step (the first `max_judged`): what disagreed, the evidence and who won (odometry_repair.json)
@@ -116,7 +118,7 @@ class RepairReport:
 
     # the counted fields; older saved states listed the first eight as a plain list, in this order
     COUNTED = ("steps", "overruled", "slam_missing", "unchecked", "implausible", "static", "coast_limit", "outvoted",
-               "kept", "slam_weak", "gaps_rejoined", "rejoined_from_anchor")
+               "kept", "slam_weak", "gaps_rejoined", "rejoined_from_anchor", "rejoin_by_motion")
 
     def counters(self) -> dict[str, int]:
         return {f"repair_{name}": getattr(self, name) for name in self.COUNTED}
@@ -129,10 +131,14 @@ class RepairReport:
             setattr(self, name, int((saved or {}).get(f"repair_{name}", 0)))
 
     def note_judgement(self, frame_id: int, winner: str, difference: tuple[float, float], verdict: Verdict | None,
-                       fitness: float) -> None:
+                       fitness: float, rejoin_from: int | None = None) -> None:
+        """One judged step; `rejoin_from`: a SLAM back after a gap, judged from that frame (its winner `slam`: its
+        motion over the gap, `anchor`: its motion from the anchor)."""
         if len(self.judged) < self.max_judged:
             record = {"frame": int(frame_id), "winner": winner, "differ_mm": round(difference[0] * 1e3, 2),
                       "differ_deg": round(difference[1], 3), "fitness": round(float(fitness), 3)}
+            if rejoin_from is not None:
+                record["rejoin_from"] = int(rejoin_from)
             if verdict is not None:
                 record.update(t=round(verdict.t, 2), t_long=round(verdict.t_long, 2), matches=verdict.matches,
                               slam_px=_rounded(verdict.slam_px), semmap_px=_rounded(verdict.semmap_px))
@@ -149,6 +155,9 @@ class RepairReport:
         return out
 
 
+# new samples before the measured sigmas are recomputed (a percentile of windows of up to 2000: one sample more
+# moves it by nothing that matters, and recomputing it every frame cost the front end a share of its frame time)
+SIGMAS_EVERY = 10
 # the 90th percentile of the length of a 3-vector of independent N(0, s^2) components is 2.50 s (chi, 3 degrees)
 CHI3_Q90 = 2.500
 # a second difference s[i+1] - 2 s[i] + s[i-1] of steps with independent noise s has sqrt(1 + 4 + 1) times its sigma
@@ -183,7 +192,7 @@ class StepAgreement:
         self.roughness: tuple[deque[float], deque[float]] = (deque(maxlen=window), deque(maxlen=window))
         self._steps: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=3)  # the SLAM's last steps (rotvec, t)
         self._restored: tuple[float, float] | None = None  # the sigmas before a restart, until the windows refill
-        self._added = 0  # samples taken so far: `sigmas` is computed once per new sample (it is read twice a frame)
+        self._added = 0  # samples taken so far: `sigmas` is recomputed every `SIGMAS_EVERY` new ones
         self._cached: tuple[int, tuple[float, float] | None] | None = None
 
     def add_slam_step(self, slam_step: np.ndarray | None) -> None:
@@ -191,7 +200,7 @@ class StepAgreement:
         if slam_step is None:
             self._steps.clear()
             return
-        rotvec = Rotation.from_matrix(np.asarray(slam_step[:3, :3], float)).as_rotvec()  # (the log map)
+        rotvec = rotation_log(slam_step[:3, :3])
         self._steps.append((rotvec, np.asarray(slam_step[:3, 3], float).copy()))
         if len(self._steps) == 3:
             (r0, t0), (r1, t1), (r2, t2) = self._steps
@@ -214,7 +223,8 @@ class StepAgreement:
 
     def sigmas(self) -> tuple[float, float] | None:
         """Per-axis (translation m, rotation rad) sigmas of one step, or None before `min_samples`."""
-        if self._cached is None or self._cached[0] != self._added:
+        if self._cached is None or (self._added - self._cached[0] >= SIGMAS_EVERY or self._cached[1] is None
+                                    and self._added != self._cached[0]):
             known = [m for m in (self._measured(self.agreement), self._measured(self.roughness)) if m is not None]
             value = (max(m[0] for m in known), max(m[1] for m in known)) if known else None
             self._cached = (self._added, value)
@@ -271,6 +281,8 @@ class SlamRepair:
         # continues from there
         self._slam_last: np.ndarray | None = None
         self._out_at_slam_last: np.ndarray | None = None
+        # ... and its frame: a SLAM back after a gap whose anchor is too far back to judge from is judged from there
+        self.slam_last_frame: int | None = None
         # the last frame whose step the output took from the SLAM, its SLAM pose and output pose: where the two last
         # agreed. A SLAM dragged before a gap and relocalised after it is measured from there (`_rejoin`)
         self.anchor_frame: int | None = None
@@ -280,6 +292,7 @@ class SlamRepair:
         # alone, which is often the glitch that precedes a SLAM losing track (TUM fr1_rpy: a 2 cm step carried
         # on over 5 lost frames put them 10-18 cm off)
         self._recent: deque[np.ndarray] = deque(maxlen=max(1, self.params.motion_steps))
+        self._velocity_cache: tuple[tuple[np.ndarray, ...], np.ndarray] | None = None  # (`_velocity`)
         self._dynamic_seen: float | None = None  # stamp of the last frame with a dynamic object in view
         self._stamp: float | None = None  # of the previous frame (the gates scale with the frame interval)
         self._coast_since: float | None = None  # stamp where the motion model began to carry the chain
@@ -323,7 +336,7 @@ class SlamRepair:
             step = np.linalg.inv(self._slam_prev) @ slam_pose
             self._recent.append(step)
             self._pose = self._pose @ step
-        self._remember_slam(slam_pose, None)
+        self._remember_slam(slam_pose, None, frame_id)
         return self._pose.copy()
 
     def declared_sigmas(self, fixed: tuple[float, float]) -> tuple[float, float]:
@@ -405,7 +418,7 @@ class SlamRepair:
                 self._pose = self._start.copy()
             else:
                 self._pose = np.eye(4)
-            self._remember_slam(slam_pose, stamp)
+            self._remember_slam(slam_pose, stamp, frame_id)
             self._slam_window.append(self._slam_prev)
             if slam_pose is not None:
                 self._set_anchor(frame_id)
@@ -418,8 +431,8 @@ class SlamRepair:
             # back after a gap, in the same map: the SLAM's motion over the whole gap replaces the steps that
             # bridged it (a gap is never one step, and what carried it was a stand-in)
             r.gaps_rejoined += 1
-            self._pose = self._rejoin(slam_pose, judge if judge is not None else judge_rejoin)
-            self._remember_slam(slam_pose, stamp)
+            self._pose = self._rejoin(frame_id, slam_pose, judge if judge is not None else judge_rejoin)
+            self._remember_slam(slam_pose, stamp, frame_id)
             self.took_slam_step, self.last_winner = True, "slam"
             self._set_anchor(frame_id)
             self._slam_window.append(self._slam_prev)
@@ -451,7 +464,7 @@ class SlamRepair:
         self._semmap_window.append(np.asarray(check_step if trusted else step, float).copy())
         self._recent.append(np.asarray(step, float).copy())
         self._pose = self._pose @ step
-        self._remember_slam(slam_pose, stamp)
+        self._remember_slam(slam_pose, stamp, frame_id)
         if self.took_slam_step and slam_pose is not None and not unchecked:
             self._set_anchor(frame_id)
         return self._pose.copy()
@@ -462,7 +475,7 @@ class SlamRepair:
         self.anchor_frame = int(frame_id)
         self._slam_at_anchor, self._out_at_anchor = self._slam_prev, self._pose
 
-    def _rejoin(self, slam_pose: np.ndarray, judge: Judge | None) -> np.ndarray:
+    def _rejoin(self, frame_id: int, slam_pose: np.ndarray, judge: Judge | None) -> np.ndarray:
         """The output pose of a SLAM back in its map after a gap: its motion over the gap continues the output from
         its last pose before the gap. Unless the output had stopped taking its steps before the gap (a walker
         dragged it) and the static scene says its motion since the anchor, the last frame whose step the output
@@ -477,10 +490,59 @@ class SlamRepair:
         from_anchor = self._out_at_anchor @ np.linalg.inv(self._slam_at_anchor) @ slam_pose
         start = np.linalg.inv(self._out_at_anchor)
         verdict = judge(start @ over_gap, start @ from_anchor, 0, from_frame=self.anchor_frame)
-        if not verdict.favours_semmap(self.params.arbiter):
+        judged_from = self.anchor_frame
+        if not verdict.favours_semmap(self.params.arbiter) and not verdict.favours_slam(self.params.arbiter) \
+                and self.slam_last_frame is not None and self.slam_last_frame != self.anchor_frame:
+            # the anchor too far back for the scene to say (a drag over seconds): judged from the gap's start,
+            # whose output pose the checks held (Bonn crowd in real time: a drag the checks held to 6-9 cm, then
+            # ORB-SLAM3 lost 15-56 frames and relocalised; over the gap, its motion put the output 0.4-0.5 m off)
+            start = np.linalg.inv(self._out_at_slam_last)
+            verdict = judge(start @ over_gap, start @ from_anchor, 0, from_frame=self.slam_last_frame)
+            judged_from = self.slam_last_frame
+        won = verdict.favours_semmap(self.params.arbiter)
+        if not won and not verdict.favours_slam(self.params.arbiter) \
+                and step_difference(over_gap, from_anchor)[0] > self.params.rejoin_m \
+                and self._off_motion(from_anchor) < self._off_motion(over_gap):
+            won = True  # (the scene silent: the camera's own motion over the gap tells them apart)
+            self.report.rejoin_by_motion += 1
+        self.report.note_judgement(frame_id, "anchor" if won else "slam", step_difference(over_gap, from_anchor),
+                                   verdict, 0.0, rejoin_from=judged_from)
+        if not won:
             return over_gap
         self.report.rejoined_from_anchor += 1
         return from_anchor
+
+    def _motion_over_gap(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's motion over the gap from where the SLAM left, as the motion model has it: what bridged the
+        gap (slowed to a stop, see `_coasting`), and the speed where the SLAM left, kept (a camera that kept going
+        is as likely)."""
+        assert self._out_at_slam_last is not None and self._pose is not None
+        bridge = np.linalg.inv(self._out_at_slam_last) @ self._pose @ self._velocity()
+        return bridge, np.linalg.matrix_power(self._velocity_at_slam_last, self._bridged + 1)
+
+    def _bridge_agrees(self, pose: np.ndarray) -> bool:
+        """Whether `pose`, the SLAM's first frame back after a gap, continues the output from where the SLAM left as
+        the camera's motion would have (`_motion_over_gap`: within `rejoin_m` or half that motion, and
+        `rejoin_deg`)."""
+        assert self._out_at_slam_last is not None
+        motion = np.linalg.inv(self._out_at_slam_last) @ pose
+        p = self.params
+
+        def agrees(model: np.ndarray) -> bool:
+            dt, dr = step_difference(motion, model)
+            return dt <= max(p.rejoin_m, 0.5 * float(np.linalg.norm(model[:3, 3]))) and dr <= p.rejoin_deg
+
+        return any(agrees(model) for model in self._motion_over_gap())
+
+    def _off_motion(self, pose: np.ndarray) -> float:
+        """How far (m) `pose`, a candidate for the SLAM's first frame back after a gap, is from where the camera's
+        motion over the gap would have put it (the nearer of `_motion_over_gap`'s two). Why: where people fill the
+        view over the gap, the static scene has too few matches between its ends to judge (Bonn crowd in real time:
+        8-17 over a second), yet its two candidates differ by the whole drag the checks held off (0.4-0.9 m); where
+        the scene could judge such a pair, it took the motion from the anchor 6 times of 6."""
+        assert self._out_at_slam_last is not None
+        motion = np.linalg.inv(self._out_at_slam_last) @ pose
+        return min(step_difference(motion, model)[0] for model in self._motion_over_gap())
 
     def _rejoins(self, slam_pose: np.ndarray, same_map: bool | None) -> bool:
         """Whether the SLAM, back after a gap, is back in the map it left: where it says so (`same_map`, ORB-SLAM3
@@ -491,30 +553,27 @@ class SlamRepair:
             return False
         if same_map:
             return True
-        slam_motion = np.linalg.inv(self._slam_last) @ slam_pose
-        bridge = np.linalg.inv(self._out_at_slam_last) @ self._pose @ self._velocity()
-        # (and the camera's speed where the SLAM left, kept over the gap: the bridge slowed to a stop, see
-        # `_coasting`, but a camera that kept going is as likely)
-        straight = np.linalg.matrix_power(self._velocity_at_slam_last, self._bridged + 1)
-        p = self.params
-
-        def agrees(motion: np.ndarray) -> bool:
-            dt, dr = step_difference(slam_motion, motion)
-            return dt <= max(p.rejoin_m, 0.5 * float(np.linalg.norm(motion[:3, 3]))) and dr <= p.rejoin_deg
-
-        return agrees(bridge) or agrees(straight)
+        # its motion over the gap, continuing the output from where it left (the bridge slowed to a stop, see
+        # `_coasting`, but a camera that kept going is as likely: both count)
+        return self._bridge_agrees(self._out_at_slam_last @ np.linalg.inv(self._slam_last) @ slam_pose)
 
     def _velocity(self) -> np.ndarray:
-        """The motion model: the mean of the last steps taken (identity before any)."""
-        if not self._recent:
-            return np.eye(4)
-        if len(self._recent) == 1:
-            return self._recent[0].copy()
-        steps = np.stack(self._recent)
-        mean = np.eye(4)
-        mean[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(steps[:, :3, :3]).as_rotvec().mean(axis=0)).as_matrix()
-        mean[:3, 3] = steps[:, :3, 3].mean(axis=0)
-        return mean
+        """The motion model: the mean of the last steps taken (identity before any). Kept until the steps change
+        (compared by identity): a frame asks for it up to six times, on the front end's critical path."""
+        cached = self._velocity_cache
+        if cached is None or len(cached[0]) != len(self._recent) or any(
+                kept is not step for kept, step in zip(cached[0], self._recent, strict=True)):
+            if not self._recent:
+                mean = np.eye(4)
+            elif len(self._recent) == 1:
+                mean = np.array(self._recent[0], dtype=float)
+            else:
+                steps = np.stack(self._recent)
+                mean = np.eye(4)
+                mean[:3, :3] = rotation_exp(rotation_log(steps[:, :3, :3]).mean(axis=0))
+                mean[:3, 3] = steps[:, :3, 3].mean(axis=0)
+            self._velocity_cache = (tuple(self._recent), mean)  # (the steps themselves: never changed in place)
+        return self._velocity_cache[1].copy()
 
     def _coasting(self, stamp: float | None, scale: float) -> np.ndarray:
         """The motion model for a frame of a gap nothing measured: the camera's motion where the SLAM left, its
@@ -526,16 +585,17 @@ class SlamRepair:
         velocity = self._velocity_at_slam_last
         keep = 0.5 ** (max(0.0, stamp - self._gap_start) / half_life)
         slowed = np.eye(4)
-        slowed[:3, :3] = Rotation.from_rotvec(keep * Rotation.from_matrix(velocity[:3, :3]).as_rotvec()).as_matrix()
+        slowed[:3, :3] = rotation_exp(keep * rotation_log(velocity[:3, :3]))
         slowed[:3, 3] = keep * velocity[:3, 3]
         return slowed
 
-    def _remember_slam(self, slam_pose: np.ndarray | None, stamp: float | None) -> None:
+    def _remember_slam(self, slam_pose: np.ndarray | None, stamp: float | None, frame_id: int | None = None) -> None:
         """After this frame's pose is decided: the SLAM's pose as the next step's start, and, where it had one,
         as the anchor a return after a gap is measured from."""
         self._slam_prev = None if slam_pose is None else slam_pose.copy()
         if slam_pose is not None:
             self._slam_last, self._out_at_slam_last = slam_pose.copy(), self._pose.copy()
+            self.slam_last_frame = None if frame_id is None else int(frame_id)
             self._bridged = 0
         else:
             self._bridged += 1
@@ -671,7 +731,7 @@ class SlamRepair:
 
     def break_chain(self) -> None:
         """The SLAM's next pose is in a new frame (a restarted SLAM, a new map): its first step says nothing."""
-        self._slam_prev = self._slam_last = self._out_at_slam_last = None
+        self._slam_prev = self._slam_last = self._out_at_slam_last = self.slam_last_frame = None
         self.anchor_frame = self._slam_at_anchor = self._out_at_anchor = None
         self._slam_window.clear()
         self._semmap_window.clear()
@@ -705,7 +765,7 @@ class SlamRepair:
 
 
 def _flat(a: np.ndarray | None) -> list[float] | None:
-    return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
+    return None if a is None else np.asarray(a, dtype=np.float64).reshape(-1).tolist()
 
 
 def _unflat(values: list[float] | None, shape: tuple[int, ...]) -> np.ndarray | None:

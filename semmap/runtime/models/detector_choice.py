@@ -221,7 +221,7 @@ def choose(rows: Sequence[Measured], cores: int, fps: float = 30.0, others: floa
     does not need: every 3rd frame at 640x480 maps what every frame does (lockstep, 7-Scenes), every 2nd leaves
     real time's uneven cadence a margin. On an AVX2-only CPU nothing at full size gets there, and the fastest wins
     as before. `others`: the other services' CPU per frame (default: `gt`'s estimate, what the doctor plans for;
-    a run re-chooses with its front end's measured cost, `for_front_end`)."""
+    a run re-chooses with its front end's cost, `for_front_end`)."""
     others = DEFAULT_OTHERS_CPU_MS["gt"] if others is None else others
     ranked = rank_for_realtime(rows, cores, fps, others)
     if not ranked:
@@ -608,8 +608,11 @@ def format_table(doc: dict[str, Any]) -> str:
 
 # CPU the other services of a real-time run take per frame of video (player, odometry, tracker, associator,
 # backend, viewer), used until a run on this machine has measured it (then `record_pipeline_cost` keeps the
-# figure in the cache, per odometry mode). Measured on a 2-core AMD EPYC (7-Scenes, 30 fps).
-DEFAULT_OTHERS_CPU_MS = {"gt": 30.0, "rgbd": 40.0}
+# figure in the cache, per odometry mode). Measured on a 2-core AMD EPYC at 30 fps: `gt` and `rgbd` on 7-Scenes;
+# `orbslam3` 47-53 ms on Bonn crowd and 7-Scenes. Why a figure per front end: planned with the 40 ms fallback, a
+# first ORB-SLAM3 run on Bonn crowd gave the detector fp32 every 3rd frame, 2.04 cores were asked of 2, and the
+# front end posed 85 % of the frames (0.14 m); planned with its own cost, int8 every 2nd frame: 91-92 %, 0.07 m.
+DEFAULT_OTHERS_CPU_MS = {"gt": 30.0, "rgbd": 40.0, "orbslam3": 48.0}
 DEFAULT_OTHERS_FALLBACK_MS = 40.0
 MIN_FREE_CORES = 0.25
 RUNS_REMEMBERED = 5  # real-time runs whose measured costs the next plan takes the median of
@@ -724,7 +727,7 @@ def rank_for_realtime(rows: Sequence[Measured], cores: int, fps: float = 30.0,
 
 
 MEASURED_HERE = "measured on this machine"
-MEASURED_FOR_FRONT_END = "measured on this machine, chosen for the front end's measured cost"
+MEASURED_FOR_FRONT_END = "measured on this machine, chosen for the front end's cost"
 
 
 @dataclass(frozen=True)
@@ -856,18 +859,21 @@ def replica_plan(plan: CadencePlan, setup: DetectorSetup, doc: dict[str, Any] | 
 
 
 def for_front_end(setup: DetectorSetup, odometry: str, model_dir: Path | None = None) -> DetectorSetup:
-    """The measured choice again, for the front end this run really uses, where a real-time run here measured
-    what it costs: `choose` with its CPU per frame instead of the doctor's `gt` estimate. A setup that is not the
-    machine's measured choice (settings given) is kept.
+    """The measured choice again, for the front end this run really uses: `choose` with its CPU per frame (what
+    a real-time run here measured, else the front end's own default estimate) instead of the doctor's `gt`
+    estimate. A setup that is not the machine's measured choice (settings given) is kept, and so is the choice
+    for a front end with neither figure (`file:`, an external SLAM).
 
-    Why: the doctor plans for 30 ms of the other services a frame; ORB-SLAM3 and its checks take 45. fp32 640x480
-    is then held to every 4th frame, where int8 at the same size, as faithful (F1 0.98), detects every 2nd frame
-    for the same CPU (7-Scenes in real time: 12 landmarks of lockstep's 14 with fp32)."""
+    Why: the doctor plans for 30 ms of the other services a frame; ORB-SLAM3 and its checks take 45-50. fp32
+    640x480 is then held to every 4th frame, where int8 at the same size, as faithful (F1 0.98), detects every 2nd
+    frame for the same CPU (7-Scenes in real time: 12 landmarks of lockstep's 14 with fp32). And from the first
+    run on: a machine that has not yet measured ORB-SLAM3 plans with its default estimate, not with `gt`'s."""
     if setup.origin != MEASURED_HERE:
         return setup
     doc = load_choice(model_dir)
     others, source = others_cpu_ms(odometry, doc)
-    if doc is None or not source.startswith("measured"):
+    known = source.startswith("measured") or odometry.split(":", 1)[0] in DEFAULT_OTHERS_CPU_MS
+    if doc is None or not known:
         return setup
     rows = [Measured.from_dict(r) for r in doc.get("rows", [])]
     cores = int((doc.get("key") or {}).get("cores") or os.cpu_count() or 1)
@@ -877,7 +883,8 @@ def for_front_end(setup: DetectorSetup, odometry: str, model_dir: Path | None = 
         return setup
     c = best.config
     return DetectorSetup(c.precision, c.threads, (c.height, c.width),
-                         f"{MEASURED_FOR_FRONT_END} ({odometry.split(':', 1)[0]}: {others:.0f} ms a frame)", best)
+                         f"{MEASURED_FOR_FRONT_END} ({odometry.split(':', 1)[0]}: {others:.0f} ms a frame, {source})",
+                         best)
 
 
 def load_detector_model(setup: DetectorSetup, model_dir: Path | None = None) -> Path | bytes:
