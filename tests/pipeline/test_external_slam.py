@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from semmap.datasets import open_dataset
-from semmap.datasets.trajectory_io import write_tum
+from semmap.datasets.trajectory_io import read_tum, write_tum
 from semmap.runtime.client import SemmapClient
 from semmap.runtime.maps.map_query import MapQuery
 from semmap.runtime.maps.map_store import read_map_json
@@ -222,3 +222,34 @@ def test_an_external_camera_is_posed_by_semmaps_own_orbslam3(tmp_path: Path, rou
     if backend.get("odometry_refined_frames"):  # (every frame it sent is taken or counted as passed over)
         assert (backend["odometry_refined_frames"] + backend["odometry_refinement_passed_over"]
                 == counters["odometry"]["refinement_frames"]), backend
+
+
+@pytest.mark.slow
+@pytest.mark.needs_data
+def test_a_camera_that_does_not_wait_has_every_frame_posed_by_semmaps_orbslam3(tmp_path: Path, router, semmap_run,
+                                                                                data_root: Path) -> None:
+    """`semmap run external --odometry orbslam3` without `--realtime`, fed as a camera feeds it (30 Hz, never
+    waiting for semmap): each frame waits for its dynamic objects behind the ones before it, and every one is
+    posed, in order. (A single waiting slot once let each frame replace the one before: 1 pose of 300.)"""
+    vocabulary = data_root / "orbslam3" / "ORBvoc_redkitchen_k10L5.txt"
+    if not vocabulary.is_file():
+        pytest.skip("no shared ORB vocabulary")
+    rpy = data_root / "tum_freiburg1_rpy"
+    out = tmp_path / "run"
+    runner, outcome = _external_run(semmap_run, out, router, "--odometry", "orbslam3", "--set",
+                                    f"odometry.orbslam3_vocabulary={vocabulary}")
+    dataset = open_dataset(str(rpy))
+    frames = 60
+    with SemmapClient("robot1", router.endpoint) as client:
+        client.wait_ready(timeout=120)
+        for i in range(frames):
+            f = dataset[i]
+            client.publish_frame(i, f.stamp, f.rgb, f.depth, f.depth_scale, f.intrinsics)
+            time.sleep(1 / 30)
+        client.end_of_stream(frames - 1)
+    runner.join(timeout=600)
+    assert outcome["run"].returncode == 0, outcome["run"].stderr[-3000:]
+    stats = json.loads((out / "stats.json").read_text())
+    odometry = stats["services"]["odometry"]["counters"]
+    assert odometry["poses_published"] == frames, odometry
+    assert len(read_tum(out / "trajectory_odometry.tum")) >= 0.9 * frames

@@ -495,7 +495,7 @@ class SlamRepair:
                 and self.slam_last_frame is not None and self.slam_last_frame != self.anchor_frame:
             # the anchor too far back for the scene to say (a drag over seconds): judged from the gap's start,
             # whose output pose the checks held (Bonn crowd in real time: a drag the checks held to 6-9 cm, then
-            # ORB-SLAM3 lost 15-56 frames and relocalised; over the gap, its motion put the output 0.4-0.5 m off)
+            # ORB-SLAM3 lost 15-56 frames and relocalised; over the gap, its motion put the output 0.4-0.9 m off)
             start = np.linalg.inv(self._out_at_slam_last)
             verdict = judge(start @ over_gap, start @ from_anchor, 0, from_frame=self.slam_last_frame)
             judged_from = self.slam_last_frame
@@ -538,8 +538,8 @@ class SlamRepair:
         """How far (m) `pose`, a candidate for the SLAM's first frame back after a gap, is from where the camera's
         motion over the gap would have put it (the nearer of `_motion_over_gap`'s two). Why: where people fill the
         view over the gap, the static scene has too few matches between its ends to judge (Bonn crowd in real time:
-        8-17 over a second), yet its two candidates differ by the whole drag the checks held off (0.4-0.9 m); where
-        the scene could judge such a pair, it took the motion from the anchor 6 times of 6."""
+        8-17 over a second), yet its two candidates differ by the whole drag the checks held off (0.4-1.0 m); where
+        the scene could judge a pair over 0.25 m apart, it took the motion from the anchor 6 times of 7."""
         assert self._out_at_slam_last is not None
         motion = np.linalg.inv(self._out_at_slam_last) @ pose
         return min(step_difference(motion, model)[0] for model in self._motion_over_gap())

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections import deque
 
 import msgpack
 import numpy as np
@@ -32,6 +33,10 @@ from semmap.runtime.transport.stage_service import StageService
 # every n-th step: odometry.repair_behind_check_every; its SLAM tracks every frame)
 BEHIND_FRAMES = 2
 DYNAMIC_KEPT = 64  # frames of dynamic objects kept (real time: boxes may run ahead of or behind the frames)
+# lockstep: frames waiting for their dynamic objects (or an external SLAM's pose), oldest first; beyond this many the
+# oldest is estimated without them (counted): a camera that does not wait for semmap (`semmap run external`) sends
+# frames faster than the detector answers them, and each waiting frame holds its decoded images (~1.5 MB at VGA)
+WAITING_KEPT = 64
 
 
 class OdometryService(StageService):
@@ -55,7 +60,8 @@ class OdometryService(StageService):
         self.dynamic_seen_upto = -1  # real time: the newest frame whose dynamic objects the front end has seen
         self.await_dynamic = self.frontend.uses_dynamic and self.lockstep and bool(self.args.await_dynamic)
         self.dynamic_wait_s = cfg.dynamic_wait_s
-        self.waiting: tuple[Frame, float] | None = None  # lockstep: a frame waiting for its dynamic objects
+        # lockstep: frames waiting for their dynamic objects, oldest first, with when each came
+        self.waiting: deque[tuple[Frame, float]] = deque()
         # an external SLAM's own poses to check (`external`): lockstep waits for each frame's, as for its boxes
         self.slam: dict[int, OdometryPose] = {}
         self.await_slam = self.frontend.needs_slam and self.lockstep
@@ -105,22 +111,36 @@ class OdometryService(StageService):
                     or (self.await_slam and frame_id not in self.slam))
 
     def _try_waiting(self, frame_id: int) -> None:
-        if self.waiting is not None and self.waiting[0].frame_id == frame_id and self._ready(frame_id):
-            self._estimate(self.waiting[0])
+        """What a frame waited for came: the frames at the head of the queue that are ready now, in order."""
+        while self.waiting and self._ready(self.waiting[0][0].frame_id):
+            self._estimate(self.waiting.popleft()[0])
 
     def handle(self, frame: Frame) -> None:
-        if not self._ready(frame.frame_id):
-            if self.waiting is None or self.waiting[0].frame_id != frame.frame_id:  # (not a resent frame)
-                self.waiting = (frame, time.monotonic())
+        """Lockstep: a frame waits for its dynamic objects behind the frames that came before it (in order; a camera
+        that does not wait for semmap sends the next ones meanwhile, and every one is posed)."""
+        if not self.waiting and self._ready(frame.frame_id):
+            self._estimate(frame)
             return
-        self._estimate(frame)
+        if any(waiting.frame_id == frame.frame_id for waiting, _ in self.waiting):
+            return  # (a resent frame: it is waiting already)
+        self.waiting.append((frame, time.monotonic()))
+        while len(self.waiting) > WAITING_KEPT:  # (bounded: the oldest goes on without them, counted)
+            oldest = self.waiting.popleft()[0]
+            self.metrics.count("dynamic_wait_overflow")
+            if self.metrics.counters["dynamic_wait_overflow"] <= 5:
+                self.log.warning("frame %d: %d frames wait for their dynamic objects, estimating it without them",
+                                 oldest.frame_id, WAITING_KEPT)
+            self._estimate(oldest)
+        self._try_waiting(frame.frame_id)
 
     def tick(self) -> None:
-        if self.waiting is not None and time.monotonic() - self.waiting[1] > self.dynamic_wait_s:
+        while self.waiting and time.monotonic() - self.waiting[0][1] > self.dynamic_wait_s:
+            frame = self.waiting.popleft()[0]
             self.metrics.count("dynamic_wait_timeouts")
             self.log.warning("frame %d: no dynamic objects or SLAM pose after %.0f s, estimating without them",
-                             self.waiting[0].frame_id, self.dynamic_wait_s)
-            self._estimate(self.waiting[0])
+                             frame.frame_id, self.dynamic_wait_s)
+            self._estimate(frame)
+            self._try_waiting(frame.frame_id)
 
     def _boxes(self, frame_id: int) -> DynamicObjects | None:
         """The frame's own dynamic objects, else (real time) the newest earlier ones: the tracker, which yields
@@ -140,7 +160,6 @@ class OdometryService(StageService):
         return [(f, self.dynamic[f].stamp, self.dynamic[f].boxes) for f in new]
 
     def _estimate(self, frame: Frame) -> None:
-        self.waiting = None
         with self.metrics.timer("odometry_ms"):
             data = OdometryInput(frame.frame_id, frame.stamp, frame.gt_pose, depth_scale=frame.depth_scale,
                                  intrinsics=frame.intrinsics.matrix)
