@@ -93,7 +93,7 @@ class OdometryService(StageService):
         self.dynamic[message.frame_id] = message
         for old in sorted(self.dynamic)[:-DYNAMIC_KEPT]:
             del self.dynamic[old]
-        self._try_waiting(message.frame_id)
+        self._estimate_ready()
 
     def on_slam(self, message: OdometryPose) -> None:
         if message.frame_id <= self.last_frame_id:
@@ -103,14 +103,14 @@ class OdometryService(StageService):
         for old in sorted(self.slam)[:-DYNAMIC_KEPT]:
             del self.slam[old]
             self.metrics.count("slam_poses_unmatched")
-        self._try_waiting(message.frame_id)
+        self._estimate_ready()
 
     def _ready(self, frame_id: int) -> bool:
         """Lockstep: what this frame waits for has come (its dynamic objects, an external SLAM's pose of it)."""
         return not ((self.await_dynamic and frame_id not in self.dynamic)
                     or (self.await_slam and frame_id not in self.slam))
 
-    def _try_waiting(self, frame_id: int) -> None:
+    def _estimate_ready(self) -> None:
         """What a frame waited for came: the frames at the head of the queue that are ready now, in order."""
         while self.waiting and self._ready(self.waiting[0][0].frame_id):
             self._estimate(self.waiting.popleft()[0])
@@ -131,7 +131,7 @@ class OdometryService(StageService):
                 self.log.warning("frame %d: %d frames wait for their dynamic objects, estimating it without them",
                                  oldest.frame_id, WAITING_KEPT)
             self._estimate(oldest)
-        self._try_waiting(frame.frame_id)
+        self._estimate_ready()
 
     def tick(self) -> None:
         while self.waiting and time.monotonic() - self.waiting[0][1] > self.dynamic_wait_s:
@@ -140,7 +140,7 @@ class OdometryService(StageService):
             self.log.warning("frame %d: no dynamic objects or SLAM pose after %.0f s, estimating without them",
                              frame.frame_id, self.dynamic_wait_s)
             self._estimate(frame)
-            self._try_waiting(frame.frame_id)
+            self._estimate_ready()
 
     def _boxes(self, frame_id: int) -> DynamicObjects | None:
         """The frame's own dynamic objects, else (real time) the newest earlier ones: the tracker, which yields
